@@ -1,0 +1,1 @@
+"""The `hivemap` command line."""

@@ -1,0 +1,57 @@
+"""The `hivemap` command: one sub-command per pipeline stage.
+
+Each package owns its command in its own ``cli.py``; this module only wires them together.
+Heavy imports (gtsam, pycolmap, moderngl) happen inside the commands, so ``hivemap --help`` is fast.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import typer
+
+from hivemap import __version__
+from hivemap.client.cli import agent_command
+from hivemap.eval.cli import app as eval_app
+from hivemap.maps.cli import vocab_app
+from hivemap.server.cli import server_command
+from hivemap.sim.cli import app as sim_app
+
+app = typer.Typer(
+    name="hivemap",
+    help="hivemap: collaborative visual(-inertial) SLAM for teams of UAVs and UGVs.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"hivemap {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log at DEBUG level."),
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print the version and exit."
+    ),
+) -> None:
+    """Collaborative SLAM: run a server, run agents, render datasets, evaluate."""
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+
+
+app.command("server", help="Run the hivemap server (WebSocket ingest, back-end, REST, viewer).")(
+    server_command
+)
+app.command("agent", help="Run one agent: replay a dataset offline or stream it to a server.")(agent_command)
+app.add_typer(sim_app, name="sim", help="Render simulated multi-agent datasets.")
+app.add_typer(vocab_app, name="vocab", help="Train and inspect the ORB vocabulary.")
+app.add_typer(eval_app, name="eval", help="Evaluate trajectories and run the paper's experiments.")
+
+if __name__ == "__main__":
+    app()

@@ -1,0 +1,1 @@
+"""The agent: dataset readers, front-end, second-stage fusion, server link."""

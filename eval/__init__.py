@@ -1,0 +1,1 @@
+"""Multi-agent trajectory evaluation and the experiment runner."""

@@ -1,0 +1,1 @@
+"""The map model shared by agents and server."""

@@ -1,0 +1,159 @@
+"""SE(3) and Sim(3) helpers over numpy arrays.
+
+Conventions (project-wide):
+- Poses are 4x4 float64 matrices named by frames: ``world_from_cam`` maps points in the camera
+  frame to the world frame: ``p_world = R @ p_cam + t``.
+- Quaternions are (w, x, y, z), Hamilton, unit norm.
+- ``Sim3`` follows pycolmap's ``Sim3d``: ``p -> s * R @ p + t``.  gtsam's ``Similarity3(R, t, s)``
+  maps ``p -> s * (R @ p + t)``, so ``t_gtsam = t / s`` (see ``Sim3.to_gtsam``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+F64 = NDArray[np.float64]
+
+
+def se3(R: F64, t: F64) -> F64:
+    """Build a 4x4 SE(3) matrix from a 3x3 rotation and a 3-vector."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def se3_inverse(T: F64) -> F64:
+    """Inverse of a 4x4 SE(3) matrix (exact, without a general matrix inverse)."""
+    R = T[:3, :3]
+    t = T[:3, 3]
+    return se3(R.T, -R.T @ t)
+
+
+def transform_points(T: F64, pts: F64) -> F64:
+    """Apply a 4x4 SE(3) (or similarity) matrix to points of shape (N, 3); returns (N, 3)."""
+    pts = np.asarray(pts, dtype=np.float64)
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+def quat_wxyz_from_rotmat(R: F64) -> F64:
+    """Rotation matrix (3, 3) -> unit quaternion (w, x, y, z) with w >= 0."""
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z])
+    return q if q[0] >= 0 else -q
+
+
+def rotmat_from_quat_wxyz(q: F64) -> F64:
+    """Unit quaternion (w, x, y, z) -> rotation matrix (3, 3)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64)
+    return Rotation.from_quat([x, y, z, w]).as_matrix()
+
+
+def so3_exp(w: F64) -> F64:
+    """Rotation vector (3,) -> rotation matrix (3, 3)."""
+    return Rotation.from_rotvec(np.asarray(w, dtype=np.float64)).as_matrix()
+
+
+def so3_log(R: F64) -> F64:
+    """Rotation matrix (3, 3) -> rotation vector (3,)."""
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def rotation_angle_deg(R: F64) -> float:
+    """Angle of a rotation matrix in degrees (0..180)."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+@dataclass(frozen=True)
+class Sim3:
+    """A similarity transform ``p -> s * R @ p + t`` (pycolmap ``Sim3d`` convention).
+
+    ``R``: (3, 3) rotation, ``t``: (3,) translation, ``s``: positive scale.
+    """
+
+    R: F64
+    t: F64
+    s: float = 1.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64).reshape(3, 3))
+        object.__setattr__(self, "t", np.asarray(self.t, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "s", float(self.s))
+        if not self.s > 0 or not np.isfinite(self.s):
+            raise ValueError(f"Sim3 scale must be finite and > 0, got {self.s}")
+
+    @staticmethod
+    def identity() -> Sim3:
+        return Sim3(np.eye(3), np.zeros(3), 1.0)
+
+    @staticmethod
+    def from_se3(T: F64) -> Sim3:
+        """A rigid 4x4 transform as a Sim3 with scale 1."""
+        return Sim3(T[:3, :3], T[:3, 3], 1.0)
+
+    @staticmethod
+    def from_matrix(M: F64) -> Sim3:
+        """4x4 matrix ``[[sR, t], [0, 1]]`` -> Sim3."""
+        A = np.asarray(M, dtype=np.float64)[:3, :3]
+        s = float(np.cbrt(np.linalg.det(A)))
+        return Sim3(A / s, M[:3, 3], s)
+
+    def matrix(self) -> F64:
+        """4x4 matrix ``[[sR, t], [0, 1]]``."""
+        M = np.eye(4)
+        M[:3, :3] = self.s * self.R
+        M[:3, 3] = self.t
+        return M
+
+    def apply(self, pts: F64) -> F64:
+        """Transform points of shape (N, 3) or (3,)."""
+        pts = np.asarray(pts, dtype=np.float64)
+        return self.s * (pts @ self.R.T) + self.t
+
+    def inverse(self) -> Sim3:
+        Rinv = self.R.T
+        return Sim3(Rinv, -(Rinv @ self.t) / self.s, 1.0 / self.s)
+
+    def __matmul__(self, other: Sim3) -> Sim3:
+        """Composition: ``(a @ b).apply(p) == a.apply(b.apply(p))``."""
+        return Sim3(self.R @ other.R, self.s * (self.R @ other.t) + self.t, self.s * other.s)
+
+    def transform_pose(self, world_from_cam: F64) -> F64:
+        """Move a camera pose (4x4 SE(3)) by this similarity: the result stays rigid.
+
+        The camera centre is mapped by the similarity and the orientation rotated by ``R``.
+        """
+        out = np.eye(4)
+        out[:3, :3] = self.R @ world_from_cam[:3, :3]
+        out[:3, 3] = self.apply(world_from_cam[:3, 3])
+        return out
+
+    # --- library conversions -------------------------------------------------------------
+    def to_gtsam(self) -> Any:
+        """-> ``gtsam.Similarity3`` (which maps ``p -> s (R p + t)``, hence ``t / s``)."""
+        import gtsam
+
+        return gtsam.Similarity3(gtsam.Rot3(self.R), gtsam.Point3(*(self.t / self.s)), self.s)
+
+    @staticmethod
+    def from_gtsam(sim: Any) -> Sim3:
+        s = float(sim.scale())
+        return Sim3(sim.rotation().matrix(), np.asarray(sim.translation()) * s, s)
+
+    def to_pycolmap(self) -> Any:
+        """-> ``pycolmap.Sim3d`` (same convention)."""
+        import pycolmap
+
+        x, y, z, w = Rotation.from_matrix(self.R).as_quat()
+        return pycolmap.Sim3d(self.s, pycolmap.Rotation3d(np.array([x, y, z, w])), self.t)
+
+    @staticmethod
+    def from_pycolmap(sim: Any) -> Sim3:
+        M = np.asarray(sim.matrix())
+        return Sim3.from_matrix(np.vstack([M[:3, :4], [0, 0, 0, 1]]))

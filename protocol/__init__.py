@@ -1,0 +1,1 @@
+"""Wire protocol v1: message dataclasses, msgpack codec, validation (numpy + msgpack only)."""

@@ -1,0 +1,1 @@
+"""The hivemap server: ingest, map stack, collaboration back-end, REST, viewer."""

@@ -1,0 +1,1 @@
+"""Simulation: world generator, renderer, trajectories, sensors, dataset writer."""

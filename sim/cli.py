@@ -1,0 +1,7 @@
+"""`hivemap sim` sub-commands (owned by the sim package)."""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(no_args_is_help=True)
