@@ -1,0 +1,176 @@
+// hivemap live map viewer: points of every map, keyframe trajectories per agent, current agent
+// positions, merge/loop events, and a side panel (agents, maps, bandwidth). Polls the REST API.
+import * as THREE from "three";
+import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
+
+const POLL_MS = 1000;
+const PALETTE = [0xe6194b, 0x3cb44b, 0x4363d8, 0xf58231, 0x911eb4, 0x42d4f4, 0xf032e6, 0xbfef45];
+const state = { maps: [], agents: [], events: [], pointCounts: {}, colors: {}, drawnPoints: 0 };
+
+const canvas = document.getElementById("view");
+const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+renderer.setPixelRatio(window.devicePixelRatio);
+const scene = new THREE.Scene();
+scene.background = new THREE.Color(0x14171c);
+const camera = new THREE.PerspectiveCamera(55, 1, 0.1, 5000);
+camera.up.set(0, 0, 1); // hivemap frames are z-up
+camera.position.set(-60, -80, 90);
+const controls = new OrbitControls(camera, canvas);
+controls.target.set(0, 0, 0);
+controls.update();
+const grid = new THREE.GridHelper(200, 20, 0x3a3f47, 0x262a30);
+grid.rotation.x = Math.PI / 2;
+scene.add(grid);
+
+const pointGroup = new THREE.Group();
+const trajGroup = new THREE.Group();
+const agentGroup = new THREE.Group();
+const eventGroup = new THREE.Group();
+scene.add(pointGroup, trajGroup, agentGroup, eventGroup);
+
+function colorOf(agentId) {
+  if (!(agentId in state.colors)) {
+    state.colors[agentId] = PALETTE[Object.keys(state.colors).length % PALETTE.length];
+  }
+  return state.colors[agentId];
+}
+
+function resize() {
+  const w = canvas.clientWidth;
+  const h = canvas.clientHeight;
+  if (canvas.width !== w || canvas.height !== h) {
+    renderer.setSize(w, h, false);
+    camera.aspect = w / h;
+    camera.updateProjectionMatrix();
+  }
+}
+
+async function getJSON(url) {
+  const r = await fetch(url);
+  if (!r.ok) throw new Error(`${url}: HTTP ${r.status}`);
+  return r.json();
+}
+
+// Binary little-endian PLY with x, y, z vertex properties (float or double), other properties skipped.
+export function parsePly(buffer) {
+  const bytes = new Uint8Array(buffer);
+  const headerEnd = new TextDecoder().decode(bytes.subarray(0, Math.min(bytes.length, 4096))).indexOf("end_header\n");
+  if (headerEnd < 0) throw new Error("PLY: no end_header");
+  const header = new TextDecoder().decode(bytes.subarray(0, headerEnd)).split("\n");
+  let count = 0;
+  const props = [];
+  let inVertex = false;
+  for (const line of header) {
+    const f = line.trim().split(/\s+/);
+    if (f[0] === "element") { inVertex = f[1] === "vertex"; if (inVertex) count = parseInt(f[2], 10); }
+    else if (f[0] === "property" && inVertex) props.push({ type: f[1], name: f[2] });
+  }
+  const size = { float: 4, float32: 4, double: 8, float64: 8, uchar: 1, uint8: 1, char: 1, int8: 1,
+    short: 2, int16: 2, ushort: 2, uint16: 2, int: 4, int32: 4, uint: 4, uint32: 4 };
+  let stride = 0;
+  const off = {};
+  for (const p of props) { off[p.name] = { o: stride, t: p.type }; stride += size[p.type]; }
+  const dv = new DataView(buffer, headerEnd + "end_header\n".length);
+  const xyz = new Float32Array(count * 3);
+  const read = (base, p) => (p.t === "double" || p.t === "float64") ? dv.getFloat64(base + p.o, true) : dv.getFloat32(base + p.o, true);
+  for (let i = 0; i < count; i++) {
+    const base = i * stride;
+    xyz[3 * i] = read(base, off.x); xyz[3 * i + 1] = read(base, off.y); xyz[3 * i + 2] = read(base, off.z);
+  }
+  return xyz;
+}
+
+async function refreshPoints() {
+  const children = [];
+  let total = 0;
+  for (const m of state.maps) {
+    const r = await fetch(`/maps/${m.id}/points?format=ply`);
+    if (!r.ok) continue;
+    const xyz = parsePly(await r.arrayBuffer());
+    const geom = new THREE.BufferGeometry();
+    geom.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
+    const mat = new THREE.PointsMaterial({ size: 0.25, color: 0xd0d4da, sizeAttenuation: true });
+    const pts = new THREE.Points(geom, mat);
+    pts.userData.mapId = m.id;
+    children.push(pts);
+    total += xyz.length / 3;
+  }
+  pointGroup.clear();
+  for (const c of children) pointGroup.add(c);
+  state.drawnPoints = total;
+  document.body.dataset.points = String(total);
+}
+
+async function refreshTrajectories() {
+  trajGroup.clear();
+  agentGroup.clear();
+  for (const a of state.agents) {
+    let traj;
+    try { traj = await getJSON(`/agents/${encodeURIComponent(a.agent_id)}/trajectory?frame=global&format=json`); }
+    catch { continue; }
+    const poses = traj.poses || traj;
+    if (!poses.length) continue;
+    const pos = new Float32Array(poses.length * 3);
+    poses.forEach((p, i) => { const t = p.t || p.position || [p.x, p.y, p.z]; pos.set(t, 3 * i); });
+    const geom = new THREE.BufferGeometry();
+    geom.setAttribute("position", new THREE.BufferAttribute(pos, 3));
+    trajGroup.add(new THREE.Line(geom, new THREE.LineBasicMaterial({ color: colorOf(a.agent_id) })));
+    const head = new THREE.Mesh(new THREE.SphereGeometry(0.8, 16, 12), new THREE.MeshBasicMaterial({ color: colorOf(a.agent_id) }));
+    head.position.set(pos[pos.length - 3], pos[pos.length - 2], pos[pos.length - 1]);
+    head.userData.agentId = a.agent_id;
+    agentGroup.add(head);
+  }
+  document.body.dataset.agentsDrawn = String(agentGroup.children.length);
+}
+
+function fmtRate(b) { return b > 1024 ? `${(b / 1024).toFixed(1)} KB/s` : `${Math.round(b)} B/s`; }
+
+function renderPanel() {
+  const agents = state.agents.map((a) => {
+    const c = "#" + colorOf(a.agent_id).toString(16).padStart(6, "0");
+    const bw = a.bandwidth || {};
+    return `<tr data-agent="${a.agent_id}"><td><span class="sw" style="background:${c}"></span>${a.agent_id}</td>` +
+      `<td>${a.kind ?? ""}</td><td>${a.state ?? ""}</td><td>${a.keyframes ?? 0}</td><td>${a.map_id ?? ""}</td>` +
+      `<td>${fmtRate(bw.up_avg ?? 0)} / ${fmtRate(bw.up_peak ?? 0)}</td><td>${fmtRate(bw.down_avg ?? 0)}</td></tr>`;
+  }).join("");
+  const maps = state.maps.map((m) => `<tr><td>${m.id}</td><td>${(m.agents || []).join(", ")}</td>` +
+    `<td>${m.keyframes ?? ""}</td><td>${m.points ?? ""}</td></tr>`).join("");
+  const events = state.events.slice(-12).reverse().map((e) => `<li>${e.kind ?? e.type}: ${e.message ?? ""}</li>`).join("");
+  document.getElementById("agents").innerHTML = agents;
+  document.getElementById("maps").innerHTML = maps;
+  document.getElementById("events").innerHTML = events;
+  document.getElementById("status").textContent = `${state.drawnPoints} points, ${state.agents.length} agents, ${state.maps.length} maps`;
+}
+
+let lastPointsFetch = 0;
+async function poll() {
+  try {
+    const [agents, maps, events] = await Promise.all([getJSON("/agents"), getJSON("/maps"), getJSON("/events")]);
+    state.agents = agents.agents || agents;
+    state.maps = maps.maps || maps;
+    state.events = events.events || events;
+    const counts = JSON.stringify(state.maps.map((m) => [m.id, m.points]));
+    const now = Date.now();
+    if (counts !== state.lastCounts && now - lastPointsFetch > 2000) {
+      state.lastCounts = counts;
+      lastPointsFetch = now;
+      await refreshPoints();
+    }
+    await refreshTrajectories();
+    renderPanel();
+    document.body.dataset.ready = "1";
+  } catch (err) {
+    document.getElementById("status").textContent = `connection problem: ${err.message}`;
+  }
+  setTimeout(poll, POLL_MS);
+}
+
+function animate() {
+  resize();
+  controls.update();
+  renderer.render(scene, camera);
+  requestAnimationFrame(animate);
+}
+
+animate();
+poll();
