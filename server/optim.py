@@ -1,0 +1,222 @@
+"""Global optimisation primitives of the back-end, as pure functions over arrays.
+
+- :func:`optimize_pose_graph_sim3`: Sim(3) pose-graph optimisation over keyframe poses (gtsam
+  ``BetweenFactorSimilarity3``), as ORB-SLAM's essential-graph optimisation after a loop or merge.
+- :func:`global_bundle_adjustment`: full BA of keyframe poses and points with pycolmap (Ceres).
+
+Both are independent of the map model so they can run in a background worker on a snapshot.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.camera import PinholeCamera
+from hivemap.maps.geometry import Sim3, se3, se3_inverse
+
+log = logging.getLogger(__name__)
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PoseGraphEdge:
+    """A relative Sim(3) constraint ``cam_i_from_cam_j`` between keyframes ``i`` and ``j``.
+
+    ``sigma_rot`` (rad), ``sigma_trans`` (m), ``sigma_logscale`` are the standard deviations of the
+    measurement; ``robust`` applies a Huber loss (loop/merge edges, paper's peers do this).
+    """
+
+    i: int
+    j: int
+    i_from_j: Sim3
+    sigma_rot: float = 0.01
+    sigma_trans: float = 0.05
+    sigma_logscale: float = 0.01
+    robust: bool = False
+
+
+@dataclass(frozen=True)
+class PoseGraphOptions:
+    max_iterations: int = 100
+    huber_k: float = 1.345
+    relative_error_tol: float = 1e-7
+
+
+def optimize_pose_graph_sim3(
+    world_from_cam: F64,
+    edges: list[PoseGraphEdge],
+    fixed: set[int] | frozenset[int],
+    options: PoseGraphOptions = PoseGraphOptions(),
+) -> list[Sim3]:
+    """Optimise keyframe poses under relative Sim(3) constraints.
+
+    world_from_cam: (N, 4, 4) initial SE(3) poses. ``fixed``: indices held constant (at least one).
+    Returns N ``Sim3`` ``world_from_cam`` (scale may differ from 1 where drift was in scale).
+    Points anchored to keyframe ``i`` follow with ``new[i] @ Sim3.from_se3(old_i).inverse()``.
+    """
+    import gtsam
+
+    poses = np.asarray(world_from_cam, dtype=np.float64)
+    n = len(poses)
+    if n == 0:
+        return []
+    if not fixed:
+        raise ValueError("optimize_pose_graph_sim3 needs at least one fixed keyframe (gauge)")
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    for k in range(n):
+        initial.insert(k, Sim3.from_se3(poses[k]).to_gtsam())
+    anchor = gtsam.noiseModel.Constrained.All(7)
+    for k in sorted(fixed):
+        if not 0 <= k < n:
+            raise IndexError(f"fixed keyframe index {k} out of range 0..{n - 1}")
+        graph.add(gtsam.NonlinearEqualitySimilarity3(k, Sim3.from_se3(poses[k]).to_gtsam()))
+    del anchor
+    for e in edges:
+        if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
+            raise IndexError(f"pose-graph edge ({e.i}, {e.j}) invalid for {n} keyframes")
+        sig = np.array([e.sigma_rot] * 3 + [e.sigma_trans] * 3 + [e.sigma_logscale])
+        noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
+        if e.robust:
+            noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k), noise
+            )
+        graph.add(gtsam.BetweenFactorSimilarity3(e.i, e.j, e.i_from_j.to_gtsam(), noise))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(options.max_iterations)
+    params.setRelativeErrorTol(options.relative_error_tol)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    out = [Sim3.from_gtsam(result.atSimilarity3(k)) for k in range(n)]
+    log.debug(
+        "pose graph: %d keyframes, %d edges, error %.3g -> %.3g",
+        n,
+        len(edges),
+        graph.error(initial),
+        graph.error(result),
+    )
+    return out
+
+
+def relative_sim3(world_from_i: F64, world_from_j: F64) -> Sim3:
+    """``i_from_j`` between two SE(3) poses, as a Sim3 with scale 1."""
+    return Sim3.from_se3(se3_inverse(world_from_i) @ world_from_j)
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentOptions:
+    max_iterations: int = 50
+    huber_px: float = 2.0
+    num_threads: int = 1
+
+
+@dataclass
+class BundleAdjustmentResult:
+    world_from_cam: F64
+    points: F64
+    initial_rmse_px: float
+    final_rmse_px: float
+    iterations: int = 0
+    extras: dict[str, float] = field(default_factory=dict)
+
+
+def global_bundle_adjustment(
+    cameras: list[PinholeCamera],
+    camera_index: NDArray[np.int64],
+    world_from_cam: F64,
+    points: F64,
+    obs_kf: NDArray[np.int64],
+    obs_pt: NDArray[np.int64],
+    obs_uv: F64,
+    fixed_kfs: set[int] | frozenset[int],
+    options: BundleAdjustmentOptions = BundleAdjustmentOptions(),
+) -> BundleAdjustmentResult:
+    """Jointly refine keyframe poses and points (pycolmap / Ceres), intrinsics held constant.
+
+    cameras: the distinct camera models; camera_index (N,) picks one per keyframe.
+    world_from_cam (N, 4, 4); points (M, 3); observations as parallel arrays obs_kf (K,), obs_pt (K,),
+    obs_uv (K, 2) in distorted pixels. ``fixed_kfs``: keyframes held constant; at least two of them,
+    or one plus the two-camera gauge, so the problem has no free similarity (DESIGN.md: holding one
+    pose fixes only 6 DoF).
+    """
+    import pycolmap
+
+    poses = np.asarray(world_from_cam, dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
+    n, m = len(poses), len(pts)
+    if len(obs_kf) != len(obs_pt) or len(obs_kf) != len(obs_uv):
+        raise ValueError("obs_kf, obs_pt and obs_uv must have the same length")
+    if len(obs_kf) and (obs_kf.max() >= n or obs_pt.max() >= m or obs_kf.min() < 0 or obs_pt.min() < 0):
+        raise IndexError("observation refers to a keyframe or point out of range")
+    rec = pycolmap.Reconstruction()
+    for ci, cam in enumerate(cameras):
+        c = pycolmap.Camera(
+            model="OPENCV",
+            width=cam.width,
+            height=cam.height,
+            params=[cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist],
+            camera_id=ci + 1,
+        )
+        rec.add_camera_with_trivial_rig(c)
+    order = np.argsort(obs_kf, kind="stable")
+    kf_sorted = obs_kf[order]
+    starts = np.searchsorted(kf_sorted, np.arange(n + 1))
+    point2d_index = np.empty(len(obs_kf), dtype=np.int64)
+    for k in range(n):
+        sel = order[starts[k] : starts[k + 1]]
+        point2d_index[sel] = np.arange(len(sel))
+        img = pycolmap.Image(
+            name=f"kf{k}",
+            keypoints=np.asarray(obs_uv[sel], dtype=np.float64).reshape(-1, 2),
+            camera_id=int(camera_index[k]) + 1,
+            image_id=k + 1,
+        )
+        cw = se3_inverse(poses[k])
+        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(cw[:3, :]))
+    tracks: list[list[tuple[int, int]]] = [[] for _ in range(m)]
+    for o in range(len(obs_kf)):
+        tracks[int(obs_pt[o])].append((int(obs_kf[o]) + 1, int(point2d_index[o])))
+    point_ids = np.full(m, -1, dtype=np.int64)
+    for p in range(m):
+        if len(tracks[p]) < 2:
+            continue
+        track = pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in tracks[p]])
+        point_ids[p] = rec.add_point3D(pts[p], track)
+    rec.update_point_3d_errors()
+    initial = float(rec.compute_mean_reprojection_error())
+
+    ba_opts = pycolmap.BundleAdjustmentOptions()
+    ba_opts.print_summary = False
+    ba_opts.refine_focal_length = False
+    ba_opts.refine_principal_point = False
+    ba_opts.refine_extra_params = False
+    ba_opts.ceres.solver_options.max_num_iterations = options.max_iterations
+    ba_opts.ceres.solver_options.num_threads = options.num_threads
+    ba_opts.ceres.loss_function_type = pycolmap.LossFunctionType.HUBER
+    ba_opts.ceres.loss_function_scale = options.huber_px
+    config = pycolmap.BundleAdjustmentConfig()
+    for k in range(n):
+        config.add_image(k + 1)
+        if k in fixed_kfs:
+            config.set_constant_rig_from_world_pose(k + 1)
+    if len(fixed_kfs) < 2:
+        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    for ci in range(len(cameras)):
+        config.set_constant_cam_intrinsics(ci + 1)
+    adjuster = pycolmap.create_default_bundle_adjuster(ba_opts, config, rec)
+    summary = adjuster.solve()
+    out_poses = poses.copy()
+    for k in range(n):
+        cw = np.asarray(rec.image(k + 1).cam_from_world().matrix())
+        out_poses[k] = se3_inverse(se3(cw[:3, :3], cw[:3, 3]))
+    out_pts = pts.copy()
+    for p in range(m):
+        if point_ids[p] >= 0:
+            out_pts[p] = rec.point3D(int(point_ids[p])).xyz
+    rec.update_point_3d_errors()
+    final = float(rec.compute_mean_reprojection_error())
+    iters = int(getattr(summary, "num_successful_steps", 0) or 0)
+    return BundleAdjustmentResult(out_poses, out_pts, initial, final, iters)
