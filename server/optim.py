@@ -70,12 +70,10 @@ def optimize_pose_graph_sim3(
     initial = gtsam.Values()
     for k in range(n):
         initial.insert(k, Sim3.from_se3(poses[k]).to_gtsam())
-    anchor = gtsam.noiseModel.Constrained.All(7)
     for k in sorted(fixed):
         if not 0 <= k < n:
             raise IndexError(f"fixed keyframe index {k} out of range 0..{n - 1}")
         graph.add(gtsam.NonlinearEqualitySimilarity3(k, Sim3.from_se3(poses[k]).to_gtsam()))
-    del anchor
     for e in edges:
         if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
             raise IndexError(f"pose-graph edge ({e.i}, {e.j}) invalid for {n} keyframes")
