@@ -78,7 +78,7 @@ def optimize_pose_graph_sim3(
         if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
             raise IndexError(f"pose-graph edge ({e.i}, {e.j}) invalid for {n} keyframes")
         sig = np.array([e.sigma_rot] * 3 + [e.sigma_trans] * 3 + [e.sigma_logscale])
-        noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
+        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(sig)
         if e.robust:
             noise = gtsam.noiseModel.Robust.Create(
                 gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k), noise
