@@ -1,0 +1,164 @@
+"""The server's global GNSS stage (paper 2.5.3; VINS-Fusion ``global_fusion`` style).
+
+After global BA, a gtsam graph over a merged map's keyframe poses: relative-pose factors between
+consecutive keyframes of each agent (from the BA result) plus a GNSS position factor per fix,
+weighted by the fix's covariance under a Huber loss. Its output is ``enu_from_map`` (the rigid
+transform that moves the whole map into ENU) and the corrected poses. Fixes more than
+``outlier_sigma`` sigmas off after a first solve are rejected and the graph is solved again.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.geometry import se3, se3_inverse
+
+log = logging.getLogger(__name__)
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class GnssStageOptions:
+    min_fixes: int = 3
+    min_spread_m: float = 5.0  # the fixes must span this much horizontally to fix yaw
+    sigma_rel_rot: float = 0.002  # rad, per metre travelled (+ floor below)
+    sigma_rel_trans: float = 0.005  # m per metre travelled
+    sigma_floor_rot: float = 0.001
+    sigma_floor_trans: float = 0.005
+    huber_k: float = 1.345
+    # The map is gravity-aligned (IMU): estimate only yaw + translation into ENU and hold each
+    # keyframe's roll/pitch with an attitude factor, as GNSS barely observes tilt.
+    gravity_aligned: bool = True
+    sigma_attitude: float = 0.005  # rad
+    outlier_sigma: float = 10.0
+    max_iterations: int = 50
+
+
+@dataclass(frozen=True)
+class GnssFix:
+    """A fix attached to keyframe ``index``: ENU position (3,) and its 3x3 covariance."""
+
+    index: int
+    enu: F64
+    cov: F64
+
+
+@dataclass
+class GnssStageResult:
+    enu_from_map: F64  # 4x4 rigid transform from the map's (global) frame to ENU
+    world_from_body: F64  # (N, 4, 4) corrected poses in ENU
+    used: NDArray[np.bool_]  # per fix: fused (True) or rejected as outlier (False)
+    residuals_m: F64  # per fix, after the final solve
+
+
+class NotEnoughFixes(ValueError):
+    """The fixes do not constrain the map's pose in ENU (too few or too close together)."""
+
+
+def fuse_gnss(
+    world_from_body: F64,
+    chains: list[list[int]],
+    fixes: list[GnssFix],
+    options: GnssStageOptions = GnssStageOptions(),
+) -> GnssStageResult:
+    """Move a map into ENU and bend it onto the GNSS fixes.
+
+    world_from_body: (N, 4, 4) keyframe poses in the map frame (after BA).
+    chains: per agent, keyframe indices in time order; consecutive ones get relative-pose factors.
+    fixes: GNSS fixes attached to keyframes. Raises :class:`NotEnoughFixes` when they cannot fix
+    the map in ENU (fewer than ``min_fixes``, or spread less than ``min_spread_m``).
+    """
+    import gtsam
+    from evo.core.geometry import umeyama_alignment
+
+    poses = np.asarray(world_from_body, dtype=np.float64)
+    n = len(poses)
+    if len(fixes) < options.min_fixes:
+        raise NotEnoughFixes(f"{len(fixes)} GNSS fixes, need at least {options.min_fixes}")
+    idx = np.array([f.index for f in fixes])
+    if idx.min() < 0 or idx.max() >= n:
+        raise IndexError("a GNSS fix refers to a keyframe out of range")
+    enu = np.array([f.enu for f in fixes], dtype=np.float64)
+    spread = float(np.linalg.norm(enu[:, :2].max(axis=0) - enu[:, :2].min(axis=0)))
+    if spread < options.min_spread_m:
+        raise NotEnoughFixes(f"GNSS fixes span {spread:.1f} m, need {options.min_spread_m} m to fix yaw")
+    # Initial alignment: rigid Umeyama (evo) between keyframe positions and fixes; in the
+    # horizontal plane only (yaw + translation) when the map is gravity-aligned.
+    if options.gravity_aligned:
+        R2d, t2d, _ = umeyama_alignment(poses[idx, :2, 3].T, enu[:, :2].T, with_scale=False)
+        R = np.eye(3)
+        R[:2, :2] = R2d
+        t = np.array([t2d[0], t2d[1], float(np.mean(enu[:, 2] - poses[idx, 2, 3]))])
+    else:
+        R, t, _ = umeyama_alignment(poses[idx, :3, 3].T, enu.T, with_scale=False)
+    enu_from_map0 = se3(R, t)
+    init = np.array([enu_from_map0 @ p for p in poses])
+    used = np.ones(len(fixes), dtype=bool)
+
+    def solve(mask: NDArray[np.bool_]) -> F64:
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        for k in range(n):
+            values.insert(k, gtsam.Pose3(init[k]))
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k)
+        for chain in chains:
+            for a, b in zip(chain[:-1], chain[1:], strict=False):
+                rel = se3_inverse(poses[a]) @ poses[b]
+                dist = float(np.linalg.norm(rel[:3, 3]))
+                sig = np.array(
+                    [options.sigma_floor_rot + options.sigma_rel_rot * dist] * 3
+                    + [options.sigma_floor_trans + options.sigma_rel_trans * dist] * 3
+                )
+                graph.add(
+                    gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(rel), gtsam.noiseModel.Diagonal.Sigmas(sig))
+                )
+        for f, ok in zip(fixes, mask, strict=True):
+            if ok:
+                model = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(f.cov))
+                graph.add(gtsam.GPSFactor(f.index, np.asarray(f.enu, dtype=np.float64), model))
+        # Keyframes of no chain and without fixes would be unconstrained: anchor all loosely.
+        loose = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0] * 3 + [100.0] * 3))
+        for k in range(n):
+            graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(init[k]), loose))
+            if options.gravity_aligned:
+                down_in_body = init[k, :3, :3].T @ np.array([0.0, 0.0, -1.0])
+                graph.add(
+                    gtsam.AttitudeFactorPose3(
+                        k,
+                        gtsam.Unit3(np.array([0.0, 0.0, -1.0])),
+                        gtsam.noiseModel.Isotropic.Sigma(2, options.sigma_attitude),
+                        gtsam.Unit3(down_in_body),
+                    )
+                )
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(options.max_iterations)
+        res = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        return np.array([res.atPose3(k).matrix() for k in range(n)])
+
+    out = solve(used)
+    for _ in range(3):
+        res = out[idx, :3, 3] - enu
+        maha = np.array(
+            [float(np.sqrt(r @ np.linalg.solve(f.cov, r))) for r, f in zip(res, fixes, strict=True)]
+        )
+        bad = used & (maha > options.outlier_sigma)
+        if not bad.any():
+            break
+        log.warning(
+            "GNSS stage: rejecting %d fix(es) over %.0f sigma: %s",
+            bad.sum(),
+            options.outlier_sigma,
+            [fixes[i].index for i in np.flatnonzero(bad)],
+        )
+        used &= ~bad
+        out = solve(used)
+    residuals = np.linalg.norm(out[idx, :3, 3] - enu, axis=1)
+    # The map-level transform: rigid alignment of the original poses onto the corrected ones.
+    R2, t2, _ = (
+        umeyama_alignment(poses[:, :3, 3].T, out[:, :3, 3].T, with_scale=False) if n >= 3 else (R, t, 1.0)
+    )
+    return GnssStageResult(se3(R2, t2), out, used, residuals)
