@@ -1,0 +1,490 @@
+"""The agent's second stage (paper 003, section 2.2, eqs. 1-3): GNSS + co-location fusion.
+
+A gtsam iSAM2 pose graph over keyframe poses ``local_from_kf`` (one ``Pose3`` per keyframe; ``kf`` is
+whatever frame the caller's keyframe poses use, normally the left camera as in the protocol):
+
+- relative-pose factors from the front-end (eq. 1): ``BetweenFactorPose3`` with the front-end's 6x6
+  covariance in gtsam's tangent order ``[rot, trans]`` (body-frame perturbation, ``T * Exp(xi)``);
+- GNSS position factors (eq. 2): ``GPSFactor`` (or ``GPSFactorArm`` with a lever arm
+  ``kf_from_antenna``) on an ENU position with the fix's 3x3 covariance.  A fix whose Mahalanobis
+  distance to the predicted antenna position (predicted covariance + fix covariance) exceeds
+  ``gnss_gate_sigma`` is rejected and logged (a chi-square gate on 3 dof);
+- co-location factors (eq. 3) from server corrections: a prior on the keyframe's local-frame pose
+  with a given covariance; a newer correction of the same keyframe replaces the older factor;
+- a loose prior on the first pose of every segment (iSAM2 is indeterminate with GNSS factors only).
+  With a gravity-aligned VIO frame the prior is tight on roll/pitch and loose on yaw and position.
+
+The **local frame** equals the VIO frame until GNSS or co-location factors move it.  When GNSS
+arrives, the estimate is re-initialised once (translation after the first fix, yaw + translation
+once the fixes span ``align_min_spread_m``): iSAM2 linearises around its current estimate, and a
+90 degree yaw jump is far outside what incremental relinearisation handles well.
+
+After each update ``local_from_vio`` is re-estimated (yaw + translation when gravity-aligned, else
+SE(3), least-squares on keyframe positions; Umeyama without scale from evo), and the pose of any
+frame in the local frame is available by interpolating the per-keyframe correction
+``local_from_kf @ inv(vio_from_kf)`` between the neighbouring keyframes (:meth:`local_from_frame`).
+
+Segments: when the front-end starts a new map (tracking lost, new VIO frame), call
+:meth:`add_keyframe` with ``new_segment=True``; the segment gets its own loose prior and its own
+``local_from_vio``.  GNSS or co-location factors tie segments together in the local frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation, Slerp
+
+from hivemap.maps.geometry import Sim3, se3, se3_inverse
+
+F64 = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SecondStageOptions:
+    """Tuning of the second stage. Distances in metres, angles in radians."""
+
+    gravity_aligned: bool = True
+    """The VIO frame's z axis is up (IMU): roll/pitch are observable, only yaw + translation drift."""
+    first_prior_sigma_pos: float = 100.0
+    """Loose prior on the first pose's position (per segment)."""
+    first_prior_sigma_yaw: float = math.pi
+    """Loose prior on the first pose's yaw."""
+    first_prior_sigma_tilt: float = 0.05
+    """Prior on the first pose's roll/pitch when gravity-aligned (else the yaw sigma is used)."""
+    kf_from_antenna: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """GNSS antenna position in the keyframe frame (lever arm); zeros -> plain ``GPSFactor``."""
+    gnss_gate_sigma: float = 10.0
+    """Reject a fix whose Mahalanobis distance to the prediction exceeds this (chi-square gate)."""
+    gnss_max_consecutive_rejections: int = 5
+    """After this many rejections in a row the next fix is accepted anyway (recovers from an
+    over-confident prediction); 0 disables the safety valve."""
+    align_min_spread_m: float = 5.0
+    """Horizontal spread of accepted fixes needed before the yaw re-initialisation."""
+    relinearize_threshold: float = 0.01
+    relinearize_skip: int = 1
+    extra_iterations: int = 1
+    """Extra ``update()`` calls after each new factor batch (lets iSAM2 relinearise)."""
+
+
+@dataclass
+class _Kf:
+    kf_id: int
+    timestamp: float
+    vio_from_kf: F64
+    segment: int
+    fixes: list[tuple[F64, F64]] = field(default_factory=list)  # accepted (enu, cov)
+
+
+@dataclass(frozen=True)
+class GnssDecision:
+    """Outcome of :meth:`SecondStage.add_gnss`."""
+
+    accepted: bool
+    mahalanobis: float
+    residual_m: float
+    forced: bool = False
+
+
+def _key(kf_id: int) -> int:
+    import gtsam
+
+    return int(gtsam.symbol("k", int(kf_id)))
+
+
+def _gaussian(cov: F64) -> Any:
+    import gtsam
+
+    cov = np.asarray(cov, dtype=np.float64)
+    cov = 0.5 * (cov + cov.T)
+    return gtsam.noiseModel.Gaussian.Covariance(cov)
+
+
+def yaw_translation_alignment(src: F64, dst: F64) -> F64:
+    """Least-squares ``dst ~ Rz(yaw) src + t`` for points (N, 3); returns the 4x4 transform.
+
+    The gravity-aligned case of Umeyama/Kabsch: rotation about z only, no scale. N >= 1
+    (with one point, or points on a vertical line, the yaw is 0).
+    """
+    src = np.asarray(src, dtype=np.float64).reshape(-1, 3)
+    dst = np.asarray(dst, dtype=np.float64).reshape(-1, 3)
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - ms, dst - md
+    s = float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+    c = float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    yaw = math.atan2(s, c) if abs(s) + abs(c) > 1e-12 else 0.0
+    R = Rotation.from_euler("z", yaw).as_matrix()
+    return se3(R, md - R @ ms)
+
+
+def rigid_alignment(src: F64, dst: F64) -> F64:
+    """Least-squares SE(3) ``dst ~ R src + t`` (Umeyama without scale, evo's implementation)."""
+    from evo.core.geometry import umeyama_alignment
+
+    R, t, _ = umeyama_alignment(np.asarray(src, float).T, np.asarray(dst, float).T, False)
+    return se3(R, t)
+
+
+def interpolate_se3(a: F64, b: F64, alpha: float) -> F64:
+    """Interpolate two 4x4 rigid transforms: slerp on rotation, linear on translation."""
+    alpha = float(np.clip(alpha, 0.0, 1.0))
+    rots = Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]]))
+    R = Slerp([0.0, 1.0], rots)([alpha]).as_matrix()[0]
+    return se3(R, (1.0 - alpha) * a[:3, 3] + alpha * b[:3, 3])
+
+
+class SecondStage:
+    """Incremental VIO + GNSS + co-location fusion over keyframe poses (see module docstring)."""
+
+    def __init__(self, options: SecondStageOptions | None = None) -> None:
+        import gtsam
+
+        self.options = options or SecondStageOptions()
+        self._gtsam = gtsam
+        self._kfs: dict[int, _Kf] = {}
+        self._order: list[int] = []  # insertion order
+        self._segment_count = 0
+        self._factors: dict[int, Any] = {}  # handle -> factor
+        self._handle_to_index: dict[int, int] = {}  # handle -> iSAM2 factor index
+        self._next_handle = 0
+        self._colocation_handle: dict[int, int] = {}  # kf_id -> handle of its co-location prior
+        self._segment_prior: dict[int, tuple[int, int, F64]] = {}  # segment -> (handle, kf_id, mean)
+        self._estimate: dict[int, F64] = {}  # kf_id -> local_from_kf
+        self._local_from_vio: dict[int, F64] = {}  # segment -> transform
+        self._gnss_stage = 0  # 0: no fix, 1: translation aligned, 2: yaw aligned
+        self._consecutive_rejections = 0
+        self.rejected_fixes: list[dict[str, float]] = []  # kf_id, t, mahalanobis, residual_m
+        self.n_gnss_accepted = 0
+        self._isam = self._new_isam()
+
+    # ------------------------------------------------------------------ construction helpers
+    def _new_isam(self) -> Any:
+        p = self._gtsam.ISAM2Params()
+        # QR: Cholesky declares the system indeterminate when a 100 m prior meets 2 cm odometry.
+        p.setFactorization("QR")
+        p.setRelinearizeThreshold(self.options.relinearize_threshold)
+        p.relinearizeSkip = self.options.relinearize_skip
+        return self._gtsam.ISAM2(p)
+
+    def _first_prior_noise(self, vio_from_kf: F64) -> Any:
+        o = self.options
+        tilt = o.first_prior_sigma_tilt if o.gravity_aligned else o.first_prior_sigma_yaw
+        cov_world = np.diag([tilt**2, tilt**2, o.first_prior_sigma_yaw**2])
+        R = vio_from_kf[:3, :3]
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = R.T @ cov_world @ R  # perturbation is in the kf frame: T * Exp(xi)
+        cov[3:, 3:] = np.eye(3) * o.first_prior_sigma_pos**2
+        return _gaussian(cov)
+
+    def _commit(
+        self, factors: list[Any], values: dict[int, F64], remove: list[int] | None = None
+    ) -> list[int]:
+        """Add factors (+ new values, kf_id -> pose) to iSAM2; returns the new factor handles."""
+        gtsam = self._gtsam
+        graph = gtsam.NonlinearFactorGraph()
+        for f in factors:
+            graph.add(f)
+        theta = gtsam.Values()
+        for kf_id, T in values.items():
+            theta.insert(_key(kf_id), gtsam.Pose3(T))
+        remove_idx = [self._handle_to_index.pop(h) for h in (remove or [])]
+        for h in remove or []:
+            self._factors.pop(h, None)
+        result = self._isam.update(graph, theta, remove_idx)
+        indices = list(result.getNewFactorsIndices())
+        handles = []
+        for f, idx in zip(factors, indices, strict=True):
+            h = self._next_handle
+            self._next_handle += 1
+            self._factors[h] = f
+            self._handle_to_index[h] = int(idx)
+            handles.append(h)
+        for _ in range(self.options.extra_iterations):
+            self._isam.update()
+        self._refresh()
+        return handles
+
+    def _refresh(self) -> None:
+        est = self._isam.calculateEstimate()
+        for kf_id in self._order:
+            self._estimate[kf_id] = est.atPose3(_key(kf_id)).matrix()
+        self._update_local_from_vio()
+
+    def _rebuild(self, T: F64) -> None:
+        """Restart iSAM2 from all live factors, everything moved by ``T`` (local_new_from_local_old).
+
+        The loose segment priors are gauge only, so they move along (their means are transformed).
+        """
+        gtsam = self._gtsam
+        initial = {k: T @ self._estimate[k] for k in self._order}
+        for seg, (h, kf_id, mean) in list(self._segment_prior.items()):
+            new_mean = T @ mean
+            self._factors[h] = gtsam.PriorFactorPose3(
+                _key(kf_id), gtsam.Pose3(new_mean), self._first_prior_noise(new_mean)
+            )
+            self._segment_prior[seg] = (h, kf_id, new_mean)
+        self._isam = self._new_isam()
+        graph = gtsam.NonlinearFactorGraph()
+        handles = sorted(self._factors)
+        for h in handles:
+            graph.add(self._factors[h])
+        theta = gtsam.Values()
+        for kf_id in self._order:
+            theta.insert(_key(kf_id), gtsam.Pose3(initial[kf_id]))
+        result = self._isam.update(graph, theta)
+        self._handle_to_index = {
+            h: int(i) for h, i in zip(handles, result.getNewFactorsIndices(), strict=True)
+        }
+        for _ in range(max(1, self.options.extra_iterations)):
+            self._isam.update()
+        self._refresh()
+
+    # ------------------------------------------------------------------ public API
+    def add_keyframe(
+        self,
+        kf_id: int,
+        timestamp: float,
+        vio_from_kf: F64,
+        rel_cov: F64 | None = None,
+        prev_id: int | None = None,
+        prev_from_kf: F64 | None = None,
+        new_segment: bool = False,
+    ) -> None:
+        """Add a keyframe with its VIO-frame pose and the relative-pose factor to ``prev_id``.
+
+        ``prev_id`` defaults to the last added keyframe; ``prev_from_kf`` defaults to the relative
+        pose of the two VIO poses; ``rel_cov`` is the 6x6 covariance ([rot, trans]) of that relative
+        pose (required unless this keyframe starts a segment). The first keyframe, and any with
+        ``new_segment=True``, start a new segment with a loose prior instead.
+        """
+        if kf_id in self._kfs:
+            raise ValueError(f"keyframe {kf_id} already added")
+        vio_from_kf = np.asarray(vio_from_kf, dtype=np.float64).reshape(4, 4)
+        gtsam = self._gtsam
+        starts_segment = new_segment or not self._order
+        if starts_segment:
+            segment = self._segment_count
+            self._segment_count += 1
+            # Place the new segment with the best transform known so far (identity at start).
+            local_from_vio = self._local_from_vio.get(segment - 1, np.eye(4)) if segment else np.eye(4)
+            init = local_from_vio @ vio_from_kf
+            factor = gtsam.PriorFactorPose3(_key(kf_id), gtsam.Pose3(init), self._first_prior_noise(init))
+        else:
+            prev_id = self._order[-1] if prev_id is None else prev_id
+            if prev_id not in self._kfs:
+                raise KeyError(f"previous keyframe {prev_id} unknown")
+            if rel_cov is None:
+                raise ValueError("rel_cov (6x6, [rot, trans]) is required for a relative-pose factor")
+            prev = self._kfs[prev_id]
+            segment = prev.segment
+            rel = se3_inverse(prev.vio_from_kf) @ vio_from_kf if prev_from_kf is None else prev_from_kf
+            init = self._estimate[prev_id] @ rel
+            factor = gtsam.BetweenFactorPose3(
+                _key(prev_id), _key(kf_id), gtsam.Pose3(rel), _gaussian(np.asarray(rel_cov).reshape(6, 6))
+            )
+        self._kfs[kf_id] = _Kf(kf_id, float(timestamp), vio_from_kf, segment)
+        self._order.append(kf_id)
+        (h,) = self._commit([factor], {kf_id: init})
+        if starts_segment:
+            self._segment_prior[segment] = (h, kf_id, init)
+
+    def predicted_antenna(self, kf_id: int) -> tuple[F64, F64]:
+        """Predicted antenna position (3,) in the local frame and its 3x3 marginal covariance."""
+        T = self._estimate[kf_id]
+        R = T[:3, :3]
+        lever = np.asarray(self.options.kf_from_antenna, dtype=np.float64)
+        p = T[:3, 3] + R @ lever
+        P = np.asarray(self._isam.marginalCovariance(_key(kf_id)))
+        lx = np.array([[0, -lever[2], lever[1]], [lever[2], 0, -lever[0]], [-lever[1], lever[0], 0]])
+        J = np.hstack([-R @ lx, R])  # d p / d [rot, trans] for T * Exp(xi)
+        return p, J @ P @ J.T
+
+    def add_gnss(self, kf_id: int, enu: F64, cov: F64) -> GnssDecision:
+        """Fuse a GNSS fix (ENU position of the antenna, 3x3 covariance) at keyframe ``kf_id``.
+
+        Returns the gate decision; a rejected fix is logged and not fused.
+        """
+        enu = np.asarray(enu, dtype=np.float64).reshape(3)
+        cov = np.asarray(cov, dtype=np.float64).reshape(3, 3)
+        if not (np.all(np.isfinite(enu)) and np.all(np.isfinite(cov))):
+            raise ValueError("GNSS fix must be finite")
+        kf = self._kfs[kf_id]
+        pred, pred_cov = self.predicted_antenna(kf_id)
+        r = enu - pred
+        S = pred_cov + cov
+        d = float(math.sqrt(max(0.0, float(r @ np.linalg.solve(S, r)))))
+        o = self.options
+        forced = False
+        # Before the yaw is anchored (by GNSS spread or a co-location) the linearised prediction is
+        # meaningless (a 30 degree yaw error is far from linear), so the gate only runs afterwards.
+        anchored = self._gnss_stage >= 2 or bool(self._colocation_handle)
+        if anchored and d > o.gnss_gate_sigma:
+            if 0 < o.gnss_max_consecutive_rejections <= self._consecutive_rejections:
+                forced = True
+                log.warning(
+                    "GNSS fix at kf %d accepted after %d rejections in a row (Mahalanobis %.1f, %.2f m)",
+                    kf_id, self._consecutive_rejections, d, float(np.linalg.norm(r)),
+                )  # fmt: skip
+            else:
+                self._consecutive_rejections += 1
+                res = float(np.linalg.norm(r))
+                entry = {"kf_id": kf_id, "t": kf.timestamp, "mahalanobis": d, "residual_m": res}
+                self.rejected_fixes.append(entry)
+                log.warning(
+                    "GNSS fix at kf %d (t=%.3f) rejected: Mahalanobis %.1f > %.1f, residual %.2f m",
+                    kf_id, kf.timestamp, d, o.gnss_gate_sigma, float(np.linalg.norm(r)),
+                )  # fmt: skip
+                return GnssDecision(False, d, float(np.linalg.norm(r)))
+        self._consecutive_rejections = 0
+        gtsam = self._gtsam
+        lever = np.asarray(o.kf_from_antenna, dtype=np.float64)
+        if np.any(lever != 0):
+            factor = gtsam.GPSFactorArm(_key(kf_id), enu, lever, _gaussian(cov))
+        else:
+            factor = gtsam.GPSFactor(_key(kf_id), enu, _gaussian(cov))
+        kf.fixes.append((enu, cov))
+        self.n_gnss_accepted += 1
+        self._commit([factor], {})
+        self._maybe_realign()
+        return GnssDecision(True, d, float(np.linalg.norm(r)), forced)
+
+    def add_colocation(self, kf_id: int, local_from_kf: F64, cov: F64) -> None:
+        """Co-location factor: a prior on keyframe ``kf_id``'s local-frame pose, 6x6 cov [rot, trans].
+
+        A newer co-location of the same keyframe replaces the older factor.
+        """
+        gtsam = self._gtsam
+        if kf_id not in self._kfs:
+            raise KeyError(f"keyframe {kf_id} unknown")
+        pose = np.asarray(local_from_kf, dtype=np.float64).reshape(4, 4)
+        noise = _gaussian(np.asarray(cov).reshape(6, 6))
+        factor = gtsam.PriorFactorPose3(_key(kf_id), gtsam.Pose3(pose), noise)
+        old = self._colocation_handle.pop(kf_id, None)
+        (h,) = self._commit([factor], {}, remove=[old] if old is not None else None)
+        self._colocation_handle[kf_id] = h
+
+    def add_correction(self, kf_id: int, global_from_kf: F64, global_from_local: F64, cov: F64) -> None:
+        """A server correction: keyframe pose in the global frame + ``global_from_local`` (Sim(3)
+        matrix ``[[sR, t], [0, 1]]``) -> co-location prior on ``local_from_kf``.
+
+        ``local`` here is the frame the agent sent its keyframes in; if that was the VIO frame,
+        pass ``global_from_local @ inv(local_from_vio)`` (see :meth:`local_from_vio`).
+        """
+        local_from_global = Sim3.from_matrix(np.asarray(global_from_local, dtype=np.float64)).inverse()
+        self.add_colocation(kf_id, local_from_global.transform_pose(np.asarray(global_from_kf)), cov)
+
+    # ------------------------------------------------------------------ re-initialisation on GNSS
+    def _fix_pairs(self) -> tuple[F64, F64]:
+        lever = np.asarray(self.options.kf_from_antenna, dtype=np.float64)
+        est, meas = [], []
+        for kf_id in self._order:
+            T = self._estimate[kf_id]
+            for enu, _ in self._kfs[kf_id].fixes:
+                est.append(T[:3, 3] + T[:3, :3] @ lever)
+                meas.append(enu)
+        return np.asarray(est).reshape(-1, 3), np.asarray(meas).reshape(-1, 3)
+
+    def _maybe_realign(self) -> None:
+        if self._gnss_stage >= 2:
+            return
+        est, meas = self._fix_pairs()
+        if len(est) == 0:
+            return
+        spread = float(np.max(np.linalg.norm(meas[:, :2] - meas[0, :2], axis=1)))
+        if spread >= self.options.align_min_spread_m and len(est) >= 2:
+            if self.options.gravity_aligned or len(est) < 3:
+                T = yaw_translation_alignment(est, meas)
+            else:
+                T = rigid_alignment(est, meas)
+            stage = 2
+        elif self._gnss_stage == 0:
+            T = se3(np.eye(3), meas.mean(axis=0) - est.mean(axis=0))
+            stage = 1
+        else:
+            return
+        log.info("second stage re-initialised on GNSS (stage %d, %d fixes)", stage, len(est))
+        self._gnss_stage = stage
+        self._rebuild(T)
+
+    # ------------------------------------------------------------------ outputs
+    def _update_local_from_vio(self) -> None:
+        by_seg: dict[int, list[int]] = {}
+        for kf_id in self._order:
+            by_seg.setdefault(self._kfs[kf_id].segment, []).append(kf_id)
+        for seg, ids in by_seg.items():
+            src = np.array([self._kfs[k].vio_from_kf[:3, 3] for k in ids])
+            dst = np.array([self._estimate[k][:3, 3] for k in ids])
+            spread = float(np.max(np.linalg.norm(src - src[0], axis=1))) if len(ids) > 1 else 0.0
+            if spread < 1e-3:
+                # Not enough geometry for a point alignment: use the last keyframe's correction.
+                k = ids[-1]
+                self._local_from_vio[seg] = self._estimate[k] @ se3_inverse(self._kfs[k].vio_from_kf)
+            elif self.options.gravity_aligned or len(ids) < 3:
+                self._local_from_vio[seg] = yaw_translation_alignment(src, dst)
+            else:
+                self._local_from_vio[seg] = rigid_alignment(src, dst)
+
+    def local_from_vio(self, segment: int | None = None) -> F64:
+        """Current ``local_from_vio`` (4x4) of a segment (default: the newest one)."""
+        if not self._local_from_vio:
+            return np.eye(4)
+        seg = self._segment_count - 1 if segment is None else segment
+        return self._local_from_vio[seg].copy()
+
+    @property
+    def keyframe_ids(self) -> list[int]:
+        return list(self._order)
+
+    def keyframe_pose(self, kf_id: int) -> F64:
+        """Current estimate of ``local_from_kf`` (4x4)."""
+        return self._estimate[kf_id].copy()
+
+    def keyframe_segment(self, kf_id: int) -> int:
+        return self._kfs[kf_id].segment
+
+    def keyframe_poses(self) -> tuple[F64, F64]:
+        """(timestamps (K,), local_from_kf (K, 4, 4)) in insertion order."""
+        ts = np.array([self._kfs[k].timestamp for k in self._order])
+        poses = np.array([self._estimate[k] for k in self._order]).reshape(-1, 4, 4)
+        return ts, poses
+
+    def local_from_frame(
+        self, timestamp: float, vio_from_frame: F64, segment: int | None = None, interpolate: bool = True
+    ) -> F64:
+        """Pose of any frame in the local frame.
+
+        With ``interpolate`` the per-keyframe correction ``local_from_kf @ inv(vio_from_kf)`` is
+        interpolated in time between the two neighbouring keyframes of the segment (the nearest one
+        outside the keyframes' time span); otherwise ``local_from_vio @ vio_from_frame``.
+        """
+        vio_from_frame = np.asarray(vio_from_frame, dtype=np.float64).reshape(4, 4)
+        seg = self._segment_count - 1 if segment is None else segment
+        if not interpolate or not self._order:
+            return self.local_from_vio(seg) @ vio_from_frame
+        ids = [k for k in self._order if self._kfs[k].segment == seg]
+        if not ids:
+            return self.local_from_vio(seg) @ vio_from_frame
+        ts = np.array([self._kfs[k].timestamp for k in ids])
+        order = np.argsort(ts, kind="stable")
+        ts = ts[order]
+        ids = [ids[i] for i in order]
+
+        def corr(k: int) -> F64:
+            return self._estimate[k] @ se3_inverse(self._kfs[k].vio_from_kf)
+
+        j = int(np.searchsorted(ts, timestamp))
+        if j <= 0:
+            C = corr(ids[0])
+        elif j >= len(ids):
+            C = corr(ids[-1])
+        else:
+            t0, t1 = ts[j - 1], ts[j]
+            alpha = 0.0 if t1 <= t0 else (timestamp - t0) / (t1 - t0)
+            C = interpolate_se3(corr(ids[j - 1]), corr(ids[j]), alpha)
+        return C @ vio_from_frame
