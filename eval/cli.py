@@ -69,3 +69,56 @@ def ate_command(
     typer.echo(f"{'-' * w}  {'-' * 10}")
     for k, v in rows:
         typer.echo(f"{k:<{w}}  {v}")
+
+
+@app.command("team")
+def team_command(
+    agent: Annotated[
+        list[str],
+        typer.Option(
+            "--agent",
+            help="ID=EST.tum,GT[,FRAMES.csv] per agent (GT: dataset agent dir, EuRoC csv or TUM; "
+            "FRAMES: t_start,frame_id rows, the frame changes at merges). Repeat per agent.",
+        ),
+    ],
+    align: Annotated[str, typer.Option("--align", help="se3, sim3 or none (ENU, GNSS).")] = "se3",
+    max_diff: Annotated[float, typer.Option("--max-diff", help="Association tolerance [s].")] = 0.01,
+    rpe_delta: Annotated[float, typer.Option("--rpe-delta", help="RPE distance [m].")] = 10.0,
+) -> None:
+    """Multi-agent ATE/RPE: per agent and team, frame changes at merges, inter-agent relative error."""
+    from hivemap.eval.trajectory import ALIGNMENTS, AgentRun, evaluate_team, read_frame_timeline
+
+    if align not in ALIGNMENTS:
+        raise typer.BadParameter(f"--align must be one of {', '.join(ALIGNMENTS)}")
+    runs = []
+    for spec in agent:
+        if "=" not in spec:
+            raise typer.BadParameter(f"--agent {spec!r}: expected ID=EST,GT[,FRAMES]")
+        aid, rest = spec.split("=", 1)
+        parts = rest.split(",")
+        if len(parts) not in (2, 3):
+            raise typer.BadParameter(f"--agent {spec!r}: expected ID=EST,GT[,FRAMES]")
+        frames = read_frame_timeline(parts[2]) if len(parts) == 3 else []
+        runs.append(AgentRun(aid, load_reference(Path(parts[0])), load_reference(Path(parts[1])), frames))
+    rep = evaluate_team(runs, alignment=align, max_diff=max_diff, rpe_delta=rpe_delta)  # type: ignore[arg-type]
+    typer.echo(f"alignment: {align}")
+    cols = ("ATE rmse", "mean", "median", "RPE t", "RPE r°", "merge t")
+    header = f"{'agent':<10} {'n':>6} {cols[0]:>9} " + " ".join(f"{c:>8}" for c in cols[1:])
+    typer.echo(header)
+    typer.echo("-" * len(header))
+    for aid, a in rep.agents.items():
+        rt = f"{a.rpe.trans.rmse:8.4f}" if a.rpe else f"{'-':>8}"
+        rr = f"{a.rpe.rot_deg.rmse:8.4f}" if a.rpe else f"{'-':>8}"
+        mt = f"{a.merge_time:8.2f}" if a.merge_time is not None else f"{'-':>8}"
+        typer.echo(
+            f"{aid:<10} {a.ate.n:>6} {a.ate.rmse:9.4f} {a.ate.mean:8.4f} {a.ate.median:8.4f} {rt} {rr} {mt}"
+        )
+    t = rep.team
+    typer.echo(f"{'team':<10} {t.n:>6} {t.rmse:9.4f} {t.mean:8.4f} {t.median:8.4f}")
+    if rep.inter_agent:
+        typer.echo("\ninter-agent relative pose error (same frame, simultaneous poses)")
+        for e in rep.inter_agent:
+            typer.echo(
+                f"{e.agent_a}-{e.agent_b} [{e.frame_id}] n={e.trans.n} "
+                f"trans rmse {e.trans.rmse:.4f} m, rot rmse {e.rot_deg.rmse:.4f} deg"
+            )

@@ -36,3 +36,25 @@ def test_eval_ate_table(tmp_path):
     assert _value(se3_run.output, "ATE RMSE [m]") == 0.0
     bad = runner.invoke(app, [*base, "--align", "affine"])
     assert bad.exit_code != 0
+
+
+def test_eval_team_table(tmp_path):
+    """Two agents, B changes frame at t=10 s and is 0.5 m off after the merge: the table shows
+    the merge time and the 0.5 m inter-agent relative error."""
+    from test_trajectory import _two_agents  # same directory (pytest's default prepend import mode)
+
+    from hivemap.eval.trajectory import write_frame_timeline
+
+    args = []
+    for run in _two_agents(extra_offset_b=0.5):
+        write_tum(tmp_path / f"{run.agent_id}_est.tum", run.est)
+        write_tum(tmp_path / f"{run.agent_id}_gt.tum", run.gt)
+        write_frame_timeline(tmp_path / f"{run.agent_id}_frames.csv", run.frames)
+        p = f"{tmp_path}/{run.agent_id}"
+        args += ["--agent", f"{run.agent_id}={p}_est.tum,{p}_gt.tum,{p}_frames.csv"]
+    res = CliRunner().invoke(app, ["eval", "team", *args])
+    assert res.exit_code == 0, res.output
+    row_b = next(line.split() for line in res.output.splitlines() if line.startswith("b "))
+    assert float(row_b[-1]) == 10.0  # merge time
+    m = re.search(r"a-b \[global\] n=\d+ trans rmse ([0-9.]+) m", res.output)
+    assert m and float(m.group(1)) == 0.5
