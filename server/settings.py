@@ -1,0 +1,77 @@
+"""Server settings: pydantic-settings ``BaseSettings`` (env prefix ``HIVEMAP_``) plus an optional TOML file.
+
+Precedence (highest first): explicit overrides (CLI flags), environment variables, the TOML file, defaults.
+
+Example TOML::
+
+    host = "0.0.0.0"
+    port = 8765
+    data_dir = "/data/server"
+
+    [tokens]
+    uav1 = "secret-uav1"
+    ugv1 = "secret-ugv1"
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class ServerSettings(BaseSettings):
+    """Everything the server needs; built once and handed to :func:`hivemap.server.app.create_app`."""
+
+    model_config = SettingsConfigDict(env_prefix="HIVEMAP_", extra="forbid", env_nested_delimiter="__")
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=8765, ge=0, le=65535)
+    data_dir: Path = Path("hivemap-data")
+    tokens: dict[str, str] = Field(
+        default_factory=dict, description="Per-agent tokens (agent id -> token); others are refused."
+    )
+    # Ingest and back-pressure.
+    max_frame_bytes: int = Field(
+        default=4 * 1024 * 1024, ge=1024, description="Largest WebSocket frame accepted."
+    )
+    ws_max_queue: int = Field(
+        default=16, ge=1, description="Frames buffered by the WebSocket server per connection."
+    )
+    outbox_max: int = Field(
+        default=1024, ge=8, description="Outgoing messages queued per connection (then dropped)."
+    )
+    max_uncommitted: int = Field(
+        default=512,
+        ge=1,
+        description="Messages applied but not committed (server-wide) before readers pause.",
+    )
+    max_pending_keyframes: int = Field(
+        default=5000, ge=1, description="Keyframes per agent waiting for their map points (more are refused)."
+    )
+    commit_interval_ms: float = Field(
+        default=5.0, ge=0.0, description="Group-commit window of the SQLite writer."
+    )
+    sqlite_synchronous: Literal["FULL", "NORMAL"] = Field(
+        default="FULL", description="FULL survives power loss, NORMAL (WAL) survives a process crash."
+    )
+    per_message_deflate: bool = False
+    # Inspection.
+    event_buffer: int = Field(default=10000, ge=10, description="Events kept in the /events ring buffer.")
+    ping_interval_s: float = Field(default=20.0, gt=0.0)
+    log_level: str = "info"
+
+
+def load_settings(config: Path | None = None, **overrides: Any) -> ServerSettings:
+    """Settings from a TOML file (optional), the environment and explicit ``overrides`` (None = unset)."""
+    file_values: dict[str, Any] = {}
+    if config is not None:
+        with open(config, "rb") as f:
+            file_values = tomllib.load(f)
+    from_env = ServerSettings()
+    env_values = from_env.model_dump(include=from_env.model_fields_set)
+    explicit = {k: v for k, v in overrides.items() if v is not None}
+    return ServerSettings(**{**file_values, **env_values, **explicit})
