@@ -10,8 +10,8 @@ from dataclasses import dataclass
 @dataclass
 class RateMeter:
     """Counts bytes in one direction. Peak = the largest number of bytes seen in any whole 1 s window
-    (windows aligned on the clock's integer seconds); average = total bytes / active time, where active time
-    runs from the first byte to the last byte (at least 1 s)."""
+    (windows aligned on the clock's integer seconds); average = total bytes / number of 1 s windows from the
+    first byte's window to the last byte's (so average <= peak always)."""
 
     total: int = 0
     peak: float = 0.0
@@ -36,7 +36,7 @@ class RateMeter:
     def average(self) -> float:
         if self.first is None or self.last is None:
             return 0.0
-        return self.total / max(1.0, self.last - self.first)
+        return self.total / (int(self.last) - int(self.first) + 1)
 
     def peak_rate(self) -> float:
         """Peak bytes/s, including the window in progress."""
