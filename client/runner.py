@@ -25,6 +25,7 @@ import logging
 import math
 import re
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -128,3 +129,328 @@ class RunSummary:
         from dataclasses import asdict
 
         return json.dumps(asdict(self), indent=2)
+
+
+# ---------------------------------------------------------------------------------------- dataset adapter
+@dataclass(frozen=True)
+class _Gnss:
+    t: F64  # (N,) seconds
+    enu: F64  # (N, 3)
+    cov: F64  # (N, 3, 3)
+    valid: NDArray[np.bool_]
+
+
+def _seconds(t: F64) -> F64:
+    t = np.asarray(t, dtype=np.float64)
+    return t * 1e-9 if t.size and np.nanmedian(np.abs(t)) > 1e12 else t
+
+
+def _gnss_table(ds: object) -> _Gnss:
+    """The dataset's GNSS fixes as arrays (t, enu, 3x3 covariance from sigma_h / sigma_v)."""
+    g = getattr(ds, "gnss", None)
+    if g is None:
+        z = np.zeros(0)
+        return _Gnss(z, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, bool))
+    t = _seconds(np.asarray(g.t))
+    enu = np.asarray(g.enu, dtype=np.float64).reshape(-1, 3)
+    sig = np.asarray(g.sigma, dtype=np.float64)
+    if sig.ndim == 1:
+        sig = np.stack([sig, sig], axis=1)
+    sh, sv = sig[:, 0], sig[:, -1]
+    cov = np.zeros((len(t), 3, 3))
+    cov[:, 0, 0] = cov[:, 1, 1] = sh**2
+    cov[:, 2, 2] = sv**2
+    valid = np.all(np.isfinite(enu), axis=1) & np.isfinite(sh) & np.isfinite(sv) & (sh > 0) & (sv > 0)
+    return _Gnss(t, enu, cov, valid)
+
+
+def _frame_times(ds: object) -> F64:
+    fr = ds.frames  # type: ignore[attr-defined]
+    for name in ("timestamps", "t", "times"):
+        if hasattr(fr, name):
+            return _seconds(np.asarray(getattr(fr, name)))
+    return _seconds(np.array([f.timestamp for f in fr]))
+
+
+def _load_pair(ds: object, i: int) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    fr = ds.frames  # type: ignore[attr-defined]
+    for name in ("load", "load_pair", "images", "stereo"):
+        fn = getattr(fr, name, None)
+        if callable(fn):
+            left, right = fn(i)
+            return left, right
+    item = fr[i]
+    if isinstance(item, tuple):
+        return item[-2], item[-1]
+    for a, b in (("left", "right"), ("cam0", "cam1")):
+        if hasattr(item, a):
+            la, lb = getattr(item, a), getattr(item, b)
+            return (la() if callable(la) else la), (lb() if callable(lb) else lb)
+    raise TypeError("cannot load stereo images from the dataset's frames")
+
+
+def _imu(ds: object) -> F64:
+    imu = np.asarray(getattr(ds, "imu", np.zeros((0, 7))), dtype=np.float64).reshape(-1, 7).copy()
+    imu[:, 0] = _seconds(imu[:, 0])
+    return imu
+
+
+def _imu_params(ds: object) -> dict[str, float] | None:
+    for name in ("imu_params", "imu_noise", "imu_sensor"):
+        p = getattr(ds, name, None)
+        if isinstance(p, dict):
+            return {k: float(v) for k, v in p.items() if isinstance(v, int | float)}
+    return {} if len(_imu(ds)) else None
+
+
+# ---------------------------------------------------------------------------------------- the run
+def write_tum_poses(path: str | Path, times: F64, poses: F64) -> None:
+    """TUM file ``t tx ty tz qx qy qz qw`` from (N,) seconds and (N, 4, 4) poses."""
+    from hivemap.maps.geometry import quat_wxyz_from_rotmat
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        for t, T in zip(np.asarray(times), np.asarray(poses).reshape(-1, 4, 4), strict=True):
+            w, x, y, z = quat_wxyz_from_rotmat(T[:3, :3])
+            f.write(f"{t:.9f} {T[0, 3]:.6f} {T[1, 3]:.6f} {T[2, 3]:.6f} {x:.9f} {y:.9f} {z:.9f} {w:.9f}\n")
+
+
+# Relative-pose covariance used when the front-end gives none for a keyframe (e.g. its previous
+# keyframe was culled): 1 deg and 5 cm + 2% of the distance, deliberately loose.
+def _fallback_rel_cov(rel: F64) -> F64:
+    d = float(np.linalg.norm(rel[:3, 3]))
+    return np.diag([math.radians(1.0) ** 2] * 3 + [(0.05 + 0.02 * d) ** 2] * 3)
+
+
+class OfflineAgent:
+    """Front-end + second stage for one agent; feed frames with :meth:`step` (also used by streaming)."""
+
+    def __init__(
+        self,
+        rig: object,
+        imu_params: dict[str, float] | None,
+        gnss: _Gnss,
+        options: RunnerOptions,
+        frontend_options: object | None = None,
+        second_stage_options: object | None = None,
+    ) -> None:
+        from hivemap.client.frontend.tracker import Frontend
+        from hivemap.client.second_stage import SecondStage, SecondStageOptions
+
+        self.options = options
+        self.frontend = Frontend(rig, frontend_options, imu_params=imu_params)  # type: ignore[arg-type]
+        self.stage = SecondStage(
+            second_stage_options or SecondStageOptions(gravity_aligned=imu_params is not None)
+        )  # type: ignore[arg-type]
+        self.gnss = gnss
+        self.selected = np.zeros(0, bool)
+        self._fix_by_time: dict[float, int] = {}
+        self._sess_segment: dict[int, int] = {}
+        self._node_of: dict[tuple[int, int], int] = {}  # (session, kf_id) -> second-stage node id
+        self._next_node = 0
+        self.frame_log: list[dict[str, float | int | str]] = []
+        self.vio_t: list[float] = []
+        self.vio_poses: list[F64] = []
+        self.vio_session: list[int] = []
+        self.gnss_used = 0
+        self.gnss_rejected = 0
+        self.losses = 0
+        self._was_lost = False
+        self.stage_ms: list[float] = []
+        self.fe_ms: list[float] = []
+
+    def select(self, frame_times: F64) -> None:
+        """Choose the fixes of the GNSS mode and attach each to the closest frame time."""
+        self.selected = select_gnss(self.gnss.t, self.gnss.valid, self.options.gnss, self.options.seed)
+        if not len(frame_times):
+            return
+        for i in np.flatnonzero(self.selected):
+            j = int(np.argmin(np.abs(frame_times - self.gnss.t[i])))
+            if abs(frame_times[j] - self.gnss.t[i]) <= self.options.gnss_max_dt_s:
+                self._fix_by_time[float(frame_times[j])] = int(i)
+
+    def step(self, t: float, left: NDArray[np.uint8], right: NDArray[np.uint8], imu: F64 | None) -> object:
+        import time
+
+        from hivemap.client.frontend.tracker import TrackingState
+
+        gnss_epoch = float(t) in self._fix_by_time
+        t0 = time.perf_counter()
+        res = self.frontend.process(t, left, right, imu, gnss_epoch=gnss_epoch)
+        t1 = time.perf_counter()
+        self._consume(self.frontend.poll_events())
+        t2 = time.perf_counter()
+        self.fe_ms.append(1e3 * (t1 - t0))
+        self.stage_ms.append(1e3 * (t2 - t1))
+        lost = res.state == TrackingState.LOST
+        if lost and not self._was_lost:
+            self.losses += 1
+        self._was_lost = lost
+        if res.state in (TrackingState.OK, TrackingState.RELOCALIZED, TrackingState.NEW_MAP):
+            self.vio_t.append(float(t))
+            self.vio_poses.append(np.asarray(res.world_from_body, dtype=np.float64))
+            self.vio_session.append(int(res.session))
+        self.frame_log.append(
+            {
+                "t": float(t),
+                "state": str(res.state.value),
+                "session": int(res.session),
+                "n_tracked": int(res.n_tracked),
+                "keyframe": -1 if res.new_keyframe_id is None else int(res.new_keyframe_id),
+                "gnss_epoch": int(gnss_epoch),
+                "frontend_ms": round(1e3 * (t1 - t0), 3),
+                "second_stage_ms": round(1e3 * (t2 - t1), 3),
+            }
+        )
+        return res
+
+    def finish(self) -> None:
+        self.frontend.flush()
+        self._consume(self.frontend.poll_events())
+
+    def _consume(self, events: list[object]) -> None:
+        from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
+
+        for ev in events:
+            if isinstance(ev, KeyframeEvent):
+                self._add_keyframe(ev)
+            elif isinstance(ev, PoseUpdateEvent):
+                cam_from_body = np.linalg.inv(self.frontend.body_from_cam)
+                for kid, T_wc in zip(ev.kf_ids, ev.world_from_cam, strict=True):
+                    node = self._node_of.get((ev.session, int(kid)))
+                    if node is not None:
+                        self.stage.update_vio_pose(node, T_wc @ cam_from_body)
+
+    def _add_keyframe(self, ev: object) -> None:
+        from hivemap.client.frontend.tracker import KeyframeEvent
+
+        assert isinstance(ev, KeyframeEvent)
+        node = self._next_node
+        self._next_node += 1
+        self._node_of[(ev.session, ev.kf_id)] = node
+        prev = self._node_of.get((ev.session, ev.prev_kf_id)) if ev.prev_kf_id is not None else None
+        new_segment = ev.session not in self._sess_segment
+        T_wb = np.asarray(ev.world_from_body, dtype=np.float64)
+        if new_segment:
+            self.stage.add_keyframe(node, ev.timestamp, T_wb, new_segment=True)
+            self._sess_segment[ev.session] = self.stage.segment_count - 1
+        elif prev is not None and ev.rel_body is not None and ev.rel_cov is not None:
+            self.stage.add_keyframe(
+                node, ev.timestamp, T_wb, ev.rel_cov, prev_id=prev, prev_from_kf=ev.rel_body
+            )
+        else:
+            # No relative pose from the front-end: chain to the session's last keyframe.
+            last = max(n for (s, _), n in self._node_of.items() if s == ev.session and n != node)
+            rel = np.linalg.inv(self.stage.vio_pose(last)) @ T_wb
+            self.stage.add_keyframe(node, ev.timestamp, T_wb, _fallback_rel_cov(rel), prev_id=last)
+        fix = self._fix_by_time.get(float(ev.timestamp))
+        if fix is not None:
+            d = self.stage.add_gnss(node, self.gnss.enu[fix], self.gnss.cov[fix])
+            if d.accepted:
+                self.gnss_used += 1
+            else:
+                self.gnss_rejected += 1
+
+    def local_trajectory(self) -> tuple[F64, F64]:
+        """Every tracked frame's pose in the local frame (final estimate, interpolated corrections)."""
+        out = []
+        for t, T, s in zip(self.vio_t, self.vio_poses, self.vio_session, strict=True):
+            seg = self._sess_segment.get(s)
+            if seg is None:  # a session whose keyframes never reached the second stage
+                out.append(T)
+            else:
+                out.append(self.stage.local_from_frame(t, T, segment=seg))
+        return np.asarray(self.vio_t), np.asarray(out).reshape(-1, 4, 4)
+
+
+def run_offline(
+    agent_dir: str | Path,
+    out_dir: str | Path,
+    options: RunnerOptions | None = None,
+    frontend_options: object | None = None,
+    second_stage_options: object | None = None,
+) -> RunSummary:
+    """Replay one agent dataset without a server; writes the outputs listed in the module docstring."""
+    import time
+
+    from tqdm import tqdm
+
+    from hivemap.client.dataset import load_dataset
+
+    options = options or RunnerOptions()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ds = load_dataset(Path(agent_dir))
+    agent_id = str(getattr(ds, "agent_id", Path(agent_dir).name))
+    times = _frame_times(ds)
+    if options.max_frames is not None:
+        times = times[: options.max_frames]
+    imu = _imu(ds)
+    gnss = _gnss_table(ds)
+    agent = OfflineAgent(ds.rig, _imu_params(ds), gnss, options, frontend_options, second_stage_options)
+    agent.select(times)
+    summary = RunSummary(agent_id=agent_id, gnss_mode=str(options.gnss))
+    summary.gnss_available = int(gnss.valid.sum())
+    summary.gnss_selected = int(agent.selected.sum())
+    wall0 = time.perf_counter()
+    prev_t = -math.inf
+    for i in tqdm(range(len(times)), desc=f"agent {agent_id}", unit="frame", disable=not options.progress):
+        t = float(times[i])
+        left, right = _load_pair(ds, i)
+        sel = (imu[:, 0] > prev_t) & (imu[:, 0] <= t) if len(imu) else None
+        agent.step(t, left, right, imu[sel] if sel is not None else None)
+        prev_t = t
+    agent.finish()
+    summary.wall_s = time.perf_counter() - wall0
+
+    # outputs
+    vio_t = np.asarray(agent.vio_t)
+    vio_poses = np.asarray(agent.vio_poses).reshape(-1, 4, 4)
+    loc_t, loc_poses = agent.local_trajectory()
+    kf_t, kf_poses = (
+        agent.stage.keyframe_poses() if agent.stage.keyframe_ids else (np.zeros(0), np.zeros((0, 4, 4)))
+    )
+    order = np.argsort(kf_t, kind="stable")
+    files = {
+        "vio": out / "vio.tum",
+        "local": out / "local.tum",
+        "keyframes_local": out / "keyframes_local.tum",
+        "frames": out / "frames.csv",
+        "run": out / "run.json",
+    }
+    write_tum_poses(files["vio"], vio_t, vio_poses)
+    write_tum_poses(files["local"], loc_t, loc_poses)
+    write_tum_poses(files["keyframes_local"], kf_t[order], kf_poses[order])
+    _write_frames_csv(files["frames"], agent.frame_log)
+    summary.frames = len(times)
+    summary.tracked_frames = len(vio_t)
+    summary.keyframes = len(agent.stage.keyframe_ids)
+    summary.tracking_losses = agent.losses
+    summary.segments = agent.stage.segment_count
+    summary.gnss_used = agent.gnss_used
+    summary.gnss_rejected = agent.gnss_rejected
+    summary.rejected_fixes = list(agent.stage.rejected_fixes)
+    summary.frontend_ms_mean = float(np.mean(agent.fe_ms)) if agent.fe_ms else 0.0
+    summary.frontend_ms_max = float(np.max(agent.fe_ms)) if agent.fe_ms else 0.0
+    summary.second_stage_ms_mean = float(np.mean(agent.stage_ms)) if agent.stage_ms else 0.0
+    summary.second_stage_ms_max = float(np.max(agent.stage_ms)) if agent.stage_ms else 0.0
+    summary.fps = summary.frames / summary.wall_s if summary.wall_s > 0 else 0.0
+    summary.outputs = {k: str(v) for k, v in files.items()}
+    files["run"].write_text(summary.to_json())
+    log.info(
+        "agent %s: %d frames, %d keyframes, %d tracking losses, GNSS %d used / %d rejected, %.1f fps",
+        agent_id, summary.frames, summary.keyframes, summary.tracking_losses, summary.gnss_used,
+        summary.gnss_rejected, summary.fps,
+    )  # fmt: skip
+    return summary
+
+
+def _write_frames_csv(path: Path, rows: list[dict[str, float | int | str]]) -> None:
+    import csv
+
+    with open(path, "w", newline="") as f:
+        if not rows:
+            return
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)

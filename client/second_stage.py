@@ -294,6 +294,26 @@ class SecondStage:
         if starts_segment:
             self._segment_prior[segment] = (h, kf_id, init)
 
+    def update_vio_pose(self, kf_id: int, vio_from_kf: F64) -> None:
+        """The front-end moved an already added keyframe (local BA): keep its VIO pose current.
+
+        Only the per-keyframe correction used for frame interpolation and ``local_from_vio`` change;
+        factors already in the graph are not re-weighted.
+        """
+        if kf_id in self._kfs:
+            self._kfs[kf_id].vio_from_kf = np.asarray(vio_from_kf, dtype=np.float64).reshape(4, 4)
+
+    def vio_pose(self, kf_id: int) -> F64:
+        """The keyframe's current VIO-frame pose (4x4)."""
+        return self._kfs[kf_id].vio_from_kf.copy()
+
+    def has_keyframe(self, kf_id: int) -> bool:
+        return kf_id in self._kfs
+
+    @property
+    def segment_count(self) -> int:
+        return self._segment_count
+
     def predicted_antenna(self, kf_id: int) -> tuple[F64, F64]:
         """Predicted antenna position (3,) in the local frame and its 3x3 marginal covariance."""
         T = self._estimate[kf_id]
