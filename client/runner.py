@@ -454,3 +454,21 @@ def _write_frames_csv(path: Path, rows: list[dict[str, float | int | str]]) -> N
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
+
+
+def run_streaming(
+    agent_dir: str | Path,
+    out_dir: str | Path,
+    server: str,
+    agent_id: str | None,
+    token: str,
+    options: RunnerOptions | None = None,
+) -> RunSummary:
+    """Replay a dataset and stream keyframes/points to a server (``hivemap.client.link.AgentLink``)."""
+    try:
+        from hivemap.client import link  # noqa: F401
+    except ImportError as exc:
+        raise NotImplementedError(
+            "streaming mode needs hivemap.client.link (AgentLink), which is not available yet; use --offline"
+        ) from exc
+    raise NotImplementedError("streaming mode is not wired to AgentLink yet; use --offline")
