@@ -76,7 +76,7 @@ class PinholeCamera:
         if len(uv) == 0:
             return np.zeros((0, 2))
         out = cv2.undistortPoints(uv, self.K, self.dist_coeffs)
-        return out.reshape(-1, 2)
+        return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
     def undistort_pixels(self, uv: F64) -> F64:
         """Distorted pixels (N, 2) -> undistorted pixels (N, 2) under the same K."""
