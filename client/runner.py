@@ -252,6 +252,9 @@ class OfflineAgent:
         self.vio_t: list[float] = []
         self.vio_poses: list[F64] = []
         self.vio_session: list[int] = []
+        # per tracked frame: (session, reference keyframe id, ref_kf_from_frame) for the final estimate
+        self.vio_ref: list[tuple[int, int, F64] | None] = []
+        self._ref_kf: dict[int, int] = {}  # session -> last keyframe id created
         self.gnss_used = 0
         self.gnss_rejected = 0
         self.losses = 0
@@ -287,9 +290,16 @@ class OfflineAgent:
             self.losses += 1
         self._was_lost = lost
         if res.state in (TrackingState.OK, TrackingState.RELOCALIZED, TrackingState.NEW_MAP):
+            T_wb = np.asarray(res.world_from_body, dtype=np.float64)
             self.vio_t.append(float(t))
-            self.vio_poses.append(np.asarray(res.world_from_body, dtype=np.float64))
+            self.vio_poses.append(T_wb)
             self.vio_session.append(int(res.session))
+            if res.new_keyframe_id is not None:
+                # The frame is the keyframe (its reported pose can predate a gravity re-alignment).
+                self._ref_kf[int(res.session)] = int(res.new_keyframe_id)
+                self.vio_ref.append((int(res.session), int(res.new_keyframe_id), np.eye(4)))
+            else:
+                self.vio_ref.append(self._reference(int(res.session), T_wb))
         self.frame_log.append(
             {
                 "t": float(t),
@@ -303,6 +313,37 @@ class OfflineAgent:
             }
         )
         return res
+
+    def _reference(self, session: int, T_wb: F64) -> tuple[int, int, F64] | None:
+        """The frame's pose relative to its reference keyframe, both as the front-end has them now.
+
+        The front-end may re-express its VIO frame (gravity alignment) and move keyframes (local
+        BA); a frame stored relative to its reference keyframe follows both (as ORB-SLAM saves
+        trajectories).
+        """
+        k = self._ref_kf.get(session)
+        if k is None:
+            return None
+        kf = self.frontend.keyframes.get(k)
+        if kf is None or session != self.frontend.session:
+            return None
+        T_wkf = kf.T_wc @ np.linalg.inv(self.frontend.body_from_cam)
+        return session, int(k), np.linalg.inv(T_wkf) @ T_wb
+
+    def vio_trajectory(self) -> tuple[F64, F64]:
+        """Every tracked frame's body pose in the (final) VIO frame of its session.
+
+        Frames are re-expressed through their reference keyframe's final VIO pose when that keyframe
+        reached the second stage; otherwise the pose the front-end reported at the time is used.
+        """
+        out = []
+        for T, ref in zip(self.vio_poses, self.vio_ref, strict=True):
+            node = self._node_of.get((ref[0], ref[1])) if ref is not None else None
+            if ref is not None and node is not None:
+                out.append(self.stage.vio_pose(node) @ ref[2])
+            else:
+                out.append(T)
+        return np.asarray(self.vio_t), np.asarray(out).reshape(-1, 4, 4)
 
     def finish(self) -> None:
         self.frontend.flush()
@@ -354,7 +395,8 @@ class OfflineAgent:
     def local_trajectory(self) -> tuple[F64, F64]:
         """Every tracked frame's pose in the local frame (final estimate, interpolated corrections)."""
         out = []
-        for t, T, s in zip(self.vio_t, self.vio_poses, self.vio_session, strict=True):
+        _, vio = self.vio_trajectory()
+        for t, T, s in zip(self.vio_t, vio, self.vio_session, strict=True):
             seg = self._sess_segment.get(s)
             if seg is None:  # a session whose keyframes never reached the second stage
                 out.append(T)
@@ -404,8 +446,7 @@ def run_offline(
     summary.wall_s = time.perf_counter() - wall0
 
     # outputs
-    vio_t = np.asarray(agent.vio_t)
-    vio_poses = np.asarray(agent.vio_poses).reshape(-1, 4, 4)
+    vio_t, vio_poses = agent.vio_trajectory()
     loc_t, loc_poses = agent.local_trajectory()
     kf_t, kf_poses = (
         agent.stage.keyframe_poses() if agent.stage.keyframe_ids else (np.zeros(0), np.zeros((0, 4, 4)))
