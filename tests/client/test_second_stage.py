@@ -188,3 +188,45 @@ def test_yaw_translation_alignment_exact():
     T = se3(Rotation.from_euler("z", 1.2).as_matrix(), np.array([3.0, -2.0, 1.0]))
     dst = src @ T[:3, :3].T + T[:3, 3]
     assert np.abs(yaw_translation_alignment(src, dst) - T).max() < 1e-9
+
+
+def test_new_segment_after_tracking_loss_is_tied_by_gnss(sim):
+    """The front-end restarts in a new VIO frame at keyframe 80 (tracking lost): the second
+    segment has its own prior and local_from_vio, and GNSS puts both segments into ENU."""
+    gt, vio, vio_from_enu, fixes = sim
+    other = se3(Rotation.from_euler("z", -1.0).as_matrix(), np.array([-20.0, 3.0, 0.0]))
+    vio2 = vio.copy()
+    vio2[80:] = other[None] @ vio[80:]  # the new session's frame
+    stage = SecondStage()
+    for i, T in enumerate(vio2):
+        stage.add_keyframe(i, i * DT, T, rel_cov=None if i in (0, 80) else REL_COV, new_segment=i == 80)
+        if i % 2 == 0:
+            stage.add_gnss(i, fixes[i], GNSS_COV)
+    _, poses = stage.keyframe_poses()
+    assert stage.segment_count == 2
+    assert stage.keyframe_segment(79) == 0 and stage.keyframe_segment(80) == 1
+    assert ate(poses, gt) < 0.15  # measured 0.07 m with fixes every 2nd keyframe
+    # both segments individually in ENU (the second one started 20 m and 57 degrees away)
+    assert ate(poses[:80], gt[:80]) < 0.15 and ate(poses[80:], gt[80:]) < 0.15
+    # and each segment has its own local_from_vio: the second one undoes `other` (up to drift)
+    rel = se3_inverse(stage.local_from_vio(1)) @ stage.local_from_vio(0)  # ~ vio1_from_vio0
+    assert abs(Rotation.from_matrix(rel[:3, :3] @ other[:3, :3].T).magnitude()) < math.radians(5)
+
+
+def test_lever_arm_gnss(sim):
+    """Keyframes are camera poses and the antenna sits 0.5 m above and 0.2 m behind the camera:
+    GPSFactorArm puts the antenna, not the camera, on the fixes."""
+    gt, vio, _, _ = sim
+    lever = np.array([-0.2, 0.0, 0.5])  # in the keyframe frame
+    antenna = gt[:, :3, 3] + np.einsum("nij,j->ni", gt[:, :3, :3], lever)
+    rng = np.random.default_rng(5)
+    fixes = antenna + rng.normal(0, 1, antenna.shape) * np.array([SIGMA_H, SIGMA_H, SIGMA_V])
+    stage = SecondStage(SecondStageOptions(kf_from_antenna=tuple(lever)))
+    for i, T in enumerate(vio):
+        stage.add_keyframe(i, i * DT, T, rel_cov=None if i == 0 else REL_COV)
+        stage.add_gnss(i, fixes[i], GNSS_COV)
+    _, poses = stage.keyframe_poses()
+    assert ate(poses, gt) < 0.1  # the keyframe (camera) positions, not the antenna's
+    # without the lever arm the same fixes bias the keyframes by ~|lever|
+    _, biased, _ = run(vio, fixes, 1)
+    assert ate(biased, gt) > 0.3
