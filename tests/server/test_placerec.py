@@ -1,0 +1,263 @@
+"""Place recognition + Sim(3) on synthetic maps with known ground truth.
+
+Scene: ~2500 3D points (with unique random ORB descriptors) in front of two agents' trajectories.
+Each agent observes the points it sees (pixel noise 0.5 px x 1.2^octave, 3 flipped descriptor bits per
+observation, plus clutter keypoints) and holds its own map with its own point ids. Agent B's map is the
+world under a known Sim(3) (scale 2.5, as a monocular agent's), so place recognition must return
+``B_from_A`` with the query in map A.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hivemap.maps import Keyframe, Map, MapPoint
+from hivemap.maps.camera import PinholeCamera
+from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3, so3_exp
+from hivemap.maps.kfdb import KeyframeDatabase
+from hivemap.maps.vocabulary import default_vocabulary, hamming_matrix
+from hivemap.server.placerec import (
+    PlaceRecognizer,
+    estimate_sim3_ransac,
+    match_bow,
+    match_projected,
+)
+
+CAM = PinholeCamera(640, 480, 450.0, 450.0, 320.0, 240.0, (-0.1, 0.01, 0.0, 0.0))
+S_TRUE = Sim3(so3_exp(np.array([0.3, -0.5, 1.2])), np.array([12.0, -7.0, 4.0]), 2.5)
+
+
+def _flip(desc: np.ndarray, rng: np.random.Generator, n_bits: int) -> np.ndarray:
+    bits = np.unpackbits(desc, axis=-1)
+    for row in bits.reshape(-1, 256):
+        row[rng.choice(256, n_bits, replace=False)] ^= 1
+    return np.packbits(bits, axis=-1)
+
+
+def _world(rng: np.random.Generator, n: int, x_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Points on three non-coplanar "facades" plus scattered clutter, in front of cameras looking +z."""
+    x = rng.uniform(*x_range, n)
+    kind = rng.integers(0, 3, n)
+    z = np.where(kind == 0, 25.0 + rng.normal(0, 0.3, n), rng.uniform(12, 35, n))
+    y = np.where(kind == 1, 4.0 + rng.normal(0, 0.1, n), rng.uniform(-6, 4, n))
+    pts = np.stack([x, y, z], axis=1)
+    desc = rng.integers(0, 256, size=(n, 32), dtype=np.uint8)
+    return pts, desc
+
+
+def _make_map(
+    rng: np.random.Generator,
+    map_id: int,
+    agent: str,
+    world_pts: np.ndarray,
+    world_desc: np.ndarray,
+    centres_x: np.ndarray,
+    frame_from_world: Sim3,
+    point_noise: float = 0.02,
+) -> Map:
+    m = Map(map_id)
+    poses = []
+    for cx in centres_x:
+        R = so3_exp(rng.normal(0, 0.05, 3))
+        poses.append(se3(R, np.array([cx, rng.normal(0, 0.3), rng.normal(0, 0.3)])))
+    seen: dict[int, list[tuple[int, np.ndarray, int]]] = {}
+    for k, T in enumerate(poses):
+        pc = world_pts @ T[:3, :3] - T[:3, 3] @ T[:3, :3]
+        uv, valid = CAM.project(pc)
+        valid &= CAM.in_image(uv, margin=5) & (pc[:, 2] > 1)
+        for i in np.flatnonzero(valid).tolist():
+            seen.setdefault(i, []).append((k, uv[i], int(rng.integers(0, 4))))
+    ids = {i: j for j, i in enumerate(sorted(i for i, obs in seen.items() if len(obs) >= 2))}
+    for i, j in ids.items():
+        xyz = frame_from_world.apply(world_pts[i] + rng.normal(0, point_noise, 3))
+        m.add_point(MapPoint(agent, j, xyz, _flip(world_desc[i], rng, 2)))
+    for k, T in enumerate(poses):
+        rows = [(i, uv, octv) for i, obs in seen.items() if i in ids for (kk, uv, octv) in obs if kk == k]
+        n_clutter = 150
+        kps = np.array([uv for _, uv, _ in rows] + [[0.0, 0.0]] * n_clutter, dtype=np.float64)
+        octs = np.array([o for _, _, o in rows] + list(rng.integers(0, 4, n_clutter)), dtype=np.uint8)
+        kps[: len(rows)] += rng.normal(0, 0.5, (len(rows), 2)) * (1.2 ** octs[: len(rows), None])
+        kps[len(rows) :] = rng.uniform([0, 0], [640, 480], (n_clutter, 2))
+        desc = np.concatenate(
+            [
+                _flip(world_desc[[i for i, _, _ in rows]], rng, 3),
+                rng.integers(0, 256, (n_clutter, 32), np.uint8),
+            ]
+        )
+        pids = np.array([ids[i] for i, _, _ in rows] + [-1] * n_clutter, dtype=np.int64)
+        kf = Keyframe(agent, k, float(k), frame_from_world.transform_pose(T), CAM, kps, octs, desc, pids)
+        m.add_keyframe(kf)
+    return m
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict:
+    rng = np.random.default_rng(42)
+    pts, desc = _world(rng, 2500, (-20, 30))
+    far_pts, far_desc = _world(rng, 1500, (200, 240))  # another part of the site, never seen by A or B
+    a = _make_map(rng, 0, "uavA", pts, desc, np.linspace(-6, 8, 10), Sim3.identity())
+    b = _make_map(rng, 1, "uavB", pts, desc, np.linspace(-2, 12, 10), S_TRUE)
+    c = _make_map(rng, 2, "uavC", far_pts, far_desc, np.linspace(205, 220, 10), S_TRUE)
+    # D: same appearance as the A/B area but a scrambled 3D structure (BoW alike, geometry not)
+    shuffled = pts[rng.permutation(len(pts))]
+    d = _make_map(rng, 3, "uavD", shuffled, desc, np.linspace(-6, 8, 10), Sim3.identity())
+    return {"A": a, "B": b, "C": c, "D": d}
+
+
+def _recognizer(maps: dict[int, Map]) -> PlaceRecognizer:
+    pr = PlaceRecognizer(default_vocabulary(), KeyframeDatabase())
+    for mid, m in maps.items():
+        for kf in m.keyframes.values():
+            pr.add_keyframe(mid, kf)
+    return pr
+
+
+def _check_sim(est: Sim3, true: Sim3) -> None:
+    # paper/issue tolerances: rotation < 0.5 deg, translation < 1 %, scale < 1 %
+    assert rotation_angle_deg(est.R @ true.R.T) < 0.5
+    assert np.linalg.norm(est.t - true.t) / np.linalg.norm(true.t) < 0.01
+    assert abs(est.s / true.s - 1) < 0.01
+
+
+def test_match_bow_and_projection_agree_with_brute_force() -> None:
+    rng = np.random.default_rng(0)
+    vocab = default_vocabulary()
+    a = rng.integers(0, 256, (400, 32), dtype=np.uint8)
+    perm = rng.permutation(400)
+    b = _flip(a[perm], rng, 4)
+    _, fa = vocab.transform(a)
+    _, fb = vocab.transform(b)
+    pairs = match_bow(fa, a, fb, b)
+    # every returned pair is a true correspondence
+    assert np.all(perm[pairs[:, 1]] == pairs[:, 0])
+    # reference with loops: same node, best within 50 bits, ratio 0.75 to the second best, unique b
+    D = hamming_matrix(a, b)
+    ref: dict[int, tuple[int, int]] = {}
+    for i in range(400):
+        same = np.flatnonzero(fb.node_of_feature == fa.node_of_feature[i])
+        if len(same) == 0:
+            continue
+        d = np.sort(D[i, same])
+        j = int(same[np.argmin(D[i, same])])
+        if d[0] <= 50 and (len(d) == 1 or d[0] < 0.75 * d[1]) and (j not in ref or ref[j][1] > d[0]):
+            ref[j] = (i, int(d[0]))
+    assert {(i, j) for j, (i, _) in ref.items()} == {tuple(p) for p in pairs.tolist()}
+    # Random descriptors are ~128 bits from every centre, so 4 flipped bits often change the node at
+    # level 2 and recall is lower than on real (clustered) ORB descriptors: require > 50 %.
+    assert len(pairs) > 0.5 * 400
+    # projection: points at their true pixel (+1 px) among 400 random keypoints
+    kp = rng.uniform(0, 600, (400, 2))
+    uv = kp[perm] + rng.normal(0, 1.0, (400, 2))
+    m = match_projected(uv, b, kp, np.zeros(400, np.uint8), a, radius=5.0, max_distance=50)
+    assert len(m) > 0.95 * 400 and np.all(perm[m[:, 0]] == m[:, 1])
+    assert hamming_matrix(a[:1], b[:1]).shape == (1, 1)
+
+
+def test_ransac_recovers_sim3_with_outliers() -> None:
+    rng = np.random.default_rng(1)
+    src = rng.uniform(-10, 10, (300, 3))
+    tgt = S_TRUE.apply(src)
+    tgt[:90] += rng.normal(0, 5.0, (90, 3))
+    est = estimate_sim3_ransac(src, tgt, max_error=0.05, fix_scale=False)
+    assert est is not None
+    sim, inl = est
+    _check_sim(sim, S_TRUE)
+    assert inl[90:].all()
+
+
+def test_merge_recovers_known_sim3_after_three_consistent_detections(scene) -> None:
+    a, b = scene["A"], scene["B"]
+    maps = {0: a, 1: b}
+    pr = _recognizer(maps)
+    results = [pr.detect(maps, 0, ("uavA", k), n_agents=2, loop=False) for k in (5, 6, 7)]
+    for r in results:
+        assert r.detection is not None, [c.to_dict() for c in r.candidates]
+        assert r.detection.candidate_map == 1
+    assert [r.detection.consistent for r in results if r.detection] == [1, 2, 3]
+    assert results[0].confirmed is None and results[1].confirmed is None
+    det = results[2].confirmed
+    assert det is not None
+    _check_sim(det.target_from_source, S_TRUE)
+    assert det.n_inliers >= 40
+    # fused pairs are the same physical point: B's copy == S_TRUE applied to A's copy (point noise 2 cm)
+    qa = np.array([a.points[k].xyz for k in det.query_points])
+    cb = np.array([b.points[k].xyz for k in det.candidate_points])
+    assert np.median(np.linalg.norm(S_TRUE.apply(qa) - cb, axis=1)) < 0.1 * S_TRUE.s
+    # every candidate is reported with a reason, JSON-able for /events
+    ev = results[2].events()
+    assert ev[-1]["type"] == "placerec" and ev[-1]["detection"]["confirmed"] is True
+    assert all(e["reason"] for e in ev)
+
+
+def test_metric_mode_recovers_se3_and_rejects_a_scaled_map(scene) -> None:
+    a, b = scene["A"], scene["B"]
+    # B' = B brought back to metric scale: rigid B'_from_A
+    rigid = Sim3(S_TRUE.R, S_TRUE.t, 1.0)
+    b_metric = Map(5)
+    for p in b.points.values():
+        xyz = rigid.apply(S_TRUE.inverse().apply(p.xyz))
+        b_metric.add_point(MapPoint(p.agent_id, p.id, xyz, p.descriptor))
+    for kf in b.keyframes.values():
+        T = rigid.transform_pose(S_TRUE.inverse().transform_pose(kf.world_from_cam))
+        b_metric.add_keyframe(
+            Keyframe(kf.agent_id, kf.id, kf.timestamp, T, kf.camera, kf.keypoints, kf.octaves,
+                     kf.descriptors, kf.point_ids)
+        )  # fmt: skip
+    maps = {0: a, 5: b_metric}
+    pr = _recognizer(maps)
+    r = pr.detect(maps, 0, ("uavA", 6), n_agents=2, fix_scale=True, loop=False)
+    assert r.detection is not None
+    assert r.detection.target_from_source.s == 1.0
+    _check_sim(r.detection.target_from_source, rigid)
+    # a metric-mode attempt against the 2.5-scaled map is refused by the scale sanity gate
+    maps2 = {0: a, 1: b}
+    pr2 = _recognizer(maps2)
+    r2 = pr2.detect(maps2, 0, ("uavA", 6), n_agents=2, fix_scale=True, loop=False)
+    assert r2.detection is None
+    assert any(c.reason == "metric_scale_inconsistent" for c in r2.candidates)
+
+
+@pytest.mark.parametrize("other", ["C", "D"])
+def test_disjoint_or_inconsistent_maps_are_never_merged(scene, other: str) -> None:
+    """C: another part of the site. D: the same appearance with a scrambled structure (BoW matches,
+    geometry does not). Every query keyframe of A must end without an accepted candidate."""
+    a, o = scene["A"], scene[other]
+    maps = {0: a, 9: o}
+    pr = _recognizer(maps)
+    pr.options = type(pr.options)(use_feasibility=False)  # verify every candidate geometrically
+    for k in range(10):
+        r = pr.detect(maps, 0, ("uavA", k), n_agents=2, loop=False)
+        assert r.detection is None, [c.to_dict() for c in r.candidates]
+        assert all(not c.accepted for c in r.candidates)
+    if other == "D":
+        # BoW alone is fooled (same descriptors); the geometric stages reject it
+        assert r.candidates and all(
+            c.reason in ("few_bow_matches", "ransac_failed", "few_ransac_inliers", "few_projected_inliers")
+            for c in r.candidates
+        )
+
+
+def test_gnss_retry_with_lowered_thresholds(scene) -> None:
+    """A weak overlap (map E shares only 32 points with A, the rest of E is elsewhere) is refused by the
+    normal thresholds (>= 40 after projection) and accepted, correctly, by the GNSS-guided retry."""
+    rng = np.random.default_rng(5)
+    a = scene["A"]
+    pts, desc = _world(np.random.default_rng(42), 2500, (-20, 30))  # the same world as the fixture
+    kf = a.keyframes[("uavA", 5)]
+    pc = pts @ kf.world_from_cam[:3, :3] - kf.world_from_cam[:3, 3] @ kf.world_from_cam[:3, :3]
+    uv, valid = CAM.project(pc)
+    shared = rng.choice(np.flatnonzero(valid & CAM.in_image(uv, 20)), 32, replace=False)
+    far_pts, far_desc = _world(rng, 1500, (200, 240))
+    e_pts = np.concatenate([pts[shared], far_pts - [0, 0, 0]])
+    e_desc = np.concatenate([desc[shared], far_desc])
+    centres = np.concatenate([[kf.world_from_cam[0, 3]] * 2, np.linspace(205, 220, 6)])
+    e = _make_map(rng, 4, "ugvE", e_pts, e_desc, centres, S_TRUE)
+    maps = {0: a, 4: e}
+    pr = _recognizer(maps)
+    normal = pr.detect(maps, 0, ("uavA", 5), n_agents=2, loop=False)
+    assert normal.detection is None
+    retry = pr.verify_pair(maps, 0, ("uavA", 5), 4, [("ugvE", 0), ("ugvE", 1)], fix_scale=False)
+    assert retry.detection is not None and retry.detection.confirmed, [c.to_dict() for c in retry.candidates]
+    assert retry.detection.n_inliers < 40
+    _check_sim(retry.detection.target_from_source, S_TRUE)
