@@ -255,6 +255,8 @@ class Map:
         # keyframes inserted without any covisible keyframe while the map was not empty: attached to the
         # tree by their first covisibility link
         self._orphans: set[KfKey] = set()
+        # keyframes whose spanning-tree parent changed since the last ``drain_tree_changes`` (persistence)
+        self._tree_changed: set[KfKey] = set()
 
     def __repr__(self) -> str:
         return (
@@ -319,6 +321,7 @@ class Map:
         kf.parent = parent
         if parent is not None:
             self._children[parent].add(child)
+        self._tree_changed.add(child)
 
     def _attach_orphan(self, orphan: KfKey, other: KfKey) -> None:
         if self._root_of(other) != orphan:
@@ -566,6 +569,29 @@ class Map:
         self._orphans.discard(child)
         self._set_parent_unchecked(child, parent)
 
+    def _restore_tree(self, parents: dict[KfKey, KfKey | None], orphans: set[KfKey]) -> None:
+        """Set every keyframe's parent as stored (persistence); unknown keys are ignored."""
+        for k in self._children:
+            self._children[k] = set()
+        for k, kf in self.keyframes.items():
+            p = parents.get(k)
+            kf.parent = p if p in self.keyframes else None
+            if kf.parent is not None:
+                self._children[kf.parent].add(k)
+        self._orphans = {k for k in orphans if k in self.keyframes}
+        self._tree_changed = set()
+
+    def drain_tree_changes(self) -> set[KfKey]:
+        """Keyframes whose ``parent`` changed since the last call (still in the map), then forget them."""
+        out = {k for k in self._tree_changed if k in self.keyframes}
+        self._tree_changed = set()
+        return out
+
+    @property
+    def orphans(self) -> set[KfKey]:
+        """Keyframes inserted without covisible keyframes, waiting for their first link to join the tree."""
+        return set(self._orphans)
+
     def add_loop_edge(self, a: KfKey, b: KfKey) -> None:
         a, b = _key(a), _key(b)
         if a == b:
@@ -751,6 +777,7 @@ class MapStack:
         for a, bs in src._loops.items():
             tgt._loops.setdefault(a, set()).update(bs)
         tgt._orphans.update(src._orphans)
+        tgt._tree_changed.update(src._tree_changed)
         tgt.agents.update(src.agents)
         for k, v in src.point_redirects.items():
             tgt.point_redirects.setdefault(k, v)

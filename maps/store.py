@@ -1,0 +1,557 @@
+"""Map persistence in one SQLite file (stdlib ``sqlite3``, WAL journal).
+
+Two ways to write, one set of tables, one way to read:
+
+- full: ``save_stack(stack)`` replaces every map in one transaction (a save killed half way leaves the
+  previous one intact: SQLite's atomic commit); ``save_map(m)`` replaces one map the same way;
+- incremental, for the server, cheap per call: ``put_keyframe``, ``put_points``, ``update_poses``,
+  ``sync_graph`` (spanning-tree parents that changed, orphans, loop edges, fusion redirects, agents),
+  ``delete_map``, ``record_merge``, and ``set_meta`` / ``get_meta`` (small JSON key/value table);
+- ``load_stack()`` / ``load_map(map_id)`` rebuild maps from the rows whichever way they were written.
+
+Lossless: arrays are stored as raw bytes with their dtype and shape (``pack_array``), floats that are not
+in arrays (timestamps) as 8 raw bytes, so everything reloads bit-identical; covisibility is re-derived
+from the keyframes' point references (the model's source of truth) and the spanning tree is restored
+from the stored parents.
+
+Transactions: each write method runs in its own transaction and commits, unless a transaction is
+already open on ``conn`` or ``autocommit`` is False; then the caller commits (``conn.commit()``), so
+map rows can commit atomically with the caller's own rows in the same file.
+
+The file carries a schema version (table ``map_schema``); a file with a newer or unknown schema is
+refused with ``SchemaError``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sqlite3
+import time
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.camera import PinholeCamera
+from hivemap.maps.geometry import Sim3
+from hivemap.maps.model import Keyframe, KfKey, Map, MapPoint, MapStack, PointKey
+
+logger = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+
+_TABLES = (
+    "map_maps",
+    "map_keyframes",
+    "map_points",
+    "map_loops",
+    "map_redirects",
+    "map_merges",
+)
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS map_schema (version INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS map_state (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS map_meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS map_maps (
+    map_id INTEGER PRIMARY KEY,
+    agents TEXT NOT NULL DEFAULT '[]',    -- json list
+    orphans TEXT NOT NULL DEFAULT '[]'    -- json list of [agent, id]
+);
+CREATE TABLE IF NOT EXISTS map_keyframes (
+    map_id INTEGER NOT NULL,
+    agent TEXT NOT NULL,
+    id INTEGER NOT NULL,
+    seq INTEGER NOT NULL,                 -- insertion order
+    timestamp BLOB NOT NULL,              -- float64, 8 raw bytes
+    world_from_cam BLOB NOT NULL,         -- packed arrays: dtype + shape + raw bytes
+    camera TEXT NOT NULL,                 -- json (PinholeCamera.to_dict)
+    keypoints BLOB NOT NULL,
+    octaves BLOB NOT NULL,
+    descriptors BLOB NOT NULL,
+    point_ids BLOB NOT NULL,
+    point_agents TEXT,                    -- json {keypoint index: agent} for other agents' points
+    gnss_enu BLOB,
+    gnss_cov BLOB,
+    parent_agent TEXT,
+    parent_id INTEGER,
+    PRIMARY KEY (map_id, agent, id)
+);
+CREATE TABLE IF NOT EXISTS map_points (
+    map_id INTEGER NOT NULL,
+    agent TEXT NOT NULL,
+    id INTEGER NOT NULL,
+    seq INTEGER NOT NULL,
+    xyz BLOB NOT NULL,                    -- 3 float64 little-endian
+    descriptor BLOB NOT NULL,             -- 32 bytes
+    PRIMARY KEY (map_id, agent, id)
+);
+CREATE TABLE IF NOT EXISTS map_loops (
+    map_id INTEGER NOT NULL,
+    a_agent TEXT NOT NULL, a_id INTEGER NOT NULL,
+    b_agent TEXT NOT NULL, b_id INTEGER NOT NULL,
+    PRIMARY KEY (map_id, a_agent, a_id, b_agent, b_id)
+);
+CREATE TABLE IF NOT EXISTS map_redirects (
+    map_id INTEGER NOT NULL,
+    from_agent TEXT NOT NULL, from_id INTEGER NOT NULL,
+    to_agent TEXT NOT NULL, to_id INTEGER NOT NULL,
+    PRIMARY KEY (map_id, from_agent, from_id)
+);
+CREATE TABLE IF NOT EXISTS map_merges (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    map_id INTEGER NOT NULL,              -- the map whose merge_history holds the record
+    record TEXT NOT NULL                  -- json
+);
+CREATE INDEX IF NOT EXISTS map_merges_map ON map_merges (map_id);
+"""
+
+_KF_COLS = (
+    "map_id, agent, id, seq, timestamp, world_from_cam, camera, keypoints, octaves, descriptors, "
+    "point_ids, point_agents, gnss_enu, gnss_cov, parent_agent, parent_id"
+)
+_KF_UPSERT = (
+    f"INSERT INTO map_keyframes ({_KF_COLS}) VALUES ({', '.join('?' * 16)}) "
+    "ON CONFLICT (map_id, agent, id) DO UPDATE SET timestamp = excluded.timestamp, "
+    "world_from_cam = excluded.world_from_cam, camera = excluded.camera, keypoints = excluded.keypoints, "
+    "octaves = excluded.octaves, descriptors = excluded.descriptors, point_ids = excluded.point_ids, "
+    "point_agents = excluded.point_agents, gnss_enu = excluded.gnss_enu, gnss_cov = excluded.gnss_cov, "
+    "parent_agent = excluded.parent_agent, parent_id = excluded.parent_id"
+)
+_PT_UPSERT = (
+    "INSERT INTO map_points (map_id, agent, id, seq, xyz, descriptor) VALUES (?, ?, ?, ?, ?, ?) "
+    "ON CONFLICT (map_id, agent, id) DO UPDATE SET xyz = excluded.xyz, descriptor = excluded.descriptor"
+)
+
+
+class StoreError(RuntimeError):
+    """The file cannot be used as a map store."""
+
+
+class SchemaError(StoreError):
+    """The file's schema version is newer than or unknown to this hivemap."""
+
+
+def pack_array(a: NDArray[Any]) -> bytes:
+    """Array -> ``b"<dtype>|<d0,d1,..>\\n" + raw C-order bytes`` (lossless, any dtype without objects)."""
+    a = np.asarray(a)
+    if a.dtype.hasobject:
+        raise TypeError("object arrays cannot be stored")
+    header = f"{a.dtype.str}|{','.join(str(d) for d in a.shape)}\n".encode()
+    return header + np.ascontiguousarray(a).tobytes()
+
+
+def unpack_array(b: bytes) -> NDArray[Any]:
+    """Inverse of ``pack_array``; returns a writable array."""
+    nl = b.index(b"\n")
+    dtype_s, shape_s = b[:nl].decode().rsplit("|", 1)
+    shape = tuple(int(x) for x in shape_s.split(",")) if shape_s else ()
+    return np.frombuffer(b, dtype=np.dtype(dtype_s), offset=nl + 1).reshape(shape).copy()
+
+
+def _f64(x: float) -> bytes:
+    return np.float64(x).tobytes()
+
+
+def _kf_row(map_id: int, kf: Keyframe, seq: int) -> tuple[Any, ...]:
+    parent = kf.parent
+    return (
+        int(map_id),
+        kf.agent_id,
+        kf.id,
+        seq,
+        _f64(kf.timestamp),
+        pack_array(kf.world_from_cam),
+        json.dumps(kf.camera.to_dict()),
+        pack_array(kf.keypoints),
+        pack_array(kf.octaves),
+        pack_array(kf.descriptors),
+        pack_array(kf.point_ids),
+        json.dumps({str(i): a for i, a in sorted(kf.point_agents.items())}) if kf.point_agents else None,
+        None if kf.gnss_enu is None else pack_array(kf.gnss_enu),
+        None if kf.gnss_cov is None else pack_array(kf.gnss_cov),
+        None if parent is None else parent[0],
+        None if parent is None else parent[1],
+    )
+
+
+def _pt_row(map_id: int, p: MapPoint, seq: int) -> tuple[Any, ...]:
+    return (
+        int(map_id),
+        p.agent_id,
+        p.id,
+        seq,
+        np.ascontiguousarray(p.xyz, dtype="<f8").tobytes(),
+        np.ascontiguousarray(p.descriptor, dtype=np.uint8).tobytes(),
+    )
+
+
+class MapStore:
+    """A map store in one SQLite file. ``conn`` is the (single) connection; close with ``close()``."""
+
+    def __init__(self, path: str | Path, *, autocommit: bool = True, synchronous: str = "FULL") -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.autocommit = autocommit
+        try:
+            self.conn = sqlite3.connect(str(self.path), check_same_thread=False)
+            self.conn.execute("PRAGMA journal_mode=WAL")
+        except sqlite3.DatabaseError as e:
+            raise StoreError(f"{self.path}: not a usable SQLite file ({e})") from e
+        self.conn.execute(f"PRAGMA synchronous={'FULL' if synchronous.upper() == 'FULL' else 'NORMAL'}")
+        self._check_schema()
+        self._seq = {
+            "map_keyframes": self._max_seq("map_keyframes"),
+            "map_points": self._max_seq("map_points"),
+        }
+        self._agents_cache: dict[int, set[str]] = {}
+
+    # ------------------------------------------------------------------ set-up
+    def _check_schema(self) -> None:
+        tables = {r[0] for r in self.conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if "map_schema" in tables:
+            rows = self.conn.execute("SELECT version FROM map_schema").fetchall()
+            if len(rows) != 1:
+                raise SchemaError(f"{self.path}: corrupt schema version table ({len(rows)} rows)")
+            version = rows[0][0]
+            if not isinstance(version, int) or version > SCHEMA_VERSION or version < 1:
+                raise SchemaError(
+                    f"{self.path}: map store schema version {version!r} is not supported by this hivemap "
+                    f"(it reads version {SCHEMA_VERSION}); use a newer hivemap or another data directory"
+                )
+            # version == SCHEMA_VERSION (future migrations from older versions go here)
+            self.conn.executescript(_SCHEMA)
+            return
+        if tables & set(_TABLES):
+            raise SchemaError(f"{self.path}: map tables without a schema version: unknown format")
+        self.conn.executescript(_SCHEMA)
+        with self._tx():
+            self.conn.execute("INSERT INTO map_schema (version) VALUES (?)", (SCHEMA_VERSION,))
+
+    def _max_seq(self, table: str) -> int:
+        return int(self.conn.execute(f"SELECT COALESCE(MAX(seq), 0) FROM {table}").fetchone()[0])
+
+    def _next_seq(self, table: str) -> int:
+        self._seq[table] += 1
+        return self._seq[table]
+
+    @contextmanager
+    def _tx(self) -> Iterator[None]:
+        """A transaction, unless the caller already holds one (or autocommit is off): then join it."""
+        if self.conn.in_transaction or not self.autocommit:
+            yield
+            return
+        self.conn.execute("BEGIN")
+        try:
+            yield
+        except BaseException:
+            self.conn.rollback()
+            raise
+        self.conn.commit()
+
+    def close(self) -> None:
+        self.conn.close()
+
+    def __enter__(self) -> MapStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ key/value
+    def set_meta(self, key: str, value: Any) -> None:
+        """Store a JSON-serialisable value under ``key``."""
+        with self._tx():
+            self.conn.execute(
+                "INSERT INTO map_meta (key, value) VALUES (?, ?) "
+                "ON CONFLICT (key) DO UPDATE SET value = excluded.value",
+                (str(key), json.dumps(value)),
+            )
+
+    def get_meta(self, key: str, default: Any = None) -> Any:
+        row = self.conn.execute("SELECT value FROM map_meta WHERE key = ?", (str(key),)).fetchone()
+        return default if row is None else json.loads(row[0])
+
+    # ------------------------------------------------------------------ incremental writes
+    def _ensure_map(self, map_id: int, agents: Iterable[str] = ()) -> None:
+        cache = self._agents_cache.get(map_id)
+        if cache is None:
+            row = self.conn.execute("SELECT agents FROM map_maps WHERE map_id = ?", (map_id,)).fetchone()
+            if row is None:
+                self.conn.execute("INSERT INTO map_maps (map_id) VALUES (?)", (map_id,))
+                self.conn.execute(
+                    "INSERT INTO map_state (key, value) VALUES ('next_map_id', ?) ON CONFLICT (key) "
+                    "DO UPDATE SET value = MAX(CAST(value AS INTEGER), CAST(excluded.value AS INTEGER))",
+                    (json.dumps(map_id + 1),),
+                )
+                cache = set()
+            else:
+                cache = set(json.loads(row[0]))
+            self._agents_cache[map_id] = cache
+        new = set(agents) - cache
+        if new:
+            cache |= new
+            self.conn.execute(
+                "UPDATE map_maps SET agents = ? WHERE map_id = ?", (json.dumps(sorted(cache)), map_id)
+            )
+
+    def put_keyframe(self, map_id: int, kf: Keyframe) -> None:
+        """Insert or replace one keyframe (with its current point references and parent)."""
+        map_id = int(map_id)
+        with self._tx():
+            self._ensure_map(map_id, [kf.agent_id])
+            self.conn.execute(_KF_UPSERT, _kf_row(map_id, kf, self._next_seq("map_keyframes")))
+
+    def put_points(self, map_id: int, points: Iterable[MapPoint]) -> None:
+        """Insert or replace points (position and descriptor; observations come from the keyframes)."""
+        map_id = int(map_id)
+        pts = list(points)
+        if not pts:
+            return
+        with self._tx():
+            self._ensure_map(map_id, {p.agent_id for p in pts})
+            self.conn.executemany(_PT_UPSERT, [_pt_row(map_id, p, self._next_seq("map_points")) for p in pts])
+
+    def update_poses(
+        self, map_id: int, keyframes: Iterable[Keyframe] = (), points: Iterable[MapPoint] = ()
+    ) -> None:
+        """Write only the current ``world_from_cam`` of ``keyframes`` and ``xyz`` of ``points``
+        (rows already stored; unknown ones are ignored)."""
+        map_id = int(map_id)
+        with self._tx():
+            self.conn.executemany(
+                "UPDATE map_keyframes SET world_from_cam = ? WHERE map_id = ? AND agent = ? AND id = ?",
+                [(pack_array(kf.world_from_cam), map_id, kf.agent_id, kf.id) for kf in keyframes],
+            )
+            self.conn.executemany(
+                "UPDATE map_points SET xyz = ? WHERE map_id = ? AND agent = ? AND id = ?",
+                [
+                    (np.ascontiguousarray(p.xyz, dtype="<f8").tobytes(), map_id, p.agent_id, p.id)
+                    for p in points
+                ],
+            )
+
+    def delete_keyframes(self, map_id: int, keys: Iterable[KfKey]) -> None:
+        with self._tx():
+            self.conn.executemany(
+                "DELETE FROM map_keyframes WHERE map_id = ? AND agent = ? AND id = ?",
+                [(int(map_id), a, int(i)) for a, i in keys],
+            )
+
+    def delete_points(self, map_id: int, keys: Iterable[PointKey]) -> None:
+        with self._tx():
+            self.conn.executemany(
+                "DELETE FROM map_points WHERE map_id = ? AND agent = ? AND id = ?",
+                [(int(map_id), a, int(i)) for a, i in keys],
+            )
+
+    def sync_graph(self, m: Map) -> None:
+        """Write what the per-item calls do not carry: the parents that changed since the last sync
+        (``Map.drain_tree_changes``), orphans, loop edges, fusion redirects and agents of map ``m``."""
+        map_id = m.id
+        changed = m.drain_tree_changes()
+        with self._tx():
+            self._ensure_map(map_id, m.agents)
+            self.conn.executemany(
+                "UPDATE map_keyframes SET parent_agent = ?, parent_id = ? "
+                "WHERE map_id = ? AND agent = ? AND id = ?",
+                [
+                    (
+                        *(m.keyframes[k].parent or (None, None)),
+                        map_id,
+                        k[0],
+                        k[1],
+                    )
+                    for k in changed
+                ],
+            )
+            self.conn.execute(
+                "UPDATE map_maps SET orphans = ? WHERE map_id = ?",
+                (json.dumps(sorted(m.orphans)), map_id),
+            )
+            self.conn.execute("DELETE FROM map_loops WHERE map_id = ?", (map_id,))
+            self.conn.executemany(
+                "INSERT INTO map_loops VALUES (?, ?, ?, ?, ?)",
+                [(map_id, a[0], a[1], b[0], b[1]) for a, b in m.loop_edges()],
+            )
+            self.conn.executemany(
+                "INSERT OR REPLACE INTO map_redirects VALUES (?, ?, ?, ?, ?)",
+                [(map_id, f[0], f[1], t[0], t[1]) for f, t in m.point_redirects.items()],
+            )
+
+    def delete_map(self, map_id: int) -> None:
+        """Remove a map's rows (keyframes, points, graphs, its merge records)."""
+        with self._tx():
+            self._delete_map_rows(int(map_id), merges=True)
+
+    def _delete_map_rows(self, map_id: int, merges: bool) -> None:
+        for t in _TABLES:
+            if t != "map_merges" or merges:
+                self.conn.execute(f"DELETE FROM {t} WHERE map_id = ?", (map_id,))
+        self._agents_cache.pop(map_id, None)
+
+    def record_merge(
+        self,
+        target_id: int,
+        source_id: int,
+        target_from_source: Sim3 | NDArray[np.float64] | None = None,
+        record: dict[str, Any] | None = None,
+    ) -> None:
+        """Append a merge record to the target's history; the source's earlier records move to the target.
+        ``record`` (e.g. ``merged_map.merge_history[-1]``) is stored as given; without it a minimal one is
+        built from ``target_from_source``. (The moved keyframes and points are written by ``save_map``.)"""
+        if record is None:
+            M = target_from_source.matrix() if isinstance(target_from_source, Sim3) else target_from_source
+            record = {
+                "time": time.time(),
+                "target": int(target_id),
+                "source": int(source_id),
+                "target_from_source": None if M is None else np.asarray(M, dtype=np.float64).tolist(),
+            }
+        with self._tx():
+            self.conn.execute(
+                "UPDATE map_merges SET map_id = ? WHERE map_id = ?", (int(target_id), int(source_id))
+            )
+            self.conn.execute(
+                "INSERT INTO map_merges (map_id, record) VALUES (?, ?)", (int(target_id), json.dumps(record))
+            )
+
+    # ------------------------------------------------------------------ full writes
+    def _write_map(self, m: Map, merges: bool) -> None:
+        mid = m.id
+        self.conn.execute(
+            "INSERT INTO map_maps (map_id, agents, orphans) VALUES (?, ?, ?)",
+            (mid, json.dumps(sorted(m.agents)), json.dumps(sorted(m.orphans))),
+        )
+        self._agents_cache[mid] = set(m.agents)
+        self.conn.executemany(
+            _PT_UPSERT, [_pt_row(mid, p, self._next_seq("map_points")) for p in m.points.values()]
+        )
+        self.conn.executemany(
+            _KF_UPSERT, [_kf_row(mid, kf, self._next_seq("map_keyframes")) for kf in m.keyframes.values()]
+        )
+        self.conn.executemany(
+            "INSERT INTO map_loops VALUES (?, ?, ?, ?, ?)",
+            [(mid, a[0], a[1], b[0], b[1]) for a, b in m.loop_edges()],
+        )
+        self.conn.executemany(
+            "INSERT INTO map_redirects VALUES (?, ?, ?, ?, ?)",
+            [(mid, f[0], f[1], t[0], t[1]) for f, t in m.point_redirects.items()],
+        )
+        if merges:
+            self.conn.executemany(
+                "INSERT INTO map_merges (map_id, record) VALUES (?, ?)",
+                [(mid, json.dumps(r)) for r in m.merge_history],
+            )
+        m.drain_tree_changes()
+
+    def save_map(self, m: Map) -> None:
+        """Replace map ``m``'s rows (one transaction), e.g. after a merge. Its merge records are rewritten
+        from ``m.merge_history``."""
+        with self._tx():
+            self._delete_map_rows(m.id, merges=True)
+            self._write_map(m, merges=True)
+
+    def save_stack(self, stack: MapStack, progress: Callable[[int, int], None] | None = None) -> None:
+        """Replace every stored map with ``stack`` in one transaction (the meta table is kept).
+        ``progress(i, n)`` is called after each map is written."""
+        t0 = time.perf_counter()
+        with self._tx():
+            for t in _TABLES:
+                self.conn.execute(f"DELETE FROM {t}")
+            self._agents_cache.clear()
+            n = len(stack.maps)
+            for i, m in enumerate(stack.maps.values()):
+                self._write_map(m, merges=True)
+                if progress is not None:
+                    progress(i + 1, n)
+            self.conn.execute(
+                "INSERT OR REPLACE INTO map_state (key, value) VALUES ('next_map_id', ?)",
+                (json.dumps(stack.next_map_id),),
+            )
+        logger.info("saved %d maps to %s in %.2f s", len(stack.maps), self.path, time.perf_counter() - t0)
+
+    # ------------------------------------------------------------------ reads
+    def map_ids(self) -> list[int]:
+        ids = {r[0] for r in self.conn.execute("SELECT map_id FROM map_maps")}
+        ids |= {r[0] for r in self.conn.execute("SELECT DISTINCT map_id FROM map_keyframes")}
+        ids |= {r[0] for r in self.conn.execute("SELECT DISTINCT map_id FROM map_points")}
+        return sorted(ids)
+
+    def load_map(self, map_id: int) -> Map:
+        """Rebuild one map from its rows (points, then keyframes in insertion order, then graphs)."""
+        mid = int(map_id)
+        m = Map(mid)
+        c = self.conn
+        for f_a, f_i, t_a, t_i in c.execute(
+            "SELECT from_agent, from_id, to_agent, to_id FROM map_redirects WHERE map_id = ?", (mid,)
+        ):
+            m.point_redirects[(f_a, int(f_i))] = (t_a, int(t_i))
+        for agent, pid, xyz, desc in c.execute(
+            "SELECT agent, id, xyz, descriptor FROM map_points WHERE map_id = ? ORDER BY seq", (mid,)
+        ):
+            m.add_point(
+                MapPoint(
+                    agent,
+                    pid,
+                    np.frombuffer(xyz, dtype="<f8").astype(np.float64),
+                    np.frombuffer(desc, dtype=np.uint8),
+                )
+            )
+        parents: dict[KfKey, KfKey | None] = {}
+        cameras: dict[str, PinholeCamera] = {}
+        for row in c.execute(
+            f"SELECT {_KF_COLS} FROM map_keyframes WHERE map_id = ? ORDER BY seq", (mid,)
+        ).fetchall():
+            (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pagents, genu, gcov, pa, pi) = row
+            camera = cameras.get(cam)
+            if camera is None:
+                camera = cameras[cam] = PinholeCamera.from_dict(json.loads(cam))
+            kf = Keyframe(
+                agent,
+                kid,
+                float(np.frombuffer(ts, dtype=np.float64)[0]),
+                unpack_array(pose),
+                camera,
+                unpack_array(kps),
+                unpack_array(octs),
+                unpack_array(descs),
+                unpack_array(pids),
+                None if genu is None else unpack_array(genu),
+                None if gcov is None else unpack_array(gcov),
+            )
+            if pagents:
+                kf.point_agents = {int(i): a for i, a in json.loads(pagents).items()}
+            m.add_keyframe(kf)
+            parents[kf.key] = None if pa is None else (pa, int(pi))
+        row = c.execute("SELECT agents, orphans FROM map_maps WHERE map_id = ?", (mid,)).fetchone()
+        orphans: set[KfKey] = set()
+        if row is not None:
+            m.agents |= set(json.loads(row[0]))
+            orphans = {(a, int(i)) for a, i in json.loads(row[1])}
+        m._restore_tree(parents, orphans)
+        for a_a, a_i, b_a, b_i in c.execute(
+            "SELECT a_agent, a_id, b_agent, b_id FROM map_loops WHERE map_id = ?", (mid,)
+        ):
+            m.add_loop_edge((a_a, int(a_i)), (b_a, int(b_i)))
+        m.merge_history = [
+            json.loads(r[0])
+            for r in c.execute("SELECT record FROM map_merges WHERE map_id = ? ORDER BY seq", (mid,))
+        ]
+        return m
+
+    def load_stack(self) -> MapStack:
+        """Every stored map as a ``MapStack`` (full saves and incremental writes alike)."""
+        t0 = time.perf_counter()
+        stack = MapStack()
+        for mid in self.map_ids():
+            stack.add_map(self.load_map(mid))
+        row = self.conn.execute("SELECT value FROM map_state WHERE key = 'next_map_id'").fetchone()
+        if row is not None:
+            stack.next_map_id = max(stack.next_map_id, int(json.loads(row[0])))
+        logger.info("loaded %d maps from %s in %.2f s", len(stack.maps), self.path, time.perf_counter() - t0)
+        return stack
