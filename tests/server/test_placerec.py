@@ -55,8 +55,12 @@ def _make_map(
     centres_x: np.ndarray,
     frame_from_world: Sim3,
     point_noise: float = 0.02,
+    into: Map | None = None,
+    id0: int = 0,
 ) -> Map:
-    m = Map(map_id)
+    """A map of ``agent`` whose keyframes sit at ``centres_x``; ``into``/``id0``: append to an existing
+    map with keyframe and point ids starting at ``id0`` (a second pass over the same place)."""
+    m = Map(map_id) if into is None else into
     poses = []
     for cx in centres_x:
         R = so3_exp(rng.normal(0, 0.05, 3))
@@ -68,7 +72,7 @@ def _make_map(
         valid &= CAM.in_image(uv, margin=5) & (pc[:, 2] > 1)
         for i in np.flatnonzero(valid).tolist():
             seen.setdefault(i, []).append((k, uv[i], int(rng.integers(0, 4))))
-    ids = {i: j for j, i in enumerate(sorted(i for i, obs in seen.items() if len(obs) >= 2))}
+    ids = {i: id0 + j for j, i in enumerate(sorted(i for i, obs in seen.items() if len(obs) >= 2))}
     for i, j in ids.items():
         xyz = frame_from_world.apply(world_pts[i] + rng.normal(0, point_noise, 3))
         m.add_point(MapPoint(agent, j, xyz, _flip(world_desc[i], rng, 2)))
@@ -86,7 +90,8 @@ def _make_map(
             ]
         )
         pids = np.array([ids[i] for i, _, _ in rows] + [-1] * n_clutter, dtype=np.int64)
-        kf = Keyframe(agent, k, float(k), frame_from_world.transform_pose(T), CAM, kps, octs, desc, pids)
+        T_map = frame_from_world.transform_pose(T)
+        kf = Keyframe(agent, id0 + k, float(id0 + k), T_map, CAM, kps, octs, desc, pids)
         m.add_keyframe(kf)
     return m
 
@@ -261,3 +266,21 @@ def test_gnss_retry_with_lowered_thresholds(scene) -> None:
     assert retry.detection is not None and retry.detection.confirmed, [c.to_dict() for c in retry.candidates]
     assert retry.detection.n_inliers < 40
     _check_sim(retry.detection.target_from_source, S_TRUE)
+
+
+def test_intra_map_loop_with_drift() -> None:
+    """One agent passes the same place twice; its second pass drifted by a small Sim(3) (as monocular
+    VO does). A loop is found in its own map, outside the covisible keyframes, with the drift."""
+    rng = np.random.default_rng(11)
+    pts, desc = _world(rng, 2500, (-20, 30))
+    drift = Sim3(so3_exp(np.array([0.0, 0.03, 0.01])), np.array([0.8, -0.2, 0.3]), 1.04)
+    m = _make_map(rng, 0, "uavL", pts, desc, np.linspace(-6, 6, 8), Sim3.identity())
+    _make_map(rng, 0, "uavL", pts, desc, np.linspace(-5, 7, 8), drift, into=m, id0=10_000)
+    maps = {0: m}
+    pr = _recognizer(maps)
+    dets = [pr.detect(maps, 0, ("uavL", 10_000 + k), n_agents=1).detection for k in (3, 4, 5)]
+    assert all(d is not None and d.is_loop and d.candidate_key[1] < 10_000 for d in dets), dets
+    last = dets[-1]
+    assert last is not None and last.confirmed
+    # query points (second pass, drifted frame) -> candidate points (first pass): the inverse drift
+    _check_sim(last.target_from_source, drift.inverse())
