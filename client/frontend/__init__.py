@@ -1,0 +1,1 @@
+"""Stereo(-inertial) ORB visual odometry front-end of the agent."""

@@ -1,0 +1,91 @@
+"""ORB extraction with a spatial grid and an adaptive FAST threshold (dim scenes)."""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.client.frontend.options import FrontendOptions
+
+log = logging.getLogger(__name__)
+
+
+class OrbExtractor:
+    """cv2 ORB, over-detected then thinned on a grid so features spread over the image.
+
+    The FAST threshold drops (down to ``min_fast_threshold``) when too few corners are found and
+    recovers slowly when there are plenty, so somber/misty images still give enough features.
+    """
+
+    def __init__(self, options: FrontendOptions) -> None:
+        self.options = options
+        self.threshold = options.fast_threshold
+        self._orb = cv2.ORB_create(  # type: ignore[attr-defined]
+            nfeatures=int(options.n_features * 2),
+            scaleFactor=options.scale_factor,
+            nlevels=options.n_levels,
+            edgeThreshold=19,
+            patchSize=31,
+            fastThreshold=self.threshold,
+        )
+
+    def extract(
+        self, gray: NDArray[np.uint8], adapt: bool = True
+    ) -> tuple[NDArray[np.float32], NDArray[np.uint8], NDArray[np.uint8], NDArray[np.float32]]:
+        """-> keypoints (N,2) f32 pixels, octaves (N,) u8, descriptors (N,32) u8, angles (N,) f32."""
+        o = self.options
+        self._orb.setFastThreshold(int(self.threshold))
+        kps = self._orb.detect(gray, None)
+        n_raw = len(kps)
+        if adapt:
+            if n_raw < o.n_features and self.threshold > o.min_fast_threshold:
+                self.threshold = max(o.min_fast_threshold, int(self.threshold * 0.6))
+                log.debug("FAST threshold lowered to %d (%d corners)", self.threshold, n_raw)
+            elif n_raw >= 2 * o.n_features and self.threshold < o.fast_threshold:
+                self.threshold = min(o.fast_threshold, self.threshold + 2)
+        if n_raw == 0:
+            return (
+                np.zeros((0, 2), np.float32),
+                np.zeros(0, np.uint8),
+                np.zeros((0, 32), np.uint8),
+                np.zeros(0, np.float32),
+            )
+        kps = self._grid_select(kps, gray.shape)
+        kps, desc = self._orb.compute(gray, kps)
+        if desc is None or len(kps) == 0:
+            return (
+                np.zeros((0, 2), np.float32),
+                np.zeros(0, np.uint8),
+                np.zeros((0, 32), np.uint8),
+                np.zeros(0, np.float32),
+            )
+        uv = np.array([k.pt for k in kps], dtype=np.float32)
+        octv = np.array([k.octave for k in kps], dtype=np.uint8)
+        ang = np.array([k.angle for k in kps], dtype=np.float32)
+        return uv, octv, desc, ang
+
+    def _grid_select(self, kps: tuple[cv2.KeyPoint, ...], shape: tuple[int, ...]) -> list[cv2.KeyPoint]:
+        o = self.options
+        n = len(kps)
+        if n <= o.n_features:
+            return list(kps)
+        h, w = shape[:2]
+        pts = np.array([k.pt for k in kps])
+        resp = np.array([k.response for k in kps])
+        cx = np.minimum((pts[:, 0] * o.grid_cols / w).astype(int), o.grid_cols - 1)
+        cy = np.minimum((pts[:, 1] * o.grid_rows / h).astype(int), o.grid_rows - 1)
+        cell = cy * o.grid_cols + cx
+        order = np.lexsort((-resp, cell))  # by cell, best response first
+        cell_sorted = cell[order]
+        first = np.searchsorted(cell_sorted, cell_sorted, side="left")
+        rank = np.arange(n) - first
+        per_cell = max(1, o.n_features // (o.grid_cols * o.grid_rows))
+        chosen = order[rank < per_cell]
+        if len(chosen) < o.n_features:
+            rest = np.setdiff1d(np.arange(n), chosen)
+            rest = rest[np.argsort(-resp[rest])][: o.n_features - len(chosen)]
+            chosen = np.concatenate([chosen, rest])
+        return [kps[i] for i in chosen]

@@ -1,0 +1,52 @@
+"""Options of the stereo(-inertial) ORB front-end."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class FrontendOptions:
+    """Tuning of the front-end.  Pixel thresholds are at octave 0 and scale with ``1.2**octave``."""
+
+    # ORB extraction
+    n_features: int = 1000
+    scale_factor: float = 1.2
+    n_levels: int = 8
+    fast_threshold: int = 20
+    min_fast_threshold: int = 5
+    grid_cols: int = 8
+    grid_rows: int = 6
+    # stereo (LK refinement + row check on rectified coordinates)
+    stereo_max_row_error_px: float = 1.0
+    stereo_fb_error_px: float = 0.5
+    stereo_min_depth_m: float = 0.3
+    close_depth_baselines: float = 40.0  # ORB-SLAM's ThDepth: closer points are created from one stereo pair
+    stereo_residual_max_depth_baselines: float = 400.0  # beyond this a keypoint's disparity is ignored
+    # tracking
+    search_radius_px: float = 15.0
+    local_search_radius_px: float = 4.0
+    max_descriptor_distance: int = 80
+    ratio: float = 0.9
+    min_tracked: int = 20
+    pnp_reprojection_px: float = 3.0
+    local_map_keyframes: int = 10
+    # keyframes
+    kf_min_tracked_ratio: float = 0.75
+    kf_min_close_tracked: int = 70
+    kf_max_interval_s: float = 0.5
+    kf_min_interval_frames: int = 0
+    # local mapping
+    ba_window: int = 7
+    ba_fixed_max: int = 10
+    ba_iterations: int = 6
+    triangulation_neighbours: int = 3
+    min_parallax_cos: float = 0.9998
+    culling_min_found_ratio: float = 0.25
+    redundant_kf_ratio: float = 0.9
+    # relocalisation / loss
+    reloc_keyframes: int = 20
+    reloc_min_inliers: int = 30
+    max_lost_frames: int = 20
+    # imu
+    gravity_init_s: float = 1.0
