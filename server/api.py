@@ -1,0 +1,149 @@
+"""Thin REST routes over :mod:`hivemap.server.views` (inspection) and the WebSocket route."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Path, Query, Request
+from fastapi.responses import PlainTextResponse, RedirectResponse, StreamingResponse
+
+from hivemap.server import schemas, views
+from hivemap.server.core import HiveServer
+from hivemap.server.metrics import CONTENT_TYPE
+
+
+def get_server(request: Request) -> HiveServer:
+    server: HiveServer = request.app.state.hive
+    return server
+
+
+Server = Annotated[HiveServer, Depends(get_server)]
+MapId = Annotated[int, Path(ge=0, le=2**62, description="map id (see /maps)")]
+AgentId = Annotated[str, Path(min_length=1, max_length=64, description="agent id (see /agents)")]
+
+NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": schemas.ErrorBody, "description": "unknown id"}}
+
+router = APIRouter()
+
+
+@router.get("/", include_in_schema=False)
+def root() -> RedirectResponse:
+    return RedirectResponse("/viewer/")
+
+
+@router.get("/health", response_model=schemas.Health, tags=["server"])
+def health(server: Server) -> schemas.Health:
+    """Liveness and store status."""
+    return views.health(server)
+
+
+@router.get("/agents", response_model=schemas.AgentList, tags=["agents"])
+def agents(server: Server) -> schemas.AgentList:
+    """Every agent configured or seen: state, last seen, keyframes, bandwidth (bytes/s), map id."""
+    return views.agents(server)
+
+
+@router.get("/agents/{agent_id}", response_model=schemas.AgentInfo, responses=NOT_FOUND, tags=["agents"])
+def agent(server: Server, agent_id: AgentId) -> schemas.AgentInfo:
+    """One agent."""
+    return views.agent_info(server, views.get_agent(server, agent_id))
+
+
+@router.get(
+    "/agents/{agent_id}/trajectory",
+    response_model=schemas.Trajectory,
+    responses={**NOT_FOUND, 200: {"content": {"text/plain": {}, "application/json": {}}}},
+    tags=["agents"],
+)
+def trajectory(
+    server: Server,
+    agent_id: AgentId,
+    frame: Annotated[
+        schemas.Frame, Query(description="local = the agent's own (VIO) frame, global = its map's frame")
+    ] = schemas.Frame.global_,
+    format: Annotated[
+        schemas.TrajectoryFormat, Query(description="tum text or json")
+    ] = schemas.TrajectoryFormat.json,
+    session: Annotated[
+        int | None, Query(ge=0, le=1_000_000, description="default: the current session")
+    ] = None,
+) -> schemas.Trajectory | PlainTextResponse:
+    """Keyframe poses (world_from_cam) of an agent, ordered by time."""
+    if format == schemas.TrajectoryFormat.tum:
+        return PlainTextResponse(views.trajectory_tum(server, agent_id, frame, session))
+    return views.trajectory_json(server, agent_id, frame, session)
+
+
+@router.get("/maps", response_model=schemas.MapList, tags=["maps"])
+def maps(server: Server) -> schemas.MapList:
+    """The map stack: one map per agent session until the back-end merges them."""
+    return views.maps(server)
+
+
+@router.get("/maps/{map_id}", response_model=schemas.MapDetail, responses=NOT_FOUND, tags=["maps"])
+def map_detail(server: Server, map_id: MapId) -> schemas.MapDetail:
+    """Agents, keyframe and point counts, merge history of one map."""
+    return views.map_detail(server, map_id)
+
+
+@router.get(
+    "/maps/{map_id}/keyframes", response_model=schemas.KeyframeList, responses=NOT_FOUND, tags=["maps"]
+)
+def map_keyframes(
+    server: Server,
+    map_id: MapId,
+    offset: Annotated[int, Query(ge=0, le=10_000_000)] = 0,
+    limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
+) -> schemas.KeyframeList:
+    """Keyframes of a map (pose, number of keypoints and linked points), ordered by (agent, id), paged."""
+    return views.keyframes(server, map_id, offset, limit)
+
+
+@router.get(
+    "/maps/{map_id}/points",
+    responses={
+        **NOT_FOUND,
+        200: {
+            "content": {"application/octet-stream": {}, "application/json": {}},
+            "description": "binary little-endian PLY (double x, y, z; uint observations) or JSON",
+        },
+    },
+    tags=["maps"],
+)
+def map_points(
+    server: Server,
+    map_id: MapId,
+    format: Annotated[schemas.PointsFormat, Query(description="ply (binary little-endian) or json")] = (
+        schemas.PointsFormat.ply
+    ),
+) -> StreamingResponse:
+    """The map points, streamed."""
+    if format == schemas.PointsFormat.ply:
+        return StreamingResponse(
+            views.points_ply(server, map_id),
+            media_type="application/octet-stream",
+            headers={"Content-Disposition": f'attachment; filename="map{map_id}.ply"'},
+        )
+    return StreamingResponse(views.points_json(server, map_id), media_type="application/json")
+
+
+@router.get("/events", response_model=schemas.EventList, tags=["server"])
+def events(
+    server: Server,
+    since: Annotated[int, Query(ge=0, le=2**62, description="only events with a larger id")] = 0,
+    kind: Annotated[str | None, Query(max_length=32, description="connect, error, merge, loop, ...")] = None,
+    limit: Annotated[int, Query(ge=1, le=100_000, description="at most this many (the newest)")] = 1000,
+) -> schemas.EventList:
+    """Merges, loops, corrections, connections and errors (a ring buffer)."""
+    return views.events(server, since, kind, limit)
+
+
+@router.get(
+    "/metrics",
+    response_class=PlainTextResponse,
+    responses={200: {"content": {CONTENT_TYPE: {}}}},
+    tags=["server"],
+)
+def metrics(server: Server) -> PlainTextResponse:
+    """Prometheus text format."""
+    return PlainTextResponse(views.metrics(server), media_type=CONTENT_TYPE)

@@ -1,0 +1,73 @@
+"""The FastAPI application factory."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+from hivemap import __version__
+from hivemap.server.api import router
+from hivemap.server.core import HiveServer
+from hivemap.server.settings import ServerSettings
+from hivemap.server.views import NotFound
+from hivemap.server.ws import agent_endpoint
+
+logger = logging.getLogger(__name__)
+
+STATIC_DIR = Path(__file__).parent / "static"
+
+
+def create_app(settings: ServerSettings | None = None) -> FastAPI:
+    """Build the app; its :class:`HiveServer` (``app.state.hive``) starts and stops with the lifespan."""
+    settings = settings or ServerSettings()
+    server = HiveServer(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await server.start()
+        try:
+            yield
+        finally:
+            await server.stop()
+
+    app = FastAPI(
+        title="hivemap server",
+        version=__version__,
+        description="Collaborative SLAM server: agents stream keyframes over the WebSocket `/ws` "
+        "(protocol v1, msgpack); these routes inspect what the server holds.",
+        lifespan=lifespan,
+    )
+    app.state.hive = server
+    app.state.settings = settings
+    app.include_router(router)
+    app.add_api_websocket_route("/ws", agent_endpoint)
+
+    @app.exception_handler(NotFound)
+    async def not_found(request: Request, exc: NotFound) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=404)
+
+    if STATIC_DIR.is_dir():
+        app.mount("/viewer", StaticFiles(directory=STATIC_DIR, html=True), name="viewer")
+    return app
+
+
+def uvicorn_config_kwargs(settings: ServerSettings) -> dict[str, object]:
+    """The uvicorn options that enforce the server's limits (frame size, queue, compression, pings)."""
+    return {
+        "host": settings.host,
+        "port": settings.port,
+        "ws": "websockets-sansio",
+        "ws_max_size": settings.max_frame_bytes,
+        "ws_max_queue": settings.ws_max_queue,
+        "ws_per_message_deflate": settings.per_message_deflate,
+        "ws_ping_interval": settings.ping_interval_s,
+        "ws_ping_timeout": settings.ping_interval_s,
+        "log_level": settings.log_level,
+        "lifespan": "on",
+    }

@@ -1,0 +1,611 @@
+"""The ingest core: agents, their maps in the map stack, pending keyframes, persistence and acks.
+
+All map mutations happen on the event loop thread (the back-end must do the same: compute in a worker, then
+apply on the loop). Store writes run in the single writer thread (:mod:`hivemap.server.writer`); a message is
+acknowledged only after the SQLite commit that holds its data and the agent's last seq.
+
+Hooks for the collaboration back-end:
+
+* ``server.keyframe_observers``: async callables ``(map_id, kf_key) -> None`` awaited after a keyframe is
+  inserted into a map (keep them quick: enqueue work, don't compute).
+* ``await server.send_correction(agent_id, correction)``: deliver a ``Correction`` (queued while offline).
+* ``server.set_agent_transform(folded_id, global_from_vio)``: the Sim(3) applied to the agent's incoming data
+  after its map was merged (incoming poses are in the agent's VIO frame; stored poses are in the map's frame).
+* ``await server.persist(fn)``: run ``fn(store)`` in the writer thread (``store.maps`` is the MapStore) and
+  wait for its commit, e.g. to record a merge.
+* ``server.events.add(kind, message, ...)``: publish merges, loops, corrections on ``/events``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import logging
+import time
+from collections import Counter, deque
+from collections.abc import Awaitable, Callable, Iterable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from hivemap import __version__
+from hivemap.maps import MapStack
+from hivemap.maps.camera import PinholeCamera
+from hivemap.maps.geometry import Sim3
+from hivemap.protocol import (
+    Bye,
+    Correction,
+    Hello,
+    Keyframe,
+    MapPoints,
+    Message,
+    PoseUpdates,
+    Welcome,
+)
+from hivemap.protocol import Error as ErrorMsg
+from hivemap.server.bandwidth import Bandwidth
+from hivemap.server.convert import fold_agent_id, keyframe_from_msg, points_from_msg
+from hivemap.server.events import EventLog
+from hivemap.server.metrics import Histogram
+from hivemap.server.persist import GraphSnapshot, ServerStore
+from hivemap.server.settings import ServerSettings
+from hivemap.server.writer import StoreWriter
+
+logger = logging.getLogger(__name__)
+
+KfKey = tuple[str, int]
+KeyframeObserver = Callable[[int, KfKey], Awaitable[None]]
+MAX_SESSIONS_PER_AGENT = 64
+
+
+def _with_last_seq(
+    data_op: Callable[[ServerStore], None] | None, agent_id: str, seq: int
+) -> Callable[[ServerStore], None]:
+    """The message's data writes, then the agent's last seq: both land in the same commit."""
+
+    def op(store: ServerStore) -> None:
+        if data_op is not None:
+            data_op(store)
+        store.set_last_seq(agent_id, seq)
+
+    return op
+
+
+class Rejected(Exception):
+    """A message that is refused as a whole (nothing applied); becomes an ``error`` reply."""
+
+    def __init__(self, code: str, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.field = field
+
+
+class Connection(Protocol):
+    """What the core needs from a WebSocket connection (implemented in :mod:`hivemap.server.ws`)."""
+
+    agent_id: str | None
+    replaced: bool
+
+    def send(self, msg: Message) -> bool: ...
+
+    async def close(self, code: int, reason: str) -> None: ...
+
+
+@dataclass
+class PendingKeyframe:
+    msg: Keyframe
+    missing: set[int]
+
+
+@dataclass
+class AgentMap:
+    """One (agent, session): the ingest bookkeeping of one agent map (the data lives in the MapStack)."""
+
+    agent_id: str
+    session: int
+    folded: str
+    camera: PinholeCamera
+    global_from_vio: Sim3 = field(default_factory=Sim3.identity)
+    arrived_points: set[int] = field(default_factory=set)
+    arrived_kfs: set[int] = field(default_factory=set)
+    pending: dict[int, PendingKeyframe] = field(default_factory=dict)
+    waiting: dict[int, set[int]] = field(default_factory=dict)
+
+
+@dataclass
+class AgentState:
+    agent_id: str
+    kind: str = "uav"
+    camera: dict[str, Any] = field(default_factory=dict)
+    session: int = 0
+    last_seq: int = 0  # durably stored
+    applied_seq: int = 0  # applied in memory (>= last_seq)
+    maps: dict[int, AgentMap] = field(default_factory=dict)  # by session
+    connection: Connection | None = None
+    connected_since: float | None = None
+    last_seen: float | None = None
+    bandwidth: Bandwidth = field(default_factory=Bandwidth)
+    received: Counter[str] = field(default_factory=Counter)
+    duplicates: int = 0
+    errors: int = 0
+    undelivered: deque[Correction] = field(default_factory=lambda: deque(maxlen=16))
+
+    @property
+    def state(self) -> str:
+        return "connected" if self.connection is not None else "disconnected"
+
+
+class HiveServer:
+    """The server state shared by the WebSocket handlers, the REST routes and the back-end."""
+
+    def __init__(self, settings: ServerSettings) -> None:
+        self.settings = settings
+        self.events = EventLog(settings.event_buffer)
+        self.stack = MapStack()
+        self.agents: dict[str, AgentState] = {}
+        self.keyframe_observers: list[KeyframeObserver] = []
+        self.ack_latency = Histogram((0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 5.0))
+        self.started_at = time.time()
+        self.rejected_frames = 0
+        self._writer: StoreWriter[ServerStore] | None = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self._uncommitted: asyncio.Semaphore | None = None
+
+    # -- lifecycle ----------------------------------------------------------------------------------
+    @property
+    def db_path(self) -> Path:
+        return Path(self.settings.data_dir) / "hivemap.sqlite"
+
+    @property
+    def writer(self) -> StoreWriter[ServerStore]:
+        if self._writer is None:
+            raise RuntimeError("server not started")
+        return self._writer
+
+    async def start(self) -> None:
+        Path(self.settings.data_dir).mkdir(parents=True, exist_ok=True)
+        loop = asyncio.get_running_loop()
+        self.loop = loop  # for other threads: asyncio.run_coroutine_threadsafe(coro, server.loop)
+        self._uncommitted = asyncio.Semaphore(self.settings.max_uncommitted)
+        path, sync = self.db_path, self.settings.sqlite_synchronous
+        self._writer = StoreWriter(
+            lambda: ServerStore(path, synchronous=sync), loop, self.settings.commit_interval_ms / 1000.0
+        )
+        await self._writer.start()
+        loaded = await self._writer.call(lambda store: store.load_all())
+        self._restore(loaded)
+        # Long-lived objects (modules, FastAPI/pydantic internals, the reloaded maps) leave the collector's
+        # view: a full collection over them otherwise stalls the loop for tens of ms (measured: 60 ms).
+        gc.collect()
+        gc.freeze()
+        self.events.add(
+            "info",
+            f"server started: {len(self.stack.maps)} maps, {len(self.agents)} agents reloaded from {path}",
+        )
+
+    async def stop(self) -> None:
+        for agent in list(self.agents.values()):
+            if agent.connection is not None:
+                await agent.connection.close(1001, "server shutting down")
+        if self._writer is not None:
+            await self._writer.stop()
+            self._writer = None
+
+    def _restore(self, loaded: Any) -> None:
+        self.stack = loaded.stack
+        for rec in loaded.agents:
+            agent = AgentState(
+                agent_id=rec["agent_id"],
+                kind=rec["kind"],
+                camera=rec["camera"],
+                session=rec["session"],
+                last_seq=rec["last_seq"],
+                applied_seq=rec["last_seq"],
+            )
+            self.agents[agent.agent_id] = agent
+        for folded, rec in loaded.agent_maps.items():
+            owner = self.agents.get(rec["agent_id"])
+            if owner is None:
+                continue
+            am = self._new_agent_map(owner, rec["session"])
+            am.global_from_vio = Sim3.from_matrix(np.asarray(rec["global_from_vio"], dtype=np.float64))
+            m = self.stack.map_of_agent(folded)
+            if m is not None:
+                for kf in m.keyframes.values():
+                    if kf.agent_id != folded:
+                        continue
+                    am.arrived_kfs.add(kf.id)
+                    am.arrived_points.update(k[1] for _, k in kf.referenced_points() if k[0] == folded)
+                am.arrived_points.update(p.id for p in m.points.values() if p.agent_id == folded)
+                # points fused into another agent's point arrived too
+                am.arrived_points.update(k[1] for k in m.point_redirects if k[0] == folded)
+        for folded, kf_id, msg in loaded.pending:
+            pam = self._agent_map_by_folded(folded)
+            if pam is None:
+                continue
+            missing = self._missing_points(pam, msg)
+            pam.pending[kf_id] = PendingKeyframe(msg, missing)
+            for pid in missing:
+                pam.waiting.setdefault(pid, set()).add(kf_id)
+        logger.info("restored %d agents, %d maps", len(self.agents), len(self.stack.maps))
+
+    # -- agents -------------------------------------------------------------------------------------
+    def authenticate(self, hello: Hello) -> str | None:
+        """None if the hello's token is the one configured for its agent id, else the reason for refusal."""
+        import hmac
+
+        expected = self.settings.tokens.get(hello.agent_id)
+        if expected is None:
+            return f"unknown agent '{hello.agent_id}': no token configured for it"
+        if not hello.token:
+            return f"missing token for agent '{hello.agent_id}'"
+        if not hmac.compare_digest(expected.encode(), hello.token.encode()):
+            return f"wrong token for agent '{hello.agent_id}'"
+        return None
+
+    async def attach(self, conn: Connection, hello: Hello) -> Welcome:
+        """Register ``conn`` as the agent's connection (replacing an older one); send the welcome, then the
+        corrections the agent missed while offline."""
+        try:
+            camera = PinholeCamera.from_dict(hello.camera)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise Rejected("bad_field", f"invalid camera: {exc}", "body.camera") from exc
+        if hello.kind not in ("uav", "ugv"):
+            raise Rejected("bad_field", f"kind must be 'uav' or 'ugv', got {hello.kind!r}", "body.kind")
+        agent = self.agents.get(hello.agent_id)
+        if agent is None:
+            agent = AgentState(agent_id=hello.agent_id)
+            self.agents[agent.agent_id] = agent
+        old = agent.connection
+        if old is not None and old is not conn:
+            old.replaced = True
+            agent.connection = None
+            self.events.add(
+                "disconnect", f"{agent.agent_id}: replaced by a new connection", agent_id=agent.agent_id
+            )
+            await old.close(1000, "replaced by a new connection of the same agent")
+        if hello.session > agent.session and agent.maps:
+            self.events.add(
+                "session",
+                f"{agent.agent_id} started session {hello.session} (map reset)",
+                agent_id=agent.agent_id,
+            )
+        agent.kind = hello.kind
+        agent.camera = camera.to_dict()
+        agent.session = max(agent.session, hello.session)
+        if hello.session not in agent.maps:
+            self._new_agent_map(agent, hello.session)
+        self.map_for(agent.maps[hello.session])  # the agent's map exists (maybe empty) from its hello on
+        for am in agent.maps.values():
+            am.camera = camera if am.session == hello.session else am.camera
+        rec = {
+            "agent_id": agent.agent_id,
+            "kind": agent.kind,
+            "camera": agent.camera,
+            "session": agent.session,
+        }
+        maps = [
+            (am.folded, am.agent_id, am.session, am.global_from_vio.matrix()) for am in agent.maps.values()
+        ]
+
+        def op(store: ServerStore) -> None:
+            store.put_agent(rec)
+            for folded, agent_id, session, m in maps:
+                store.put_agent_map(folded, agent_id, session, m)
+
+        await self.writer.call(op)  # also flushes everything the old connection had applied
+        agent.connection = conn
+        agent.connected_since = agent.last_seen = time.time()
+        self.events.add(
+            "connect", f"{agent.agent_id} connected (last seq {agent.last_seq})", agent_id=agent.agent_id
+        )
+        welcome = Welcome(last_seq=agent.last_seq, server_version=__version__)
+        conn.send(welcome)
+        for corr in list(agent.undelivered):
+            conn.send(corr)
+        agent.undelivered.clear()
+        return welcome
+
+    def detach(self, conn: Connection) -> None:
+        if conn.agent_id is None:
+            return
+        agent = self.agents.get(conn.agent_id)
+        if agent is not None and agent.connection is conn:
+            agent.connection = None
+            agent.last_seen = time.time()
+            self.events.add("disconnect", f"{agent.agent_id} disconnected", agent_id=agent.agent_id)
+
+    # -- ingest -------------------------------------------------------------------------------------
+    async def handle(self, conn: Connection, seq: int, msg: Message, received_at: float) -> None:
+        """Apply one data message from an authenticated connection; ack it after its commit."""
+        assert conn.agent_id is not None and self._uncommitted is not None
+        agent = self.agents[conn.agent_id]
+        await self._uncommitted.acquire()  # back-pressure: the reader stops reading while commits lag
+        released = False
+
+        def release() -> None:
+            nonlocal released
+            if not released:
+                released = True
+                assert self._uncommitted is not None
+                self._uncommitted.release()
+
+        try:
+            if conn.replaced:
+                release()
+                return
+            agent.last_seen = time.time()
+            agent.received[type(msg).__name__] += 1
+            if seq <= 0:
+                raise Rejected("bad_field", f"seq must be >= 1 for data messages, got {seq}", "seq")
+            store_op: Callable[[ServerStore], None] | None = None
+            inserted: list[tuple[int, KfKey]] = []
+            if seq <= agent.applied_seq:
+                agent.duplicates += 1  # already applied (maybe not yet committed): ack after the next commit
+            else:
+                data_op, inserted = self._apply(agent, msg)
+                agent.applied_seq = seq
+                store_op = _with_last_seq(data_op, agent.agent_id, seq)
+        except Rejected:
+            release()
+            raise
+
+        def done(exc: BaseException | None) -> None:
+            release()
+            if exc is not None:
+                conn.send(ErrorMsg(code="storage", message=f"could not store message: {exc}", seq=seq))
+                return
+            agent.last_seq = max(agent.last_seq, seq)
+            self.ack_latency.observe(time.monotonic() - received_at)
+            if not conn.replaced:
+                from hivemap.protocol import Ack
+
+                conn.send(Ack(seq=seq))
+
+        self.writer.submit(store_op, done)
+        for map_id, key in inserted:
+            for observer in list(self.keyframe_observers):
+                try:
+                    await observer(map_id, key)
+                except Exception:
+                    logger.exception("keyframe observer failed")
+
+    def _apply(
+        self, agent: AgentState, msg: Message
+    ) -> tuple[Callable[[ServerStore], None] | None, list[tuple[int, KfKey]]]:
+        if isinstance(msg, Keyframe):
+            return self._apply_keyframe(agent, msg)
+        if isinstance(msg, MapPoints):
+            return self._apply_points(agent, msg)
+        if isinstance(msg, PoseUpdates):
+            return self._apply_pose_updates(agent, msg), []
+        if isinstance(msg, Bye):
+            return None, []
+        raise Rejected("unexpected", f"'{type(msg).__name__}' is not a message an agent sends", "type")
+
+    def _session_map(self, agent: AgentState, session: int, create: bool) -> AgentMap:
+        am = agent.maps.get(session)
+        if am is not None:
+            return am
+        if not create:
+            raise Rejected(
+                "unknown_id", f"unknown session {session} for agent '{agent.agent_id}'", "body.session"
+            )
+        if session < 0 or len(agent.maps) >= MAX_SESSIONS_PER_AGENT or session < max(agent.maps, default=0):
+            raise Rejected(
+                "bad_field", f"session {session} not allowed for agent '{agent.agent_id}'", "body.session"
+            )
+        am = self._new_agent_map(agent, session)
+        agent.session = max(agent.session, session)
+        folded, m = am.folded, am.global_from_vio.matrix()
+        rec = {
+            "agent_id": agent.agent_id,
+            "kind": agent.kind,
+            "camera": agent.camera,
+            "session": agent.session,
+        }
+        self.writer.submit(
+            lambda store: (store.put_agent(rec), store.put_agent_map(folded, agent.agent_id, session, m))
+        )
+        return am
+
+    def _new_agent_map(self, agent: AgentState, session: int) -> AgentMap:
+        camera = PinholeCamera.from_dict(agent.camera)
+        am = AgentMap(agent.agent_id, session, fold_agent_id(agent.agent_id, session), camera)
+        agent.maps[session] = am
+        return am
+
+    def _agent_map_by_folded(self, folded: str) -> AgentMap | None:
+        for agent in self.agents.values():
+            for am in agent.maps.values():
+                if am.folded == folded:
+                    return am
+        return None
+
+    def map_for(self, am: AgentMap) -> Any:
+        """The stack map holding this agent map's data (created on first use)."""
+        m = self.stack.map_of_agent(am.folded)
+        if m is None:
+            m = self.stack.new_map()
+            m.agents.add(am.folded)
+        return m
+
+    @staticmethod
+    def _missing_points(am: AgentMap, msg: Keyframe) -> set[int]:
+        ids = np.unique(msg.point_ids[msg.point_ids >= 0])
+        return {int(i) for i in ids.tolist() if int(i) not in am.arrived_points}
+
+    def _apply_keyframe(
+        self, agent: AgentState, msg: Keyframe
+    ) -> tuple[Callable[[ServerStore], None] | None, list[tuple[int, KfKey]]]:
+        am = self._session_map(agent, msg.session, create=True)
+        if msg.kf_id in am.arrived_kfs or msg.kf_id in am.pending:
+            agent.duplicates += 1
+            return None, []
+        missing = self._missing_points(am, msg)
+        if missing:
+            if len(am.pending) >= self.settings.max_pending_keyframes:
+                raise Rejected(
+                    "overloaded",
+                    f"{len(am.pending)} keyframes already wait for their map points; send the points first",
+                    "body.point_ids",
+                )
+            am.pending[msg.kf_id] = PendingKeyframe(msg, missing)
+            for pid in missing:
+                am.waiting.setdefault(pid, set()).add(msg.kf_id)
+            folded = am.folded
+            return (lambda store: store.put_pending(folded, msg)), []
+        m = self.map_for(am)
+        kf = self._insert_keyframe(am, m, msg)
+        map_id, graph = m.id, GraphSnapshot(m)
+
+        def op(store: ServerStore) -> None:
+            store.maps.put_keyframe(map_id, kf)
+            store.sync_graph(graph)
+
+        return op, [(map_id, kf.key)]
+
+    def _insert_keyframe(self, am: AgentMap, m: Any, msg: Keyframe) -> Any:
+        kf = keyframe_from_msg(am.folded, msg, am.camera, am.global_from_vio)
+        m.add_keyframe(kf)
+        am.arrived_kfs.add(msg.kf_id)
+        return kf
+
+    def _apply_points(
+        self, agent: AgentState, msg: MapPoints
+    ) -> tuple[Callable[[ServerStore], None] | None, list[tuple[int, KfKey]]]:
+        am = self._session_map(agent, msg.session, create=True)
+        ids = msg.ids.tolist()
+        seen: set[int] = set()
+        keep: list[int] = []
+        for i, pid in enumerate(ids):
+            if pid < 0:
+                raise Rejected("bad_field", f"map point ids must be >= 0, got {pid}", "body.ids")
+            if pid in am.arrived_points or pid in seen:
+                continue
+            seen.add(pid)
+            keep.append(i)
+        if not keep:
+            agent.duplicates += 1
+            return None, []
+        m = self.map_for(am)
+        points = points_from_msg(am.folded, msg, np.asarray(keep, dtype=np.int64), am.global_from_vio)
+        for mp in points:
+            m.add_point(mp)
+        am.arrived_points.update(seen)
+        # Keyframes that waited for these points (paper 2.3.2).
+        ready: list[int] = []
+        for pid in seen:
+            for kf_id in am.waiting.pop(pid, ()):
+                pk = am.pending.get(kf_id)
+                if pk is None:
+                    continue
+                pk.missing.discard(pid)
+                if not pk.missing:
+                    ready.append(kf_id)
+        released = []
+        for kf_id in sorted(ready):
+            pk = am.pending.pop(kf_id)
+            released.append(self._insert_keyframe(am, m, pk.msg))
+        map_id, folded = m.id, am.folded
+        graph = GraphSnapshot(m) if released else None
+
+        def op(store: ServerStore) -> None:
+            store.maps.put_points(map_id, points)
+            for kf in released:
+                store.maps.put_keyframe(map_id, kf)
+                store.delete_pending(folded, kf.id)
+            if graph is not None:
+                store.sync_graph(graph)
+
+        return op, [(map_id, kf.key) for kf in released]
+
+    def _apply_pose_updates(
+        self, agent: AgentState, msg: PoseUpdates
+    ) -> Callable[[ServerStore], None] | None:
+        am = self._session_map(agent, msg.session, create=False)
+        kf_ids = msg.kf_ids.tolist()
+        point_ids = msg.point_ids.tolist()
+        for i, k in enumerate(kf_ids):
+            if k not in am.arrived_kfs and k not in am.pending:
+                raise Rejected(
+                    "unknown_id", f"keyframe {k} of '{am.folded}' never arrived", f"body.kf_ids[{i}]"
+                )
+        for i, p in enumerate(point_ids):
+            if p not in am.arrived_points:
+                raise Rejected(
+                    "unknown_id", f"map point {p} of '{am.folded}' never arrived", f"body.point_ids[{i}]"
+                )
+        m = self.stack.map_of_agent(am.folded)
+        g = am.global_from_vio
+        changed_kfs = []
+        changed_pending = []
+        for i, k in enumerate(kf_ids):
+            T = np.array(msg.world_from_cam[i], dtype=np.float64)
+            pk = am.pending.get(k)
+            if pk is not None:
+                pk.msg = replace(pk.msg, world_from_cam=T)
+                changed_pending.append(pk.msg)
+                continue
+            kf = m.keyframes.get((am.folded, k)) if m is not None else None
+            if kf is not None:  # None: removed by the back-end (culled); the update is moot
+                kf.world_from_cam = g.transform_pose(T)
+                changed_kfs.append(kf)
+        changed_points = []
+        if point_ids and m is not None:
+            xyz = g.apply(np.asarray(msg.xyz, dtype=np.float64))
+            for i, p in enumerate(point_ids):
+                mp = m.points.get((am.folded, p))
+                if mp is not None:
+                    mp.xyz = xyz[i].copy()
+                    changed_points.append(mp)
+        map_id, folded = (m.id if m is not None else -1), am.folded
+
+        def op(store: ServerStore) -> None:
+            if changed_kfs or changed_points:
+                store.maps.update_poses(map_id, changed_kfs, changed_points)
+            for pmsg in changed_pending:
+                store.put_pending(folded, pmsg)
+
+        return op
+
+    # -- hooks for the back-end ---------------------------------------------------------------------
+    async def send_correction(self, agent_id: str, correction: Correction) -> bool:
+        """Send a correction to an agent now, or when it next connects. True if sent now."""
+        agent = self.agents.get(agent_id)
+        if agent is None:
+            raise KeyError(agent_id)
+        self.events.add(
+            "correction",
+            f"correction for {agent_id}: {len(correction.kf_ids)} keyframes of map {correction.map_id}",
+            agent_id=agent_id,
+            map_id=correction.map_id,
+        )
+        if agent.connection is not None and agent.connection.send(correction):
+            return True
+        agent.undelivered.append(correction)
+        return False
+
+    def set_agent_transform(self, folded: str, global_from_vio: Sim3) -> None:
+        """Set the Sim(3) from an agent map's VIO frame to the frame of the stack map that now holds it."""
+        am = self._agent_map_by_folded(folded)
+        if am is None:
+            raise KeyError(folded)
+        am.global_from_vio = global_from_vio
+        m = global_from_vio.matrix()
+        self.writer.submit(lambda store: store.put_agent_map(am.folded, am.agent_id, am.session, m))
+
+    async def persist(self, fn: Callable[[ServerStore], Any]) -> Any:
+        """Run ``fn(store)`` in the writer thread; returns its result after the commit."""
+        return await self.writer.call(fn)
+
+    # -- inspection helpers -------------------------------------------------------------------------
+    def agent_maps(self, agent_id: str) -> Iterable[AgentMap]:
+        agent = self.agents.get(agent_id)
+        return agent.maps.values() if agent is not None else ()
+
+    def pending_count(self, agent: AgentState) -> int:
+        return sum(len(am.pending) for am in agent.maps.values())

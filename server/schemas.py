@@ -1,0 +1,138 @@
+"""Response models of the REST inspection API (they document the OpenAPI spec at /docs)."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+
+class Frame(StrEnum):
+    local = "local"
+    global_ = "global"
+
+
+class TrajectoryFormat(StrEnum):
+    tum = "tum"
+    json = "json"
+
+
+class PointsFormat(StrEnum):
+    ply = "ply"
+    json = "json"
+
+
+class StoreStats(BaseModel):
+    commits: int
+    operations: int
+    commit_seconds: float
+    failed: bool
+
+
+class Health(BaseModel):
+    status: str = Field(description="'ok', or 'degraded' when the store failed to commit")
+    version: str
+    uptime_s: float
+    agents_connected: int
+    maps: int
+    store: StoreStats
+
+
+class BandwidthInfo(BaseModel):
+    up_total: float = Field(description="bytes received from the agent")
+    up_avg: float = Field(description="bytes/s, average while active")
+    up_peak: float = Field(description="bytes/s, largest 1 s window")
+    down_total: float
+    down_avg: float
+    down_peak: float
+
+
+class AgentInfo(BaseModel):
+    agent_id: str
+    kind: str | None
+    state: str = Field(description="connected | disconnected | never_connected")
+    session: int
+    map_id: int | None = Field(description="stack map holding the agent's current session")
+    keyframes: int = Field(description="keyframes inserted (all sessions)")
+    pending_keyframes: int = Field(description="keyframes waiting for their map points")
+    points: int = Field(description="map points received (all sessions)")
+    last_seq: int = Field(description="highest seq durably stored")
+    connected_since: float | None
+    last_seen: float | None = Field(description="unix time of the last message")
+    messages: dict[str, int]
+    duplicates: int
+    errors: int
+    bandwidth: BandwidthInfo
+
+
+class AgentList(BaseModel):
+    agents: list[AgentInfo]
+
+
+class Pose(BaseModel):
+    kf_id: int
+    timestamp: float
+    position: list[float] = Field(description="camera centre x, y, z (metres)")
+    quat_wxyz: list[float] = Field(description="orientation world_from_cam as (w, x, y, z)")
+
+
+class Trajectory(BaseModel):
+    agent_id: str
+    session: int
+    map_id: int | None
+    frame: Frame
+    poses: list[Pose]
+
+
+class MapSummary(BaseModel):
+    id: int
+    agents: list[str]
+    keyframes: int
+    points: int
+    merges: int
+
+
+class MapList(BaseModel):
+    maps: list[MapSummary]
+
+
+class MapDetail(MapSummary):
+    keyframes_per_agent: dict[str, int]
+    points_per_agent: dict[str, int]
+    merge_history: list[dict[str, Any]]
+
+
+class KeyframeInfo(BaseModel):
+    agent_id: str
+    id: int
+    timestamp: float
+    world_from_cam: list[list[float]]
+    keypoints: int
+    points: int = Field(description="keypoints linked to a map point")
+
+
+class KeyframeList(BaseModel):
+    map_id: int
+    total: int
+    offset: int
+    keyframes: list[KeyframeInfo]
+
+
+class EventInfo(BaseModel):
+    id: int
+    time: float
+    kind: str
+    message: str
+    agent_id: str | None = None
+    map_id: int | None = None
+    data: dict[str, Any] = Field(default_factory=dict)
+
+
+class EventList(BaseModel):
+    last_id: int
+    events: list[EventInfo]
+
+
+class ErrorBody(BaseModel):
+    detail: str

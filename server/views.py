@@ -1,0 +1,378 @@
+"""Read-only views of the server state for the REST routes (plain functions, no FastAPI here)."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+from hivemap import __version__
+from hivemap.maps.geometry import quat_wxyz_from_rotmat
+from hivemap.server import schemas
+from hivemap.server.core import AgentMap, AgentState, HiveServer
+from hivemap.server.metrics import MetricsWriter
+
+
+class NotFound(LookupError):
+    """An unknown id; the routes turn it into a 404 with this message."""
+
+
+def health(server: HiveServer) -> schemas.Health:
+    w = server.writer
+    return schemas.Health(
+        status="degraded" if w.failed else "ok",
+        version=__version__,
+        uptime_s=time.time() - server.started_at,
+        agents_connected=sum(a.connection is not None for a in server.agents.values()),
+        maps=len(server.stack.maps),
+        store=schemas.StoreStats(
+            commits=w.commits, operations=w.ops, commit_seconds=w.commit_seconds, failed=w.failed
+        ),
+    )
+
+
+def _current_map(server: HiveServer, agent: AgentState) -> AgentMap | None:
+    return agent.maps.get(agent.session)
+
+
+def agent_info(server: HiveServer, agent: AgentState) -> schemas.AgentInfo:
+    am = _current_map(server, agent)
+    m = server.stack.map_of_agent(am.folded) if am is not None else None
+    never = agent.connected_since is None and agent.last_seq == 0 and agent.connection is None
+    return schemas.AgentInfo(
+        agent_id=agent.agent_id,
+        kind=agent.kind if agent.camera else None,
+        state="never_connected" if never else agent.state,
+        session=agent.session,
+        map_id=m.id if m is not None else None,
+        keyframes=sum(len(a.arrived_kfs) for a in agent.maps.values()),
+        pending_keyframes=server.pending_count(agent),
+        points=sum(len(a.arrived_points) for a in agent.maps.values()),
+        last_seq=agent.last_seq,
+        connected_since=agent.connected_since,
+        last_seen=agent.last_seen,
+        messages=dict(agent.received),
+        duplicates=agent.duplicates,
+        errors=agent.errors,
+        bandwidth=schemas.BandwidthInfo(**agent.bandwidth.summary()),
+    )
+
+
+def agents(server: HiveServer) -> schemas.AgentList:
+    out = [agent_info(server, a) for a in server.agents.values()]
+    for agent_id in server.settings.tokens:
+        if agent_id not in server.agents:
+            out.append(agent_info(server, AgentState(agent_id=agent_id)))
+    out.sort(key=lambda a: a.agent_id)
+    return schemas.AgentList(agents=out)
+
+
+def get_agent(server: HiveServer, agent_id: str) -> AgentState:
+    agent = server.agents.get(agent_id)
+    if agent is None:
+        raise NotFound(f"unknown agent '{agent_id}'")
+    return agent
+
+
+def trajectory_poses(
+    server: HiveServer, agent_id: str, frame: schemas.Frame, session: int | None
+) -> tuple[AgentMap, int | None, list[tuple[int, float, np.ndarray]]]:
+    """(agent map, stack map id, [(kf id, timestamp, world_from_cam 4x4)] sorted by time)."""
+    agent = get_agent(server, agent_id)
+    s = agent.session if session is None else session
+    am = agent.maps.get(s)
+    if am is None:
+        raise NotFound(f"agent '{agent_id}' has no session {s}")
+    m = server.stack.map_of_agent(am.folded)
+    if m is None:
+        return am, None, []
+    local_from_global = am.global_from_vio.inverse()
+    poses = []
+    for kf in m.keyframes.values():
+        if kf.agent_id != am.folded:
+            continue
+        T = np.asarray(kf.world_from_cam, dtype=np.float64)
+        if frame == schemas.Frame.local:
+            T = local_from_global.transform_pose(T)
+        poses.append((int(kf.id), float(kf.timestamp), T))
+    poses.sort(key=lambda p: (p[1], p[0]))
+    return am, m.id, poses
+
+
+def trajectory_json(
+    server: HiveServer, agent_id: str, frame: schemas.Frame, session: int | None
+) -> schemas.Trajectory:
+    am, map_id, poses = trajectory_poses(server, agent_id, frame, session)
+    return schemas.Trajectory(
+        agent_id=agent_id,
+        session=am.session,
+        map_id=map_id,
+        frame=frame,
+        poses=[
+            schemas.Pose(
+                kf_id=k,
+                timestamp=t,
+                position=T[:3, 3].tolist(),
+                quat_wxyz=quat_wxyz_from_rotmat(T[:3, :3]).tolist(),
+            )
+            for k, t, T in poses
+        ],
+    )
+
+
+def trajectory_tum(server: HiveServer, agent_id: str, frame: schemas.Frame, session: int | None) -> str:
+    """TUM text: ``timestamp tx ty tz qx qy qz qw`` (TUM's x, y, z, w order), one line per keyframe."""
+    _, _, poses = trajectory_poses(server, agent_id, frame, session)
+    lines = []
+    for _, t, T in poses:
+        w, x, y, z = quat_wxyz_from_rotmat(T[:3, :3])
+        tx, ty, tz = T[:3, 3]
+        lines.append(f"{t:.9f} {tx:.9f} {ty:.9f} {tz:.9f} {x:.9f} {y:.9f} {z:.9f} {w:.9f}")
+    return "\n".join(lines) + ("\n" if lines else "")
+
+
+def get_map(server: HiveServer, map_id: int) -> Any:
+    m = server.stack.maps.get(map_id)
+    if m is None:
+        raise NotFound(f"unknown map {map_id}")
+    return m
+
+
+def map_summary(m: Any) -> schemas.MapSummary:
+    return schemas.MapSummary(
+        id=m.id,
+        agents=sorted(m.agents),
+        keyframes=len(m.keyframes),
+        points=len(m.points),
+        merges=len(m.merge_history),
+    )
+
+
+def maps(server: HiveServer) -> schemas.MapList:
+    return schemas.MapList(maps=[map_summary(m) for _, m in sorted(server.stack.maps.items())])
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if value is None or isinstance(value, str | int | float | bool):
+        return value
+    return str(value)
+
+
+def map_detail(server: HiveServer, map_id: int) -> schemas.MapDetail:
+    m = get_map(server, map_id)
+    kfs: dict[str, int] = {}
+    for kf in m.keyframes.values():
+        kfs[kf.agent_id] = kfs.get(kf.agent_id, 0) + 1
+    pts: dict[str, int] = {}
+    for p in m.points.values():
+        pts[p.agent_id] = pts.get(p.agent_id, 0) + 1
+    return schemas.MapDetail(
+        **map_summary(m).model_dump(),
+        keyframes_per_agent=kfs,
+        points_per_agent=pts,
+        merge_history=[_jsonable(h) for h in m.merge_history],
+    )
+
+
+def keyframes(server: HiveServer, map_id: int, offset: int, limit: int) -> schemas.KeyframeList:
+    m = get_map(server, map_id)
+    ordered = sorted(m.keyframes.values(), key=lambda kf: (kf.agent_id, kf.id))
+    page = ordered[offset : offset + limit]
+    return schemas.KeyframeList(
+        map_id=map_id,
+        total=len(ordered),
+        offset=offset,
+        keyframes=[
+            schemas.KeyframeInfo(
+                agent_id=kf.agent_id,
+                id=int(kf.id),
+                timestamp=float(kf.timestamp),
+                world_from_cam=np.asarray(kf.world_from_cam, dtype=np.float64).tolist(),
+                keypoints=len(kf.keypoints),
+                points=sum(k is not None for k in kf.point_keys),
+            )
+            for kf in page
+        ],
+    )
+
+
+PLY_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("observations", "<u4")])
+CHUNK_POINTS = 20000
+
+
+def _point_snapshot(server: HiveServer, map_id: int) -> tuple[list[Any], np.ndarray]:
+    """The map's points (copied list, so ingest may go on while we stream) and their xyz (N, 3)."""
+    m = get_map(server, map_id)
+    pts = sorted(m.points.values(), key=lambda p: (p.agent_id, p.id))
+    xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
+    return pts, xyz
+
+
+def points_ply(server: HiveServer, map_id: int) -> Iterator[bytes]:
+    """Binary little-endian PLY: ``double x, y, z`` and ``uint observations`` per vertex."""
+    pts, xyz = _point_snapshot(server, map_id)
+
+    def gen() -> Iterator[bytes]:
+        header = (
+            "ply\nformat binary_little_endian 1.0\n"
+            f"comment hivemap map {map_id}\n"
+            f"element vertex {len(pts)}\n"
+            "property double x\nproperty double y\nproperty double z\n"
+            "property uint observations\nend_header\n"
+        )
+        yield header.encode("ascii")
+        for start in range(0, len(pts), CHUNK_POINTS):
+            chunk = pts[start : start + CHUNK_POINTS]
+            rec = np.empty(len(chunk), dtype=PLY_DTYPE)
+            rec["x"], rec["y"], rec["z"] = xyz[start : start + len(chunk)].T
+            rec["observations"] = [len(p.observations) for p in chunk]
+            yield rec.tobytes()
+
+    return gen()
+
+
+def points_json(server: HiveServer, map_id: int) -> Iterator[bytes]:
+    """``{"map_id", "count", "points": [{"agent_id", "id", "xyz", "observations"}, ...]}``, streamed."""
+    pts, xyz = _point_snapshot(server, map_id)
+
+    def gen() -> Iterator[bytes]:
+        yield f'{{"map_id": {map_id}, "count": {len(pts)}, "points": ['.encode()
+        for start in range(0, len(pts), CHUNK_POINTS):
+            rows = [
+                json.dumps(
+                    {
+                        "agent_id": p.agent_id,
+                        "id": int(p.id),
+                        "xyz": xyz[start + i].tolist(),
+                        "observations": len(p.observations),
+                    }
+                )
+                for i, p in enumerate(pts[start : start + CHUNK_POINTS])
+            ]
+            yield (("," if start else "") + ",".join(rows)).encode()
+        yield b"]}"
+
+    return gen()
+
+
+def events(server: HiveServer, since: int, kind: str | None, limit: int) -> schemas.EventList:
+    evs = server.events.since(since, kind, limit)
+    return schemas.EventList(
+        last_id=server.events.last_id,
+        events=[
+            schemas.EventInfo(
+                id=e.id,
+                time=e.time,
+                kind=e.kind,
+                message=e.message,
+                agent_id=e.agent_id,
+                map_id=e.map_id,
+                data=_jsonable(e.data),
+            )
+            for e in evs
+        ],
+    )
+
+
+def metrics(server: HiveServer) -> str:
+    w = MetricsWriter()
+    agents_ = list(server.agents.values())
+    w.family("hivemap_up", "gauge", "1 while the server runs.", [(None, 1)])
+    w.family(
+        "hivemap_agents_connected",
+        "gauge",
+        "Agents with an open connection.",
+        [(None, sum(a.connection is not None for a in agents_))],
+    )
+    w.family(
+        "hivemap_messages_received_total",
+        "counter",
+        "Data messages received, by agent and type.",
+        [({"agent": a.agent_id, "type": t}, n) for a in agents_ for t, n in sorted(a.received.items())],
+    )
+    w.family(
+        "hivemap_duplicate_messages_total",
+        "counter",
+        "Messages or items ignored as already received.",
+        [({"agent": a.agent_id}, a.duplicates) for a in agents_],
+    )
+    w.family(
+        "hivemap_message_errors_total",
+        "counter",
+        "Messages refused with an error reply.",
+        [({"agent": a.agent_id}, a.errors) for a in agents_],
+    )
+    w.family(
+        "hivemap_rejected_frames_total",
+        "counter",
+        "Frames that failed to decode (any connection).",
+        [(None, server.rejected_frames)],
+    )
+    w.family(
+        "hivemap_bytes_received_total",
+        "counter",
+        "Bytes received from each agent.",
+        [({"agent": a.agent_id}, a.bandwidth.up.total) for a in agents_],
+    )
+    w.family(
+        "hivemap_bytes_sent_total",
+        "counter",
+        "Bytes sent to each agent.",
+        [({"agent": a.agent_id}, a.bandwidth.down.total) for a in agents_],
+    )
+    w.family(
+        "hivemap_agent_last_seq",
+        "gauge",
+        "Highest seq durably stored per agent.",
+        [({"agent": a.agent_id}, a.last_seq) for a in agents_],
+    )
+    w.family(
+        "hivemap_pending_keyframes",
+        "gauge",
+        "Keyframes waiting for their map points.",
+        [({"agent": a.agent_id}, server.pending_count(a)) for a in agents_],
+    )
+    ms = sorted(server.stack.maps.items())
+    w.family("hivemap_maps", "gauge", "Maps in the map stack.", [(None, len(ms))])
+    w.family(
+        "hivemap_map_keyframes",
+        "gauge",
+        "Keyframes per map.",
+        [({"map": str(i)}, len(m.keyframes)) for i, m in ms],
+    )
+    w.family(
+        "hivemap_map_points",
+        "gauge",
+        "Map points per map.",
+        [({"map": str(i)}, len(m.points)) for i, m in ms],
+    )
+    wr = server.writer
+    w.family("hivemap_store_commits_total", "counter", "SQLite commits.", [(None, wr.commits)])
+    w.family("hivemap_store_operations_total", "counter", "Store operations.", [(None, wr.ops)])
+    w.family(
+        "hivemap_store_commit_seconds_total", "counter", "Time spent committing.", [(None, wr.commit_seconds)]
+    )
+    w.family(
+        "hivemap_events_total",
+        "counter",
+        "Events by kind.",
+        [({"kind": k}, n) for k, n in sorted(server.events.counts.items())],
+    )
+    w.histogram(
+        "hivemap_ack_latency_seconds", "From a frame's arrival to its ack being queued.", server.ack_latency
+    )
+    return w.render()
