@@ -162,8 +162,8 @@ DISJOINT = Scenario(
     name="disjoint",
     description="two UAVs in disjoint halves of the site (no shared view): false-merge test, 20 s, 320x240",
     agents=(
-        AgentSpec("uav1", "uav", 45.0, 60.0, 2.0, 0.12, 6.0, region="west"),
-        AgentSpec("uav2", "uav", 45.0, 60.0, 2.0, 0.12, 6.0, region="east"),
+        AgentSpec("uav1", "uav", 45.0, 40.0, 2.0, 0.12, 6.0, region="west"),
+        AgentSpec("uav2", "uav", 45.0, 40.0, 2.0, 0.12, 6.0, region="east"),
     ),
     camera=CameraSpec(320, 240, 215.0, 215.0, 159.5, 119.5, (-0.05, 0.01, 0.0002, -0.0001), 10.0),
     duration_s=20.0,

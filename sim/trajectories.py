@@ -370,7 +370,7 @@ def _random_walk(
 ) -> Route | None:  # fmt: skip
     edges = [de0]
     total = g.length(de0) - start_offset
-    while total < length + 20.0:
+    while total < 1.1 * length + 3.0:
         last = edges[-1]
         opts = [de for de in g.adj.get(g.end_node(last), []) if _turn_ok(g, last, de)]
         if allowed is not None:
@@ -431,28 +431,37 @@ class Trajectory:
     duration: float
     route: Route | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    move_span: tuple[float, float] = (0.0, float("inf"))  # exactly at rest outside this interval
+
+    def _ev(self, spline: BSpline, t: float | F64, nu: int = 0) -> F64:
+        tt = self._t(t)
+        a, b = self.move_span
+        out = np.asarray(spline(np.clip(tt, a, b), nu))
+        if nu > 0:
+            out[(tt < a) | (tt > b)] = 0.0
+        return out
 
     def _t(self, t: float | F64) -> F64:
         return np.clip(np.atleast_1d(np.asarray(t, dtype=np.float64)), 0.0, self.duration)
 
     def position(self, t: float | F64) -> F64:
-        return np.asarray(self.pos(self._t(t)))
+        return self._ev(self.pos, t)
 
     def velocity(self, t: float | F64) -> F64:
-        return np.asarray(self.pos(self._t(t), 1))
+        return self._ev(self.pos, t, 1)
 
     def acceleration(self, t: float | F64) -> F64:
-        return np.asarray(self.pos(self._t(t), 2))
+        return self._ev(self.pos, t, 2)
 
     def jerk(self, t: float | F64) -> F64:
-        return np.asarray(self.pos(self._t(t), 3))
+        return self._ev(self.pos, t, 3)
 
     def _attitude(self, t: float | F64) -> tuple[F64, F64]:
         """(R (N,3,3) world_from_body, omega_body (N,3)) computed analytically."""
         tt = self._t(t)
         n = len(tt)
-        psi = np.asarray(self.yaw(tt))
-        psid = np.asarray(self.yaw(tt, 1))
+        psi = self._ev(self.yaw, tt)
+        psid = self._ev(self.yaw, tt, 1)
         if self.thrust_aligned:
             zt = self.acceleration(tt) - G_WORLD[None, :]
             ztd = self.jerk(tt)
@@ -541,8 +550,9 @@ def _make_trajectory(
     L = float(u[-1])
     t_acc = 4.0
     s_of_t, T = _speed_profile(L, spec.speed_mps, hold, t_acc)
-    n = int(np.ceil(T / knot_dt))
-    tk = np.linspace(0.0, T, n + 1)
+    t_a, t_b = hold, T - 1.0  # moving interval (rest before and after)
+    n = int(np.ceil((t_b - t_a) / knot_dt))
+    tk = np.linspace(t_a, t_b, n + 1)
     sk = s_of_t(tk)
     Xk = path(sk)
     z3 = np.zeros(3)
@@ -553,7 +563,8 @@ def _make_trajectory(
         psi = gaussian_filter1d(psi, sigma=0.4 / knot_dt, mode="nearest")
     z1 = np.zeros(1)
     yaw = make_interp_spline(tk, psi, k=5, bc_type=([(1, z1), (2, z1)], [(1, z1), (2, z1)]))
-    return Trajectory(spec.agent_id, spec.kind, pos, yaw, spec.kind == "uav", float(T), route, meta)
+    uav = spec.kind == "uav"
+    return Trajectory(spec.agent_id, spec.kind, pos, yaw, uav, float(T), route, meta, (t_a, t_b))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -630,8 +641,8 @@ def _pick_start(g: RoadGraph, world_size: float, region: str, ugv_len: float | N
     """Start directed edge (+ cycle for the UGV) near the centre of the region."""
     centre = {
         "all": np.zeros(2),
-        "west": np.array([-world_size / 4, 0.0]),
-        "east": np.array([world_size / 4, 0.0]),
+        "west": np.array([-world_size / 3, 0.0]),
+        "east": np.array([world_size / 3, 0.0]),
     }[region]
     allowed = _region_edges(g, region, world_size)
     cands = []
@@ -668,8 +679,8 @@ def _region_edges(g: RoadGraph, region: str, world_size: float) -> set[int]:
     if region == "all":
         return {e.id for e in g.edges}
     sign = -1.0 if region == "west" else 1.0
-    lim = 0.15 * world_size
-    return {e.id for e in g.edges if np.all(sign * e.pts[:, 0] > lim)}
+    lim = 0.1 * world_size
+    return {e.id for e in g.edges if sign * float(np.mean(e.pts[:, 0])) > lim}
 
 
 def _agent_path(
