@@ -1,4 +1,8 @@
-"""Thin REST routes over :mod:`hivemap.server.views` (inspection) and the WebSocket route."""
+"""Thin REST routes over :mod:`hivemap.server.views`.
+
+The routes are ``async`` on purpose: they then run on the event loop thread, the only thread that changes the
+maps, so a view never sees a map half-way through an update (sync routes would run in a thread pool).
+"""
 
 from __future__ import annotations
 
@@ -12,7 +16,7 @@ from hivemap.server.core import HiveServer
 from hivemap.server.metrics import CONTENT_TYPE
 
 
-def get_server(request: Request) -> HiveServer:
+async def get_server(request: Request) -> HiveServer:
     server: HiveServer = request.app.state.hive
     return server
 
@@ -27,24 +31,24 @@ router = APIRouter()
 
 
 @router.get("/", include_in_schema=False)
-def root() -> RedirectResponse:
+async def root() -> RedirectResponse:
     return RedirectResponse("/viewer/")
 
 
 @router.get("/health", response_model=schemas.Health, tags=["server"])
-def health(server: Server) -> schemas.Health:
+async def health(server: Server) -> schemas.Health:
     """Liveness and store status."""
     return views.health(server)
 
 
 @router.get("/agents", response_model=schemas.AgentList, tags=["agents"])
-def agents(server: Server) -> schemas.AgentList:
+async def agents(server: Server) -> schemas.AgentList:
     """Every agent configured or seen: state, last seen, keyframes, bandwidth (bytes/s), map id."""
     return views.agents(server)
 
 
 @router.get("/agents/{agent_id}", response_model=schemas.AgentInfo, responses=NOT_FOUND, tags=["agents"])
-def agent(server: Server, agent_id: AgentId) -> schemas.AgentInfo:
+async def agent(server: Server, agent_id: AgentId) -> schemas.AgentInfo:
     """One agent."""
     return views.agent_info(server, views.get_agent(server, agent_id))
 
@@ -55,7 +59,7 @@ def agent(server: Server, agent_id: AgentId) -> schemas.AgentInfo:
     responses={**NOT_FOUND, 200: {"content": {"text/plain": {}, "application/json": {}}}},
     tags=["agents"],
 )
-def trajectory(
+async def trajectory(
     server: Server,
     agent_id: AgentId,
     frame: Annotated[
@@ -75,13 +79,13 @@ def trajectory(
 
 
 @router.get("/maps", response_model=schemas.MapList, tags=["maps"])
-def maps(server: Server) -> schemas.MapList:
+async def maps(server: Server) -> schemas.MapList:
     """The map stack: one map per agent session until the back-end merges them."""
     return views.maps(server)
 
 
 @router.get("/maps/{map_id}", response_model=schemas.MapDetail, responses=NOT_FOUND, tags=["maps"])
-def map_detail(server: Server, map_id: MapId) -> schemas.MapDetail:
+async def map_detail(server: Server, map_id: MapId) -> schemas.MapDetail:
     """Agents, keyframe and point counts, merge history of one map."""
     return views.map_detail(server, map_id)
 
@@ -89,7 +93,7 @@ def map_detail(server: Server, map_id: MapId) -> schemas.MapDetail:
 @router.get(
     "/maps/{map_id}/keyframes", response_model=schemas.KeyframeList, responses=NOT_FOUND, tags=["maps"]
 )
-def map_keyframes(
+async def map_keyframes(
     server: Server,
     map_id: MapId,
     offset: Annotated[int, Query(ge=0, le=10_000_000)] = 0,
@@ -110,7 +114,7 @@ def map_keyframes(
     },
     tags=["maps"],
 )
-def map_points(
+async def map_points(
     server: Server,
     map_id: MapId,
     format: Annotated[schemas.PointsFormat, Query(description="ply (binary little-endian) or json")] = (
@@ -128,7 +132,7 @@ def map_points(
 
 
 @router.get("/events", response_model=schemas.EventList, tags=["server"])
-def events(
+async def events(
     server: Server,
     since: Annotated[int, Query(ge=0, le=2**62, description="only events with a larger id")] = 0,
     kind: Annotated[str | None, Query(max_length=32, description="connect, error, merge, loop, ...")] = None,
@@ -144,6 +148,6 @@ def events(
     responses={200: {"content": {CONTENT_TYPE: {}}}},
     tags=["server"],
 )
-def metrics(server: Server) -> PlainTextResponse:
+async def metrics(server: Server) -> PlainTextResponse:
     """Prometheus text format."""
     return PlainTextResponse(views.metrics(server), media_type=CONTENT_TYPE)

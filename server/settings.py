@@ -50,7 +50,7 @@ class ServerSettings(BaseSettings):
         description="Messages applied but not committed (server-wide) before readers pause.",
     )
     max_pending_keyframes: int = Field(
-        default=5000, ge=1, description="Keyframes per agent waiting for their map points (more are refused)."
+        default=500, ge=1, description="Keyframes per agent waiting for their map points (more are refused)."
     )
     commit_interval_ms: float = Field(
         default=5.0, ge=0.0, description="Group-commit window of the SQLite writer."

@@ -222,3 +222,34 @@ def test_reconnect_of_the_same_agent_replaces_the_old_connection(server: ServerP
     assert [a["agent_id"] for a in agents].count("ugv1") == 1
     m = map_of(server, "ugv1")
     assert m["agents"] == ["ugv1#3"] and m["keyframes"] == len(truth.kf_poses)
+
+
+def test_rest_reads_during_ingest_never_fail(server: ServerProcess) -> None:
+    """REST views run on the loop thread, so reading while agents stream never sees a map mid-update."""
+    import threading
+
+    msgs, truth = synthetic_stream("uav2", 40, seed=13, session=2, kf_before_points_every=3)
+    statuses: list[int] = []
+    stop = threading.Event()
+
+    def poll() -> None:
+        with httpx.Client(base_url=server.url, timeout=10) as client:
+            while not stop.is_set():
+                for m in client.get("/maps").json()["maps"]:
+                    for path in (f"/maps/{m['id']}/points", f"/maps/{m['id']}/keyframes", f"/maps/{m['id']}"):
+                        statuses.append(client.get(path).status_code)
+                statuses.append(client.get("/agents/uav2/trajectory", params={"format": "tum"}).status_code)
+                statuses.append(client.get("/metrics").status_code)
+
+    th = threading.Thread(target=poll)
+    th.start()
+    try:
+        with SyncAgent(server.ws_url, "uav2", TOKENS["uav2"], session=2) as ag:
+            base = ag.welcome().last_seq
+            assert not ag.send_all(msgs, base + 1)[1]
+    finally:
+        stop.set()
+        th.join(20)
+    assert len(statuses) >= 5 and set(statuses) == {200}
+    m = map_of(server, "uav2")
+    assert (m["keyframes"], m["points"]) == (len(truth.kf_poses), len(truth.points))
