@@ -162,6 +162,18 @@ class Detection:
     def is_loop(self) -> bool:
         return self.query_map == self.candidate_map
 
+    def merge_args(self, target_map: int) -> tuple[int, int, Sim3, list[tuple[PointKey, PointKey]]]:
+        """Arguments of ``MapStack.merge(target_id, source_id, target_from_source, fused_pairs)`` with
+        ``target_map`` (the query's or the candidate's map, e.g. the one holding the UGV) kept as the
+        frame of the result; ``fused_pairs`` are ``(target_point, source_point)``."""
+        if target_map == self.candidate_map:
+            pairs = list(zip(self.candidate_points, self.query_points, strict=True))
+            return self.candidate_map, self.query_map, self.target_from_source, pairs
+        if target_map == self.query_map:
+            pairs = list(zip(self.query_points, self.candidate_points, strict=True))
+            return self.query_map, self.candidate_map, self.target_from_source.inverse(), pairs
+        raise ValueError(f"map {target_map} is not part of this detection")
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "query_key": list(self.query_key),

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hivemap.maps import Keyframe, Map, MapPoint
+from hivemap.maps import Keyframe, Map, MapPoint, MapStack
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3, so3_exp
 from hivemap.maps.kfdb import KeyframeDatabase
@@ -110,6 +110,18 @@ def scene() -> dict:
     return {"A": a, "B": b, "C": c, "D": d}
 
 
+def _copy_map(m: Map) -> Map:
+    out = Map(m.id)
+    for p in m.points.values():
+        out.add_point(MapPoint(p.agent_id, p.id, p.xyz.copy(), p.descriptor))
+    for kf in m.keyframes.values():
+        out.add_keyframe(
+            Keyframe(kf.agent_id, kf.id, kf.timestamp, kf.world_from_cam.copy(), kf.camera, kf.keypoints,
+                     kf.octaves, kf.descriptors, kf.point_ids.copy())
+        )  # fmt: skip
+    return out
+
+
 def _recognizer(maps: dict[int, Map]) -> PlaceRecognizer:
     pr = PlaceRecognizer(default_vocabulary(), KeyframeDatabase())
     for mid, m in maps.items():
@@ -189,6 +201,20 @@ def test_merge_recovers_known_sim3_after_three_consistent_detections(scene) -> N
     qa = np.array([a.points[k].xyz for k in det.query_points])
     cb = np.array([b.points[k].xyz for k in det.candidate_points])
     assert np.median(np.linalg.norm(S_TRUE.apply(qa) - cb, axis=1)) < 0.1 * S_TRUE.s
+    # merging through the model with the detection (either map as target) puts the fused points together
+    for target in (1, 0):
+        stack = MapStack()
+        stack.add_map(_copy_map(a))
+        stack.add_map(_copy_map(b))
+        tid, sid, sim, pairs = det.merge_args(target)
+        merged = stack.merge(tid, sid, sim, pairs)
+        assert len(merged.points) == len(a.points) + len(b.points) - len(set(pairs))
+        # the merged map is in the target's frame: A's keyframe centres land where they truly are, to
+        # 5 cm (metric) over the 14 m trajectory (issue 6 acceptance: < 0.2 m at merge; measured 2.3 cm)
+        to_target = Sim3.identity() if target == 0 else S_TRUE
+        for kf in a.keyframes.values():
+            moved = merged.keyframes[kf.key].center
+            assert np.linalg.norm(moved - to_target.apply(kf.center)) < 0.05 * to_target.s
     # every candidate is reported with a reason, JSON-able for /events
     ev = results[2].events()
     assert ev[-1]["type"] == "placerec" and ev[-1]["detection"]["confirmed"] is True
