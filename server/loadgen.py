@@ -143,11 +143,13 @@ async def stream_agent(
     window: int = 64,
     first_seq: int = 1,
     timeout: float = 120.0,
+    phase: float = 0.0,
 ) -> StreamStats:
     """Send ``messages`` (seq = first_seq, first_seq + 1, ...) and wait for every ack.
 
-    ``rate_hz`` paces keyframes (other messages go out right before their keyframe); ``window`` bounds the
-    unacknowledged messages in flight. Latency = send to ack, per message.
+    ``rate_hz`` paces keyframes (other messages go out right before their keyframe), starting ``phase``
+    seconds late (agents are not synchronised); ``window`` bounds the unacknowledged messages in flight.
+    Latency = send to ack, per message.
     """
     import websockets
 
@@ -179,7 +181,7 @@ async def stream_agent(
                     stats.errors.append(msg)
 
         task = asyncio.create_task(reader())
-        next_t = time.perf_counter()
+        next_t = time.perf_counter() + phase
         for i, msg in enumerate(messages):
             if rate_hz and isinstance(msg, Keyframe):
                 next_t += 1.0 / rate_hz
