@@ -13,7 +13,11 @@ Hooks for the collaboration back-end:
   after its map was merged (incoming poses are in the agent's VIO frame; stored poses are in the map's frame).
 * ``await server.persist(fn)``: run ``fn(store)`` in the writer thread (``store.maps`` is the MapStore) and
   wait for its commit, e.g. to record a merge.
+* ``await server.persist_exclusive(fn)``: the same with ingest paused, for writes that read whole maps.
+* ``await server.apply_merge(target_id, source_id, target_from_source, fused_pairs)``: merge two maps of the
+  stack, re-frame the moved agents, persist it all in one commit, publish a ``merge`` event.
 * ``server.events.add(kind, message, ...)``: publish merges, loops, corrections on ``/events``.
+* ``server.loop``: the event loop; from a worker thread use ``asyncio.run_coroutine_threadsafe(.., loop)``.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import gc
 import logging
 import time
 from collections import Counter, deque
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -152,6 +156,8 @@ class HiveServer:
         self.rejected_frames = 0
         self._writer: StoreWriter[ServerStore] | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
+        self._ingest_open = asyncio.Event()
+        self._ingest_open.set()
         self._uncommitted: asyncio.Semaphore | None = None
 
     # -- lifecycle ----------------------------------------------------------------------------------
@@ -334,6 +340,9 @@ class HiveServer:
                 self._uncommitted.release()
 
         try:
+            if not self._ingest_open.is_set():  # the back-end is writing a whole map (merge, global BA)
+                await self._ingest_open.wait()
+            # From here to the submit there is no await: the message is applied atomically on the loop.
             if conn.replaced:
                 release()
                 return
@@ -599,8 +608,59 @@ class HiveServer:
         self.writer.submit(lambda store: store.put_agent_map(am.folded, am.agent_id, am.session, m))
 
     async def persist(self, fn: Callable[[ServerStore], Any]) -> Any:
-        """Run ``fn(store)`` in the writer thread; returns its result after the commit."""
+        """Run ``fn(store)`` in the writer thread; returns its result after the commit. ``fn`` must not read
+        maps the loop may be changing (pass copies), else use :meth:`persist_exclusive`."""
         return await self.writer.call(fn)
+
+    async def persist_exclusive(self, fn: Callable[[ServerStore], Any]) -> Any:
+        """Like :meth:`persist`, with ingest paused until the commit, so ``fn`` may read whole maps (e.g.
+        ``store.maps.save_map(m)`` after a global BA). Agents' messages wait meanwhile (nothing is lost)."""
+        self._ingest_open.clear()
+        try:
+            return await self.writer.call(fn)
+        finally:
+            self._ingest_open.set()
+
+    async def apply_merge(
+        self,
+        target_id: int,
+        source_id: int,
+        target_from_source: Sim3,
+        fused_pairs: Sequence[tuple[tuple[str, int], tuple[str, int]]] = (),
+    ) -> Any:
+        """Merge map ``source_id`` into ``target_id`` (``MapStack.merge``), re-frame the moved agents'
+        incoming data (``global_from_vio``), persist the merged map and the merge record in one commit, and
+        publish a ``merge`` event. Returns the merged map."""
+        self._ingest_open.clear()
+        try:
+            source = self.stack.maps[source_id]
+            moved = [
+                am
+                for agent in self.agents.values()
+                for am in agent.maps.values()
+                if am.folded in source.agents
+            ]
+            merged = self.stack.merge(target_id, source_id, target_from_source, list(fused_pairs))
+            for am in moved:
+                am.global_from_vio = target_from_source @ am.global_from_vio
+            frames = [(am.folded, am.agent_id, am.session, am.global_from_vio.matrix()) for am in moved]
+
+            def op(store: ServerStore) -> None:
+                store.maps.delete_map(source_id)
+                store.maps.save_map(merged)
+                for folded, agent_id, session, g in frames:
+                    store.put_agent_map(folded, agent_id, session, g)
+
+            await self.writer.call(op)
+        finally:
+            self._ingest_open.set()
+        self.events.add(
+            "merge",
+            f"map {source_id} merged into map {target_id} ({len(fused_pairs)} fused points)",
+            map_id=target_id,
+            data={"source": source_id, "target": target_id, "scale": target_from_source.s},
+        )
+        return merged
 
     # -- inspection helpers -------------------------------------------------------------------------
     def agent_maps(self, agent_id: str) -> Iterable[AgentMap]:

@@ -125,3 +125,50 @@ async def _transform(hive: HiveServer, folded: str, g: Sim3) -> None:
     assert m is not None
     m.transform(g)
     hive.set_agent_transform(folded, g)
+
+
+def test_apply_merge_reframes_later_data_and_survives_a_restart(tmp_path: Path) -> None:
+    s1, t1 = synthetic_stream("uav1", 12, seed=31)
+    s2, t2 = synthetic_stream("ugv1", 12, seed=32, offset=(3.0, 1.0, 0.0))
+    g = Sim3(so3_exp(np.array([0.0, 0.0, 0.4])), np.array([-2.0, 4.0, 0.5]), 1.0)  # ugv1 -> uav1 frame
+    srv = InProcessServer(tmp_path / "data")
+    try:
+        a1 = SyncAgent(srv.ws_url, "uav1", TOKENS["uav1"])
+        a2 = SyncAgent(srv.ws_url, "ugv1", TOKENS["ugv1"], kind="ugv")
+        a1.welcome()
+        a2.welcome()
+        assert not a1.send_all(s1)[1]
+        half = len(s2) // 2
+        assert not a2.send_all(s2[:half])[1]
+        target = srv.hive.stack.map_of_agent("uav1")
+        source = srv.hive.stack.map_of_agent("ugv1")
+        assert target is not None and source is not None and target.id != source.id
+        merged = srv.run(srv.hive.apply_merge(target.id, source.id, g))
+        assert merged.id == target.id and source.id not in srv.hive.stack.maps
+        # ugv1 goes on streaming in its own VIO frame; the server files it in the merged (uav1) frame.
+        assert not a2.send_all(s2[half:], half + 1)[1]
+        a1.close()
+        a2.close()
+        maps = httpx.get(srv.url + "/maps").json()["maps"]
+        assert len(maps) == 1 and maps[0]["agents"] == ["uav1", "ugv1"]
+        assert (maps[0]["keyframes"], maps[0]["points"]) == (24, len(t1.points) + len(t2.points))
+        assert maps[0]["merges"] == 1
+        assert any(e["kind"] == "merge" for e in httpx.get(srv.url + "/events").json()["events"])
+    finally:
+        srv.stop()
+    srv = InProcessServer(tmp_path / "data")  # restart: everything reloads from SQLite
+    try:
+        m = srv.hive.stack.map_of_agent("ugv1")
+        assert m is not None and m is srv.hive.stack.map_of_agent("uav1")
+        assert len(m.keyframes) == 24 and len(m.merge_history) == 1
+        for k, T in t2.kf_poses.items():
+            np.testing.assert_allclose(
+                m.keyframes[("ugv1", k)].world_from_cam, g.transform_pose(T), atol=1e-9
+            )
+        for k, T in t1.kf_poses.items():
+            np.testing.assert_allclose(m.keyframes[("uav1", k)].world_from_cam, T, atol=1e-12)
+        local = httpx.get(srv.url + "/agents/ugv1/trajectory", params={"frame": "local"}).json()["poses"]
+        for p in local:
+            np.testing.assert_allclose(p["position"], t2.kf_poses[p["kf_id"]][:3, 3], atol=1e-9)
+    finally:
+        srv.stop()
