@@ -184,6 +184,8 @@ class Frontend:
         self._velocity_w = np.zeros(3)
         self._align_buffer: list[tuple[float, F64, F64]] = []  # t, T_wb, accel (mean since last)
         self._last_T_wb: F64 | None = None
+        self._last_tracked = False
+        self._pending_new_map = False
 
     # ------------------------------------------------------------------ public API
     @property
@@ -227,21 +229,32 @@ class Frontend:
         t1 = time.perf_counter()
         new_kf: int | None = None
         if self._state == TrackingState.INITIALIZING or self._last is None:
+            state0 = TrackingState.INITIALIZING
             if self._initialize(frame, np.eye(4) if self._last is None else self._last.T_cw):
                 self._state = TrackingState.OK
                 new_kf = self._kf_last_id
-            self._finish(frame, acc_mean)
-            return self._result(frame, len(frame.point_ids[frame.point_ids >= 0]), new_kf)
+                state0 = TrackingState.NEW_MAP if self._pending_new_map else TrackingState.OK
+                self._pending_new_map = False
+            self._finish(frame, acc_mean, tracked=new_kf is not None)
+            return self._result(frame, len(frame.point_ids[frame.point_ids >= 0]), new_kf, state0)
 
         T_pred = self._predict(pim)
-        ok, n_tracked = self._track(frame, T_pred)
         state = TrackingState.OK
-        if not ok:
+        was_lost = self._state == TrackingState.LOST
+        if was_lost:
+            # lost: global relocalisation against the map first, then the (IMU) prediction bridge
             ok, n_tracked = self._relocalize(frame, T_pred)
-            if ok:
-                self.stats.relocalizations += 1
-                state = TrackingState.RELOCALIZED
-                log.info("relocalised at t=%.3f with %d matches", t, n_tracked)
+            if not ok:
+                ok, n_tracked = self._track(frame, T_pred)
+        else:
+            ok, n_tracked = self._track(frame, T_pred)
+            if not ok:
+                ok, n_tracked = self._relocalize(frame, T_pred)
+                was_lost = ok
+        if ok and was_lost:
+            state = TrackingState.RELOCALIZED
+            self.stats.relocalizations += 1
+            log.info("relocalised at t=%.3f with %d matches", t, n_tracked)
         t2 = time.perf_counter()
         if ok:
             self._lost_count = 0
@@ -261,16 +274,21 @@ class Frontend:
                 self._reset_map()
                 self._events.append(NewSessionEvent(old, self.session, t))
                 log.warning("tracking lost for %d frames: new map session %d", self._lost_count, self.session)
+                self._lost_count = 0
                 if self._initialize(frame, T_pred):
                     new_kf = self._kf_last_id
                     state = TrackingState.NEW_MAP
-                    self._lost_count = 0
+                else:
+                    self._pending_new_map = True
+                    state = TrackingState.INITIALIZING
         t3 = time.perf_counter()
-        self._finish(frame, acc_mean)
+        self._finish(frame, acc_mean, tracked=state != TrackingState.LOST)
         tm = self.stats.timing
         for name, dt in (("features", t1 - t0), ("track", t2 - t1), ("mapping", t3 - t2)):
             tm[name] = tm.get(name, 0.0) + dt
         self._state = state if state != TrackingState.NEW_MAP else TrackingState.OK
+        if state == TrackingState.INITIALIZING:
+            frame.T_cw = T_pred
         return self._result(frame, n_tracked, new_kf, state)
 
     # ------------------------------------------------------------------ frames
@@ -317,8 +335,13 @@ class Frontend:
             new_keyframe_id=new_kf,
         )
 
-    def _finish(self, frame: Frame, acc_mean: F64 | None) -> None:
-        if self._last is not None and self._state != TrackingState.INITIALIZING:
+    def _finish(self, frame: Frame, acc_mean: F64 | None, tracked: bool = True) -> None:
+        if (
+            tracked
+            and self._last_tracked
+            and self._last is not None
+            and self._state != TrackingState.INITIALIZING
+        ):
             self._motion = self._last.T_cw @ frame.T_wc
             dt = frame.t - self._last.t
             if dt > 0:
@@ -326,6 +349,7 @@ class Frontend:
                 p_old = (self._last.T_wc @ self.cam_from_body)[:3, 3]
                 self._velocity_w = (p_new - p_old) / dt
         self._last = frame
+        self._last_tracked = tracked
         if not self._gravity_aligned and acc_mean is not None and self._kfs:
             self._align_buffer.append((frame.t, frame.T_wc @ self.cam_from_body, acc_mean))
             self._try_gravity_alignment()
@@ -401,7 +425,7 @@ class Frontend:
             kf.frame.T_cw = kf.T_cw
         n = self._pts.n
         self._pts.xyz[:n] = self._pts.xyz[:n] @ A[:3, :3].T + A[:3, 3]
-        if self._last is not None:
+        if self._last is not None and not any(kf.frame is self._last for kf in self._kfs.values()):
             self._last.T_cw = self._last.T_cw @ Ainv
         self._velocity_w = A[:3, :3] @ self._velocity_w
 
