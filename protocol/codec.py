@@ -1,0 +1,399 @@
+"""msgpack codec for protocol v1 with validation on decode.
+
+A frame is one msgpack map ``{"v": 1, "type": str, "seq": int, "body": {...}}``. numpy arrays travel
+as msgpack ext type 1: ``dtype code (1 byte) | ndim (1 byte) | shape (ndim x uint32 LE) | raw bytes``,
+so encoding is a memcpy and decoding is ``np.frombuffer`` (read-only, no copy). Every decoded frame is
+validated: version, type, field names, types, dtypes, shapes, sizes against :class:`Limits`,
+finiteness, rigid poses; anything wrong raises a :class:`ProtocolError` naming the field, and
+nothing else ever escapes :func:`decode`.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Callable
+from dataclasses import MISSING, fields
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from hivemap.protocol.errors import FieldError, FrameTooLarge, ProtocolError, UnknownTypeError, VersionError
+from hivemap.protocol.limits import PROTOCOL_VERSION, Limits
+from hivemap.protocol.messages import (
+    MESSAGE_TYPES,
+    Ack,
+    Bye,
+    Correction,
+    Error,
+    Hello,
+    Keyframe,
+    MapPoints,
+    Message,
+    PoseUpdates,
+    Welcome,
+)
+
+_ND_EXT = 1
+_DTYPES: dict[int, np.dtype[Any]] = {
+    1: np.dtype("<f4"),
+    2: np.dtype("<f8"),
+    3: np.dtype("u1"),
+    4: np.dtype("<i8"),
+    5: np.dtype("<i4"),
+    6: np.dtype("<u4"),
+}
+_CODES = {dt: code for code, dt in _DTYPES.items()}
+_MAX_NDIM = 3
+_POSE_TOL = 1e-6
+DEFAULT_LIMITS = Limits()
+_BOTTOM = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def _pack_array(a: np.ndarray) -> msgpack.ExtType:
+    dt = a.dtype.newbyteorder("<") if a.dtype.byteorder == ">" else a.dtype
+    code = _CODES.get(np.dtype(dt))
+    if code is None:
+        raise TypeError(f"dtype {a.dtype} cannot travel in protocol v1")
+    if a.ndim > _MAX_NDIM:
+        raise TypeError(f"arrays of {a.ndim} dimensions cannot travel in protocol v1")
+    head = struct.pack(f"<BB{a.ndim}I", code, a.ndim, *a.shape)
+    return msgpack.ExtType(_ND_EXT, head + np.ascontiguousarray(a, dtype=dt).tobytes())
+
+
+def _default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return _pack_array(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    raise TypeError(f"cannot encode {type(obj).__name__}")
+
+
+def encode(msg: Message, seq: int) -> bytes:
+    """Encode one message as a protocol v1 frame."""
+    body = {f.name: getattr(msg, f.name) for f in fields(msg)}
+    frame = {"v": PROTOCOL_VERSION, "type": msg.TYPE, "seq": int(seq), "body": body}
+    return msgpack.packb(frame, default=_default, use_bin_type=True)
+
+
+def _ext_hook(code: int, data: bytes) -> Any:
+    if code != _ND_EXT:
+        raise ProtocolError(f"unknown msgpack ext type {code}", "frame")
+    if len(data) < 2:
+        raise ProtocolError("array header truncated", "frame")
+    dcode, ndim = data[0], data[1]
+    dt = _DTYPES.get(dcode)
+    if dt is None:
+        raise ProtocolError(f"unknown array dtype code {dcode}", "frame")
+    if ndim > _MAX_NDIM:
+        raise ProtocolError(f"array of {ndim} dimensions", "frame")
+    head = 2 + 4 * ndim
+    if len(data) < head:
+        raise ProtocolError("array shape truncated", "frame")
+    shape = struct.unpack_from(f"<{ndim}I", data, 2)
+    count = math.prod(shape)
+    if count * dt.itemsize != len(data) - head:
+        raise ProtocolError(
+            f"array shape {shape} x {dt.itemsize} bytes does not match {len(data) - head} data bytes", "frame"
+        )
+    return np.frombuffer(data, dtype=dt, offset=head, count=count).reshape(shape)
+
+
+# --- field validators ---------------------------------------------------------------------------
+
+
+def _int(v: Any, path: str, lo: int = -(2**63), hi: int = 2**63 - 1) -> int:
+    if not isinstance(v, int) or isinstance(v, bool):
+        raise FieldError(f"expected an integer, got {type(v).__name__}", path)
+    if not lo <= v <= hi:
+        raise FieldError(f"{v} outside [{lo}, {hi}]", path)
+    return v
+
+
+def _float(v: Any, path: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise FieldError(f"expected a number, got {type(v).__name__}", path)
+    if not math.isfinite(v):
+        raise FieldError("not finite", path)
+    return float(v)
+
+
+def _str(v: Any, path: str, max_len: int, allow_empty: bool = True) -> str:
+    if not isinstance(v, str):
+        raise FieldError(f"expected a string, got {type(v).__name__}", path)
+    if len(v) > max_len:
+        raise FieldError(f"longer than {max_len} characters", path)
+    if not allow_empty and not v:
+        raise FieldError("must not be empty", path)
+    return v
+
+
+def _opt_str(v: Any, path: str, max_len: int) -> str | None:
+    return None if v is None else _str(v, path, max_len)
+
+
+def _arr(
+    v: Any, path: str, dtype: str, shape: tuple[int | None, ...], max_rows: int | None = None
+) -> np.ndarray:
+    """Check an array: dtype, ndim, fixed dims (None = any), first dim <= max_rows, finite floats."""
+    if not isinstance(v, np.ndarray):
+        raise FieldError(f"expected an array, got {type(v).__name__}", path)
+    if v.dtype != np.dtype(dtype):
+        raise FieldError(f"dtype {v.dtype}, expected {np.dtype(dtype)}", path)
+    if v.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, v.shape, strict=True)):
+        want = "x".join("N" if s is None else str(s) for s in shape)
+        raise FieldError(f"shape {v.shape}, expected ({want})", path)
+    if max_rows is not None and v.ndim and v.shape[0] > max_rows:
+        raise FieldError(f"{v.shape[0]} rows exceed the limit of {max_rows}", path)
+    if v.dtype.kind == "f" and not np.isfinite(v).all():
+        raise FieldError("contains NaN or inf", path)
+    return v
+
+
+def _rigid(m: np.ndarray, path: str) -> None:
+    """(..., 4, 4) SE(3): last row [0, 0, 0, 1], rotation orthonormal with det +1."""
+    bottom = m[..., 3, :]
+    if not (bottom == _BOTTOM).all():
+        raise FieldError("last row of a pose must be [0, 0, 0, 1]", path)
+    R = m[..., :3, :3]
+    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max() if R.size else 0.0
+    if err > _POSE_TOL or (R.size and (np.linalg.det(R) <= 0).any()):
+        raise FieldError("rotation block is not a proper orthonormal rotation", path)
+
+
+def _similarity(m: np.ndarray, path: str) -> None:
+    if not (m[3] == _BOTTOM).all():
+        raise FieldError("last row of a Sim(3) matrix must be [0, 0, 0, 1]", path)
+    det = float(np.linalg.det(m[:3, :3]))
+    if not det > 0:
+        raise FieldError("Sim(3) scale must be positive", path)
+    R = m[:3, :3] / np.cbrt(det)
+    if np.abs(R.T @ R - np.eye(3)).max() > _POSE_TOL:
+        raise FieldError("Sim(3) rotation block is not a scaled rotation", path)
+
+
+def _same_rows(path_a: str, a: np.ndarray, path_b: str, b: np.ndarray) -> None:
+    if a.shape[0] != b.shape[0]:
+        raise FieldError(f"{b.shape[0]} rows but {path_a} has {a.shape[0]}", path_b)
+
+
+_CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "dist"}
+
+
+def _camera(v: Any, path: str) -> dict[str, object]:
+    if not isinstance(v, dict):
+        raise FieldError(f"expected a map, got {type(v).__name__}", path)
+    keys = set(v)
+    if keys != _CAMERA_KEYS:
+        missing, extra = _CAMERA_KEYS - keys, keys - _CAMERA_KEYS
+        raise FieldError(f"missing {sorted(missing)}, unknown {sorted(map(str, extra))}", path)
+    out: dict[str, object] = {
+        "width": _int(v["width"], f"{path}.width", 1, 16384),
+        "height": _int(v["height"], f"{path}.height", 1, 16384),
+    }
+    for k in ("fx", "fy", "cx", "cy"):
+        out[k] = _float(v[k], f"{path}.{k}")
+    if float(out["fx"]) <= 0 or float(out["fy"]) <= 0:  # type: ignore[arg-type]
+        raise FieldError("focal lengths must be positive", f"{path}.fx")
+    dist = v["dist"]
+    if not isinstance(dist, list) or len(dist) != 4:
+        raise FieldError("expected 4 coefficients (k1, k2, p1, p2)", f"{path}.dist")
+    out["dist"] = [_float(d, f"{path}.dist[{i}]") for i, d in enumerate(dist)]
+    return out
+
+
+def _session(b: dict[str, Any]) -> int:
+    return _int(b.get("session", 0), "body.session", 0, 2**31)
+
+
+def _v_hello(b: dict[str, Any], lim: Limits) -> Hello:
+    kind = _str(b["kind"], "body.kind", 8)
+    if kind not in ("uav", "ugv"):
+        raise FieldError(f"kind must be 'uav' or 'ugv', got {kind!r}", "body.kind")
+    return Hello(
+        agent_id=_str(b["agent_id"], "body.agent_id", lim.max_agent_id_len, allow_empty=False),
+        kind=kind,
+        camera=_camera(b["camera"], "body.camera"),
+        token=_str(b["token"], "body.token", lim.max_token_len),
+        resume_from=_int(b.get("resume_from", 0), "body.resume_from", 0, lim.max_seq),
+        session=_session(b),
+    )
+
+
+def _v_welcome(b: dict[str, Any], lim: Limits) -> Welcome:
+    return Welcome(
+        last_seq=_int(b["last_seq"], "body.last_seq", 0, lim.max_seq),
+        server_version=_str(b["server_version"], "body.server_version", lim.max_string_len),
+    )
+
+
+def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
+    kp = _arr(b["keypoints"], "body.keypoints", "<f4", (None, 2), lim.max_keypoints)
+    octv = _arr(b["octaves"], "body.octaves", "u1", (None,), lim.max_keypoints)
+    desc = _arr(b["descriptors"], "body.descriptors", "u1", (None, 32), lim.max_keypoints)
+    pids = _arr(b["point_ids"], "body.point_ids", "<i8", (None,), lim.max_keypoints)
+    for name, a in (("octaves", octv), ("descriptors", desc), ("point_ids", pids)):
+        _same_rows("body.keypoints", kp, f"body.{name}", a)
+    if pids.size and pids.min() < -1:
+        raise FieldError("point ids must be >= 0, or -1 for none", "body.point_ids")
+    pose = _arr(b["world_from_cam"], "body.world_from_cam", "<f8", (4, 4))
+    _rigid(pose, "body.world_from_cam")
+    enu = b.get("gnss_enu")
+    cov = b.get("gnss_cov")
+    if (enu is None) != (cov is None):
+        raise FieldError(
+            "gnss_enu and gnss_cov go together", "body.gnss_cov" if cov is None else "body.gnss_enu"
+        )
+    if enu is not None:
+        enu = _arr(enu, "body.gnss_enu", "<f8", (3,))
+        cov = _arr(cov, "body.gnss_cov", "<f8", (3, 3))
+        if (
+            not (np.abs(cov - cov.T) <= 1e-12 * np.abs(cov).max()).all()
+            or (np.linalg.eigvalsh(cov) <= 0).any()
+        ):
+            raise FieldError("covariance must be symmetric positive definite", "body.gnss_cov")
+    return Keyframe(
+        kf_id=_int(b["kf_id"], "body.kf_id", 0),
+        timestamp=_float(b["timestamp"], "body.timestamp"),
+        world_from_cam=pose,
+        keypoints=kp,
+        octaves=octv,
+        descriptors=desc,
+        point_ids=pids,
+        gnss_enu=enu,
+        gnss_cov=cov,
+        session=_session(b),
+    )
+
+
+def _v_map_points(b: dict[str, Any], lim: Limits) -> MapPoints:
+    ids = _arr(b["ids"], "body.ids", "<i8", (None,), lim.max_points_per_msg)
+    xyz = _arr(b["xyz"], "body.xyz", "<f8", (None, 3), lim.max_points_per_msg)
+    desc = _arr(b["descriptors"], "body.descriptors", "u1", (None, 32), lim.max_points_per_msg)
+    _same_rows("body.ids", ids, "body.xyz", xyz)
+    _same_rows("body.ids", ids, "body.descriptors", desc)
+    if ids.size and ids.min() < 0:
+        raise FieldError("point ids must be >= 0", "body.ids")
+    return MapPoints(ids=ids, xyz=xyz, descriptors=desc, session=_session(b))
+
+
+def _v_pose_updates(b: dict[str, Any], lim: Limits) -> PoseUpdates:
+    kf_ids = _arr(b["kf_ids"], "body.kf_ids", "<i8", (None,), lim.max_poses_per_msg)
+    poses = _arr(b["world_from_cam"], "body.world_from_cam", "<f8", (None, 4, 4), lim.max_poses_per_msg)
+    _same_rows("body.kf_ids", kf_ids, "body.world_from_cam", poses)
+    _rigid(poses, "body.world_from_cam")
+    pids = _arr(b["point_ids"], "body.point_ids", "<i8", (None,), lim.max_points_per_msg)
+    xyz = _arr(b["xyz"], "body.xyz", "<f8", (None, 3), lim.max_points_per_msg)
+    _same_rows("body.point_ids", pids, "body.xyz", xyz)
+    if (kf_ids.size and kf_ids.min() < 0) or (pids.size and pids.min() < 0):
+        raise FieldError(
+            "ids must be >= 0", "body.kf_ids" if kf_ids.size and kf_ids.min() < 0 else "body.point_ids"
+        )
+    return PoseUpdates(kf_ids=kf_ids, world_from_cam=poses, point_ids=pids, xyz=xyz, session=_session(b))
+
+
+def _v_ack(b: dict[str, Any], lim: Limits) -> Ack:
+    return Ack(seq=_int(b["seq"], "body.seq", 0, lim.max_seq))
+
+
+def _v_correction(b: dict[str, Any], lim: Limits) -> Correction:
+    g = _arr(b["global_from_local"], "body.global_from_local", "<f8", (4, 4))
+    _similarity(g, "body.global_from_local")
+    kf_ids = _arr(b["kf_ids"], "body.kf_ids", "<i8", (None,), lim.max_poses_per_msg)
+    poses = _arr(b["world_from_cam"], "body.world_from_cam", "<f8", (None, 4, 4), lim.max_poses_per_msg)
+    _same_rows("body.kf_ids", kf_ids, "body.world_from_cam", poses)
+    _rigid(poses, "body.world_from_cam")
+    return Correction(
+        map_id=_int(b["map_id"], "body.map_id", 0),
+        global_from_local=g,
+        kf_ids=kf_ids,
+        world_from_cam=poses,
+        session=_session(b),
+    )
+
+
+def _v_error(b: dict[str, Any], lim: Limits) -> Error:
+    seq = b.get("seq")
+    return Error(
+        code=_str(b["code"], "body.code", 64),
+        message=_str(b["message"], "body.message", lim.max_string_len),
+        field=_opt_str(b.get("field"), "body.field", 256),
+        seq=None if seq is None else _int(seq, "body.seq", 0, lim.max_seq),
+    )
+
+
+def _v_bye(b: dict[str, Any], lim: Limits) -> Bye:
+    return Bye(reason=_str(b.get("reason", ""), "body.reason", lim.max_string_len))
+
+
+_VALIDATORS: dict[str, Callable[[dict[str, Any], Limits], Message]] = {
+    "hello": _v_hello,
+    "welcome": _v_welcome,
+    "keyframe": _v_keyframe,
+    "map_points": _v_map_points,
+    "pose_updates": _v_pose_updates,
+    "ack": _v_ack,
+    "correction": _v_correction,
+    "error": _v_error,
+    "bye": _v_bye,
+}
+_FIELDS = {name: {f.name for f in fields(cls)} for name, cls in MESSAGE_TYPES.items()}
+_REQUIRED = {
+    name: {f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING}
+    for name, cls in MESSAGE_TYPES.items()
+}
+
+
+def decode(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, Message]:
+    """Decode and validate one frame -> (seq, message). Raises only :class:`ProtocolError`."""
+    if not isinstance(frame, bytes | bytearray | memoryview):
+        raise ProtocolError(f"frame must be bytes, got {type(frame).__name__}", "frame")
+    if len(frame) > limits.max_frame_bytes:
+        raise FrameTooLarge(f"{len(frame)} bytes exceed the limit of {limits.max_frame_bytes}", "frame")
+    try:
+        obj = msgpack.unpackb(
+            frame,
+            raw=False,
+            ext_hook=_ext_hook,
+            strict_map_key=True,
+            max_str_len=max(limits.max_string_len, limits.max_token_len) * 4,
+            max_bin_len=0,
+            max_array_len=64,
+            max_map_len=64,
+            max_ext_len=limits.max_frame_bytes,
+        )
+    except ProtocolError:
+        raise
+    except Exception as e:  # msgpack raises many types (ExtraData, ValueError, StackError, ...)
+        raise ProtocolError(f"not a valid msgpack frame ({type(e).__name__}: {e})", "frame") from None
+    if not isinstance(obj, dict):
+        raise ProtocolError(f"frame must be a map, got {type(obj).__name__}", "frame")
+    if set(obj) != {"v", "type", "seq", "body"}:
+        raise ProtocolError(f"frame keys must be v, type, seq, body; got {sorted(map(str, obj))}", "frame")
+    if obj["v"] != PROTOCOL_VERSION or isinstance(obj["v"], bool):
+        raise VersionError(f"protocol version {obj['v']!r} not supported (this is v{PROTOCOL_VERSION})", "v")
+    mtype = obj["type"]
+    if not isinstance(mtype, str) or mtype not in _VALIDATORS:
+        raise UnknownTypeError(f"unknown message type {mtype!r}", "type")
+    seq = _int(obj["seq"], "seq", 0, limits.max_seq)
+    body = obj["body"]
+    if not isinstance(body, dict):
+        raise FieldError(f"expected a map, got {type(body).__name__}", "body")
+    keys = set(body)
+    unknown = keys - _FIELDS[mtype]
+    if unknown:
+        raise FieldError(
+            f"unknown field(s) {sorted(map(str, unknown))}", f"body.{sorted(map(str, unknown))[0]}"
+        )
+    missing = _REQUIRED[mtype] - keys
+    if missing:
+        raise FieldError("missing", f"body.{sorted(missing)[0]}")
+    try:
+        return seq, _VALIDATORS[mtype](body, limits)
+    except ProtocolError:
+        raise
+    except Exception as e:  # defensive: a validator bug must still surface as a protocol error
+        raise FieldError(f"invalid ({type(e).__name__}: {e})", "body") from None

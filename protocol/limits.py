@@ -1,0 +1,21 @@
+"""Size limits applied on decode (and by the server's WebSocket layer)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+PROTOCOL_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Upper bounds on what one frame may carry; a decoder never allocates beyond them."""
+
+    max_frame_bytes: int = 4 * 1024 * 1024
+    max_keypoints: int = 4000
+    max_points_per_msg: int = 20000
+    max_poses_per_msg: int = 5000
+    max_agent_id_len: int = 64
+    max_token_len: int = 256
+    max_string_len: int = 1024
+    max_seq: int = 2**62

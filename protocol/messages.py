@@ -1,0 +1,123 @@
+"""Protocol v1 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
+
+Arrays are numpy arrays with fixed dtypes; shapes are given per field. Poses are 4x4 float64
+``world_from_cam`` in the sender's frame (the agent's VIO frame for agent -> server messages, the
+global frame in corrections). Arrays produced by :func:`hivemap.protocol.decode` are read-only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class Hello:
+    """Agent -> server, first message. ``camera``: ``PinholeCamera.to_dict()``; ``session`` increments
+    when the agent resets its map (the server keeps the old session's map and starts a new one)."""
+
+    TYPE: ClassVar[str] = "hello"
+    agent_id: str
+    kind: str  # "uav" | "ugv"
+    camera: dict[str, object]
+    token: str
+    resume_from: int = 0
+    session: int = 0
+
+
+@dataclass(frozen=True)
+class Welcome:
+    """Server -> agent: ``last_seq`` is the highest seq the server durably stored for this agent."""
+
+    TYPE: ClassVar[str] = "welcome"
+    last_seq: int
+    server_version: str
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """Agent -> server. keypoints f32 (N,2), octaves u8 (N,), descriptors u8 (N,32), point_ids i64 (N,)
+    (-1 = no map point), world_from_cam f64 (4,4); optional GNSS fix in ENU f64 (3,) + covariance (3,3)."""
+
+    TYPE: ClassVar[str] = "keyframe"
+    kf_id: int
+    timestamp: float
+    world_from_cam: NDArray[np.float64]
+    keypoints: NDArray[np.float32]
+    octaves: NDArray[np.uint8]
+    descriptors: NDArray[np.uint8]
+    point_ids: NDArray[np.int64]
+    gnss_enu: NDArray[np.float64] | None = None
+    gnss_cov: NDArray[np.float64] | None = None
+    session: int = 0
+
+
+@dataclass(frozen=True)
+class MapPoints:
+    """Agent -> server. ids i64 (M,), xyz f64 (M,3), representative descriptors u8 (M,32)."""
+
+    TYPE: ClassVar[str] = "map_points"
+    ids: NDArray[np.int64]
+    xyz: NDArray[np.float64]
+    descriptors: NDArray[np.uint8]
+    session: int = 0
+
+
+@dataclass(frozen=True)
+class PoseUpdates:
+    """Agent -> server: the dynamic part only. kf_ids i64 (K,), world_from_cam f64 (K,4,4),
+    point_ids i64 (P,), xyz f64 (P,3)."""
+
+    TYPE: ClassVar[str] = "pose_updates"
+    kf_ids: NDArray[np.int64]
+    world_from_cam: NDArray[np.float64]
+    point_ids: NDArray[np.int64]
+    xyz: NDArray[np.float64]
+    session: int = 0
+
+
+@dataclass(frozen=True)
+class Ack:
+    """Server -> agent: the message ``seq`` is durably stored."""
+
+    TYPE: ClassVar[str] = "ack"
+    seq: int
+
+
+@dataclass(frozen=True)
+class Correction:
+    """Server -> agent. ``global_from_local`` f64 (4,4) Sim(3) matrix ``[[sR, t], [0, 1]]``; corrected
+    poses of the agent's changed keyframes in the global frame: kf_ids i64 (K,), world_from_cam (K,4,4)."""
+
+    TYPE: ClassVar[str] = "correction"
+    map_id: int
+    global_from_local: NDArray[np.float64]
+    kf_ids: NDArray[np.int64]
+    world_from_cam: NDArray[np.float64]
+    session: int = 0
+
+
+@dataclass(frozen=True)
+class Error:
+    """Either direction: what was wrong (``field`` names the culprit) with message ``seq``."""
+
+    TYPE: ClassVar[str] = "error"
+    code: str
+    message: str
+    field: str | None = None
+    seq: int | None = None
+
+
+@dataclass(frozen=True)
+class Bye:
+    TYPE: ClassVar[str] = "bye"
+    reason: str = ""
+
+
+Message = Hello | Welcome | Keyframe | MapPoints | PoseUpdates | Ack | Correction | Error | Bye
+MESSAGE_TYPES: dict[str, type] = {
+    cls.TYPE: cls for cls in (Hello, Welcome, Keyframe, MapPoints, PoseUpdates, Ack, Correction, Error, Bye)
+}

@@ -1,0 +1,239 @@
+"""Protocol v1: every message round-trips exactly; bad frames raise ProtocolError naming the field."""
+
+from __future__ import annotations
+
+from dataclasses import fields, replace
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from hivemap.maps.geometry import se3, so3_exp
+from hivemap.protocol import (
+    Ack,
+    Bye,
+    Correction,
+    Error,
+    FieldError,
+    FrameTooLarge,
+    Hello,
+    Keyframe,
+    Limits,
+    MapPoints,
+    PoseUpdates,
+    ProtocolError,
+    UnknownTypeError,
+    VersionError,
+    Welcome,
+    decode,
+    encode,
+)
+
+finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
+seqs = st.integers(0, 2**62)
+ids = st.integers(0, 2**62)
+text = st.text(max_size=60)
+
+
+@st.composite
+def poses(draw: Any) -> np.ndarray:
+    rv = draw(hnp.arrays(np.float64, 3, elements=st.floats(-3, 3)))
+    t = draw(hnp.arrays(np.float64, 3, elements=finite))
+    return se3(so3_exp(rv), t)
+
+
+@st.composite
+def pose_stacks(draw: Any, n: int) -> np.ndarray:
+    return np.array([draw(poses()) for _ in range(n)]).reshape(n, 4, 4)
+
+
+def arr(dtype: Any, shape: tuple[int, ...], elements: Any = None) -> Any:
+    return hnp.arrays(dtype, shape, elements=elements)
+
+
+cameras = st.fixed_dictionaries(
+    {
+        "width": st.integers(1, 4000),
+        "height": st.integers(1, 4000),
+        "fx": st.floats(1, 5000),
+        "fy": st.floats(1, 5000),
+        "cx": finite,
+        "cy": finite,
+        "dist": st.lists(st.floats(-1, 1), min_size=4, max_size=4),
+    }
+)
+
+
+@st.composite
+def keyframes(draw: Any) -> Keyframe:
+    n = draw(st.integers(0, 300))
+    has_gnss = draw(st.booleans())
+    return Keyframe(
+        kf_id=draw(ids),
+        timestamp=draw(finite),
+        world_from_cam=draw(poses()),
+        keypoints=draw(arr(np.float32, (n, 2), st.floats(-1e4, 1e4, width=32))),
+        octaves=draw(arr(np.uint8, (n,))),
+        descriptors=draw(arr(np.uint8, (n, 32))),
+        point_ids=draw(arr(np.int64, (n,), st.integers(-1, 2**40))),
+        gnss_enu=draw(arr(np.float64, (3,), finite)) if has_gnss else None,
+        gnss_cov=np.diag(draw(arr(np.float64, (3,), st.floats(1e-4, 10)))) if has_gnss else None,
+        session=draw(st.integers(0, 100)),
+    )
+
+
+@st.composite
+def map_points(draw: Any) -> MapPoints:
+    m = draw(st.integers(0, 300))
+    return MapPoints(
+        draw(arr(np.int64, (m,), st.integers(0, 2**40))),
+        draw(arr(np.float64, (m, 3), finite)),
+        draw(arr(np.uint8, (m, 32))),
+        draw(st.integers(0, 5)),
+    )
+
+
+@st.composite
+def pose_updates(draw: Any) -> PoseUpdates:
+    k, p = draw(st.integers(0, 20)), draw(st.integers(0, 200))
+    return PoseUpdates(
+        draw(arr(np.int64, (k,), st.integers(0, 2**40))),
+        draw(pose_stacks(k)),
+        draw(arr(np.int64, (p,), st.integers(0, 2**40))),
+        draw(arr(np.float64, (p, 3), finite)),
+    )
+
+
+@st.composite
+def corrections(draw: Any) -> Correction:
+    k = draw(st.integers(0, 20))
+    g = draw(poses())
+    g[:3, :3] *= draw(st.floats(0.1, 10))
+    return Correction(draw(ids), g, draw(arr(np.int64, (k,), st.integers(0, 2**40))), draw(pose_stacks(k)))
+
+
+messages = st.one_of(
+    st.builds(
+        Hello,
+        st.text(min_size=1, max_size=64),
+        st.sampled_from(["uav", "ugv"]),
+        cameras,
+        st.text(max_size=256),
+        seqs,
+        st.integers(0, 1000),
+    ),
+    st.builds(Welcome, seqs, text),
+    keyframes(),
+    map_points(),
+    pose_updates(),
+    st.builds(Ack, seqs),
+    corrections(),
+    st.builds(Error, text, text, st.none() | text, st.none() | seqs),
+    st.builds(Bye, text),
+)
+
+
+def assert_same(a: Any, b: Any) -> None:
+    assert type(a) is type(b)
+    for f in fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            assert isinstance(y, np.ndarray) and x.dtype == y.dtype and x.shape == y.shape
+            assert x.tobytes() == y.tobytes(), f.name  # bit-identical
+        else:
+            assert x == y, f.name
+
+
+@settings(max_examples=300, deadline=None)
+@given(messages, seqs)
+def test_every_message_round_trips(msg: Any, seq: int) -> None:
+    got_seq, got = decode(encode(msg, seq))
+    assert got_seq == seq
+    assert_same(msg, got)
+
+
+def _kf(n: int = 100) -> Keyframe:
+    rng = np.random.default_rng(0)
+    return Keyframe(
+        kf_id=3,
+        timestamp=1.5,
+        world_from_cam=np.eye(4),
+        keypoints=rng.uniform(0, 600, (n, 2)).astype(np.float32),
+        octaves=np.zeros(n, np.uint8),
+        descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8),
+        point_ids=np.arange(n, dtype=np.int64),
+    )
+
+
+def _tamper(frame: bytes, **changes: Any) -> bytes:
+    """Re-encode a valid frame with some envelope or body entries changed (None value -> removed)."""
+    obj = msgpack.unpackb(frame, raw=False)
+    for key, val in changes.items():
+        target, k = (obj["body"], key[5:]) if key.startswith("body_") else (obj, key)
+        if val is None:
+            target.pop(k, None)
+        else:
+            target[k] = val
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+@pytest.mark.parametrize(
+    ("mutate", "error", "field"),
+    [
+        (lambda m: replace(m, keypoints=m.keypoints.astype(np.float64)), FieldError, "body.keypoints"),
+        (lambda m: replace(m, descriptors=m.descriptors[:, :16].copy()), FieldError, "body.descriptors"),
+        (lambda m: replace(m, octaves=m.octaves[:-1].copy()), FieldError, "body.octaves"),
+        (lambda m: replace(m, timestamp=float("nan")), FieldError, "body.timestamp"),
+        (lambda m: replace(m, keypoints=np.full((100, 2), np.inf, np.float32)), FieldError, "body.keypoints"),
+        (lambda m: replace(m, world_from_cam=np.full((4, 4), 2.0)), FieldError, "body.world_from_cam"),
+        (lambda m: replace(m, point_ids=np.full(100, -5, np.int64)), FieldError, "body.point_ids"),
+        (lambda m: replace(m, gnss_enu=np.zeros(3)), FieldError, "body.gnss_cov"),
+    ],
+)
+def test_bad_keyframe_fields_are_named(mutate: Any, error: type, field: str) -> None:
+    with pytest.raises(error) as e:
+        decode(encode(mutate(_kf()), 1))
+    assert e.value.field == field
+
+
+def test_limits_are_enforced() -> None:
+    big = _kf(5000)
+    with pytest.raises(FieldError) as e:
+        decode(encode(big, 1))
+    assert e.value.field == "body.keypoints" and "limit" in str(e.value)
+    frame = encode(_kf(), 1)
+    with pytest.raises(FrameTooLarge):
+        decode(frame, Limits(max_frame_bytes=len(frame) - 1))
+
+
+def test_envelope_errors() -> None:
+    frame = encode(Ack(5), 9)
+    with pytest.raises(VersionError):
+        decode(_tamper(frame, v=2))
+    with pytest.raises(UnknownTypeError):
+        decode(_tamper(frame, type="teleport"))
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(frame, seq=-1))
+    assert e.value.field == "seq"
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(frame, body_seq=None))
+    assert e.value.field == "body.seq"
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(frame, body_extra=1))
+    assert e.value.field == "body.extra"
+    with pytest.raises(ProtocolError):
+        decode(b"\x81\xa1v\x01")  # a map without the other keys
+    with pytest.raises(FieldError) as e:
+        decode(encode(Hello("", "uav", {}, "t"), 1))
+    assert e.value.field in {"body.agent_id", "body.camera"}
+
+
+def test_decoded_arrays_are_read_only() -> None:
+    _, kf = decode(encode(_kf(), 1))
+    assert isinstance(kf, Keyframe)
+    with pytest.raises(ValueError):
+        kf.keypoints[0, 0] = 1.0
