@@ -1,0 +1,141 @@
+"""Front-end throughput, memory and accuracy on one core.
+
+    .venv/bin/python bench/frontend.py                          # synthetic scene (self-contained)
+    .venv/bin/python bench/frontend.py --dataset /work/data/factory01/uav1 [--max-frames N] [--no-imu]
+
+Prints frames/s of ``Frontend.process`` alone (images are pre-loaded / pre-rendered outside the
+timed region), peak RSS over the run, and ATE (evo, SE(3) alignment) when ground truth exists.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import resource  # noqa: E402
+import time  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def _ate(est: np.ndarray, gt: np.ndarray, times: np.ndarray) -> tuple[float, float, float]:
+    from evo.core import geometry, metrics
+    from evo.core.trajectory import PoseTrajectory3D
+
+    te = PoseTrajectory3D(poses_se3=list(est), timestamps=times)
+    tg = PoseTrajectory3D(poses_se3=list(gt), timestamps=times)
+    te.align(tg)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((tg, te))
+    rmse = float(ape.get_statistic(metrics.StatisticsType.rmse))
+    path = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
+    _r, _t, s = geometry.umeyama_alignment(est[:, :3, 3].T, gt[:, :3, 3].T, True)
+    return rmse, path, float(s)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--dataset", default=None, help="agent folder (EuRoC layout); default: synthetic scene")
+    ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--frames", type=int, default=300, help="synthetic sequence length")
+    ap.add_argument("--no-imu", action="store_true")
+    ap.add_argument("--tum-out", default=None, help="write the VIO body trajectory (TUM) here")
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+
+    from hivemap.client.frontend.tracker import Frontend, TrackingState
+    from hivemap.maps.geometry import se3_inverse
+
+    imu = None
+    gt = None
+    if args.dataset:
+        from hivemap.client.dataset import load_dataset
+
+        ds = load_dataset(args.dataset)
+        rig = ds.rig
+        n = len(ds.frames) if args.max_frames is None else min(args.max_frames, len(ds.frames))
+        times = ds.frames.timestamps[:n]
+        if not args.no_imu and len(ds.imu):
+            imu = ds.imu.copy()
+            if imu[0, 0] > 1e12:  # ns
+                imu[:, 0] *= 1e-9
+        if ds.groundtruth is not None:
+            gt = ds.groundtruth_at_frames()[:n]
+
+        def load(i: int) -> tuple[np.ndarray, np.ndarray]:
+            a, b = ds.frames.load(i)
+            assert b is not None
+            return a, b
+
+        imu_params = dict(ds.imu_noise) if imu is not None else None
+        name = ds.agent_id
+    else:
+        from hivemap.client.frontend.synthetic import make_sequence
+
+        seq = make_sequence(args.frames)
+        rig = seq.rig
+        n = args.frames
+        times = seq.times
+        imu = None if args.no_imu else seq.imu
+        gt = seq.world_from_body
+        load = seq.images
+        imu_params = None if args.no_imu else {}
+        name = "synthetic"
+    assert rig is not None
+    fe = Frontend(rig, imu_params=imu_params)
+    busy = 0.0
+    refs = []
+    states: dict[str, int] = {}
+    t_prev = -np.inf
+    losses = 0
+    was_lost = False
+    for i in range(n):
+        left, right = load(i)
+        t = float(times[i])
+        samples = None
+        if imu is not None:
+            samples = imu[(imu[:, 0] > t_prev) & (imu[:, 0] <= t)]
+        t_prev = t
+        t0 = time.perf_counter()
+        res = fe.process(t, left, right, samples)
+        busy += time.perf_counter() - t0
+        states[res.state.value] = states.get(res.state.value, 0) + 1
+        lost = res.state == TrackingState.LOST
+        losses += int(lost and not was_lost)
+        was_lost = lost
+        if fe.keyframes and res.state != TrackingState.LOST and res.state != TrackingState.INITIALIZING:
+            k = max(fe.keyframes)
+            refs.append((i, res.session, k, se3_inverse(fe.keyframes[k].T_wc) @ res.world_from_cam))
+        fe.poll_events()
+        if (i + 1) % 200 == 0:
+            print(f"  {i + 1}/{n} frames, {(i + 1) / busy:.1f} fps, kfs {len(fe.keyframes)}", flush=True)
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    fps = n / busy
+    print(f"agent {name}: {n} frames, {fps:.1f} fps (one core, process() only), peak RSS {peak_mb:.0f} MB")
+    print(f"  states {states}, tracking losses {losses}, sessions {fe.session + 1}, kfs {fe.stats.keyframes}")
+    print("  time per frame (ms): " + ", ".join(f"{k} {1e3 * v / n:.1f}" for k, v in fe.stats.timing.items()))
+    if gt is not None and refs:
+        sess = fe.session
+        rows = [r for r in refs if r[1] == sess and r[2] in fe.keyframes]
+        idx = np.array([r[0] for r in rows])
+        est = np.array([fe.keyframes[k].T_wc @ rel @ fe.cam_from_body for _, _, k, rel in rows])
+        rmse, path, scale = _ate(est, gt[idx], np.asarray(times)[idx])
+        print(
+            f"  ATE RMSE {rmse:.3f} m over {path:.1f} m path = {100 * rmse / path:.3f}% "
+            f"(session {sess}, {len(idx)} frames), Sim3 scale {scale:.4f}"
+        )
+        if args.tum_out:
+            from hivemap.maps.geometry import quat_wxyz_from_rotmat
+
+            with open(args.tum_out, "w") as f:
+                for j, T in zip(idx, est, strict=True):
+                    w, x, y, z = quat_wxyz_from_rotmat(T[:3, :3])
+                    f.write(f"{times[j]:.9f} {T[0, 3]} {T[1, 3]} {T[2, 3]} {x} {y} {z} {w}\n")
+
+
+if __name__ == "__main__":
+    main()
