@@ -136,9 +136,11 @@ def make_sequence(
     pitch: float = 30.0,
     baseline: float = 0.12,
     imu_rate: float = 200.0,
+    scene_size: float = 50.0,
+    focal: float = 420.0,
 ) -> SyntheticSequence:
     """Body on a circle of ``radius`` at ``height`` (with a gentle bobbing), yaw along the path."""
-    rig = make_rig(baseline=baseline, pitch=pitch)
+    rig = make_rig(baseline=baseline, pitch=pitch, f=focal)
 
     def pose(t: F64) -> tuple[F64, F64]:
         ang = speed * t / radius
@@ -161,7 +163,9 @@ def make_sequence(
     gyro = np.zeros((len(ti), 3))
     gyro[:, 2] = speed / radius
     imu = np.concatenate([ti[:, None], gyro, acc_b], 1)
-    return SyntheticSequence(times, Ts, imu, rig, SyntheticScene(seed))
+    return SyntheticSequence(
+        times, Ts, imu, rig, SyntheticScene(seed, size=scene_size, px_per_m=40.0 if scene_size > 60 else 60.0)
+    )
 
 
 def _rz(a: float) -> F64:

@@ -182,3 +182,23 @@ def test_long_loss_starts_new_session(n_blank: int) -> None:
     assert fe.session == 1 and r.session == 1
     assert r.state in (TrackingState.NEW_MAP, TrackingState.OK)
     assert any(isinstance(e, NewSessionEvent) for e in fe.poll_events())
+
+
+def test_events_convert_to_maps_model() -> None:
+    from hivemap.client.frontend.convert import keyframe_from_event, map_from_frontend, points_from_event
+
+    seq, imgs = _sequence()
+    fe = Frontend(seq.rig, imu_params=None)
+    for i in range(15):
+        fe.process(float(seq.times[i]), *imgs[i])
+    fe.flush()
+    evs = [e for e in fe.poll_events() if isinstance(e, KeyframeEvent)]
+    kf = keyframe_from_event(evs[0], "uav1", seq.rig.left)
+    pts = points_from_event(evs[0], "uav1")
+    assert kf.key == ("uav1", evs[0].kf_id) and len(pts) == len(evs[0].new_point_ids) > 100
+    m = map_from_frontend(fe, "uav1")
+    assert len(m.keyframes) == len(fe.keyframes)
+    # every alive point referenced by a keyframe carries that observation in the model
+    n_obs = sum(len(p.observations) for p in m.points.values())
+    n_refs = sum(int((k.point_ids >= 0).sum()) for k in m.keyframes.values())
+    assert n_obs == n_refs > 0
