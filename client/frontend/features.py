@@ -37,15 +37,20 @@ class OrbExtractor:
     ) -> tuple[NDArray[np.float32], NDArray[np.uint8], NDArray[np.uint8], NDArray[np.float32]]:
         """-> keypoints (N,2) f32 pixels, octaves (N,) u8, descriptors (N,32) u8, angles (N,) f32."""
         o = self.options
-        self._orb.setFastThreshold(int(self.threshold))
-        kps = self._orb.detect(gray, None)
-        n_raw = len(kps)
-        if adapt:
+        for _attempt in range(3):
+            self._orb.setFastThreshold(int(self.threshold))
+            kps = self._orb.detect(gray, None)
+            n_raw = len(kps)
+            if not adapt:
+                break
             if n_raw < o.n_features and self.threshold > o.min_fast_threshold:
                 self.threshold = max(o.min_fast_threshold, int(self.threshold * 0.6))
                 log.debug("FAST threshold lowered to %d (%d corners)", self.threshold, n_raw)
+                if n_raw < o.n_features // 2:
+                    continue  # far too few: detect again at once with the lower threshold
             elif n_raw >= 2 * o.n_features and self.threshold < o.fast_threshold:
-                self.threshold = min(o.fast_threshold, self.threshold + 2)
+                self.threshold = min(o.fast_threshold, self.threshold + 1)
+            break
         if n_raw == 0:
             return (
                 np.zeros((0, 2), np.float32),
