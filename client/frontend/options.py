@@ -10,7 +10,8 @@ class FrontendOptions:
     """Tuning of the front-end.  Pixel thresholds are at octave 0 and scale with ``1.2**octave``."""
 
     # ORB extraction
-    n_features: int = 1000
+    n_features: int = 1000  # at 640x480; smaller images get proportionally fewer (min 300)
+    scale_features_with_resolution: bool = True
     scale_factor: float = 1.2
     n_levels: int = 8
     fast_threshold: int = 20

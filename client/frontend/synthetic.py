@@ -85,6 +85,7 @@ class SyntheticScene:
             val = cv2.remap(p.tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).reshape(-1)
             img[ok] = val[ok]
             best_t[ok] = t[ok]
+        self.last_depth = (best_t * rays_c.reshape(-1, 3)[:, 2]).reshape(H, W)  # z in the camera, metres
         return np.clip(img, 0, 255).astype(np.uint8).reshape(H, W)
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any
 
@@ -160,7 +160,11 @@ class Frontend:
         imu_params: dict[str, float] | None = None,
     ) -> None:
         self.rig = rig
-        self.options = o = options or FrontendOptions()
+        o = options or FrontendOptions()
+        area = rig.left.width * rig.left.height
+        if o.scale_features_with_resolution and area < 640 * 480:
+            o = replace(o, n_features=max(300, int(o.n_features * area / (640 * 480) * 1.5)))
+        self.options = o
         self.cam = rig.left
         self.body_from_cam = rig.body_from_left
         self.cam_from_body = se3_inverse(rig.body_from_left)
@@ -821,6 +825,7 @@ class Frontend:
         o = self.options
         pts = self._pts
         ids = pts.alive_ids()
+        ids = ids[pts.first_kf[ids] >= kid - 6]  # recently created points only (ORB-SLAM's recent list)
         if len(ids) == 0:
             return
         nobs = np.array([len(pts.obs[i]) for i in ids])
