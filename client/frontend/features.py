@@ -67,8 +67,11 @@ class OrbExtractor:
                 np.zeros((0, 32), np.uint8),
                 np.zeros(0, np.float32),
             )
-        uv = np.array([k.pt for k in kps], dtype=np.float32)
         octv = np.array([k.octave for k in kps], dtype=np.uint8)
+        # OpenCV reports a level-l keypoint at x_l * s, but level pixel x_l sits at x_l * s + (s - 1) / 2
+        # in the full image (pixel-centre resizing): remove that bias (1.3 px at level 7)
+        s = self.options.scale_factor ** octv.astype(np.float64)
+        uv = (np.array([k.pt for k in kps], dtype=np.float64) + 0.5 * (s - 1.0)[:, None]).astype(np.float32)
         ang = np.array([k.angle for k in kps], dtype=np.float32)
         return uv, octv, desc, ang
 
