@@ -1,0 +1,149 @@
+"""SE(3)/Sim(3) helpers against gtsam and pycolmap conventions; camera projection/undistortion round trips."""
+
+from __future__ import annotations
+
+import cv2
+import gtsam
+import numpy as np
+import pycolmap
+import pytest
+
+from hivemap.maps.camera import PinholeCamera, StereoRig
+from hivemap.maps.geometry import (
+    Sim3,
+    quat_wxyz_from_rotmat,
+    rotation_angle_deg,
+    rotmat_from_quat_wxyz,
+    se3,
+    se3_inverse,
+    so3_exp,
+    so3_log,
+    transform_points,
+)
+
+EUROC = PinholeCamera(
+    752, 480, 458.654, 457.296, 367.215, 248.375, (-0.28340811, 0.07395907, 0.00019359, 1.76e-05)
+)
+
+
+def random_sim(rng: np.random.Generator) -> Sim3:
+    return Sim3(so3_exp(rng.normal(0, 1.0, 3)), rng.normal(0, 10, 3), float(np.exp(rng.normal(0, 0.7))))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_sim3_matches_gtsam_similarity3(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    S = random_sim(rng)
+    pts = rng.normal(0, 20, (50, 3))
+    g = S.to_gtsam()
+    # gtsam maps p -> s (R p + t): same points as ours once t is divided by s (to_gtsam does it)
+    got = np.array([g.transformFrom(gtsam.Point3(*p)) for p in pts])
+    np.testing.assert_allclose(got, S.apply(pts), atol=1e-10)  # double round-off on ~100 m values
+    # gtsam's matrix is [[R, t], [0, 1/s]]: the same projective map as our [[sR, t_ours], [0, 1]]
+    Mg = np.asarray(g.matrix())
+    np.testing.assert_allclose(Mg / Mg[3, 3], S.matrix(), atol=1e-10)
+    back = Sim3.from_gtsam(g)
+    np.testing.assert_allclose(back.matrix(), S.matrix(), atol=1e-12)
+    # composition and inverse agree with gtsam's
+    T = random_sim(rng)
+    np.testing.assert_allclose(
+        Sim3.from_gtsam(g.compose(T.to_gtsam())).matrix(), (S @ T).matrix(), atol=1e-10
+    )
+    np.testing.assert_allclose(Sim3.from_gtsam(g.inverse()).matrix(), S.inverse().matrix(), atol=1e-10)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_sim3_matches_pycolmap_sim3d(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    S = random_sim(rng)
+    c = S.to_pycolmap()
+    pts = rng.normal(0, 20, (50, 3))
+    np.testing.assert_allclose(c * pts, S.apply(pts), atol=1e-10)  # pycolmap: p -> s R p + t, as ours
+    assert c.scale == pytest.approx(S.s, abs=1e-15)
+    np.testing.assert_allclose(Sim3.from_pycolmap(c).matrix(), S.matrix(), atol=1e-12)
+    np.testing.assert_allclose(Sim3.from_pycolmap(c.inverse()).matrix(), S.inverse().matrix(), atol=1e-10)
+    # moving a camera: pycolmap's transform_camera_world(cam_from_world) == inverse of our transform_pose
+    world_from_cam = se3(so3_exp(rng.normal(size=3)), rng.normal(0, 5, 3))
+    cam_from_world = se3_inverse(world_from_cam)
+    x, y, z, w = pycolmap.Rotation3d(cam_from_world[:3, :3]).quat
+    rig = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])), cam_from_world[:3, 3])
+    moved = np.vstack([np.asarray(c.transform_camera_world(rig).matrix()), [0, 0, 0, 1]])
+    np.testing.assert_allclose(moved, se3_inverse(S.transform_pose(world_from_cam)), atol=1e-10)
+
+
+def test_sim3_algebra_and_transform_pose() -> None:
+    rng = np.random.default_rng(9)
+    A, B = random_sim(rng), random_sim(rng)
+    p = rng.normal(0, 5, (20, 3))
+    np.testing.assert_allclose((A @ B).apply(p), A.apply(B.apply(p)), atol=1e-10)
+    np.testing.assert_allclose(A.inverse().apply(A.apply(p)), p, atol=1e-10)
+    np.testing.assert_allclose(Sim3.from_matrix(A.matrix()).matrix(), A.matrix(), atol=1e-12)
+    np.testing.assert_allclose(transform_points(A.matrix(), p), A.apply(p), atol=1e-12)
+    with pytest.raises(ValueError):
+        Sim3(np.eye(3), np.zeros(3), 0.0)
+    # a moved camera stays rigid and sees the moved world as the old one scaled by s: same pixels
+    T = se3(so3_exp(rng.normal(size=3)), rng.normal(0, 3, 3))
+    T2 = A.transform_pose(T)
+    np.testing.assert_allclose(T2[:3, :3] @ T2[:3, :3].T, np.eye(3), atol=1e-12)
+    pts_cam = np.c_[rng.uniform(-2, 2, (30, 2)), rng.uniform(2, 20, 30)]
+    world2 = A.apply(transform_points(T, pts_cam))
+    np.testing.assert_allclose(transform_points(se3_inverse(T2), world2), A.s * pts_cam, atol=1e-9)
+    uv1, _ = EUROC.project(pts_cam)
+    uv2, _ = EUROC.project(transform_points(se3_inverse(T2), world2))
+    np.testing.assert_allclose(uv1, uv2, atol=1e-8)
+
+
+def test_se3_quaternion_and_so3_helpers() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        w = rng.normal(0, 1.0, 3)
+        w = w * min(1.0, 3.0 / float(np.linalg.norm(w)))  # angle < pi: log is the inverse of exp
+        R = so3_exp(w)
+        np.testing.assert_allclose(so3_log(R), w, atol=1e-10)
+        assert rotation_angle_deg(R) == pytest.approx(np.degrees(np.linalg.norm(w)), abs=1e-6)
+        q = quat_wxyz_from_rotmat(R)
+        assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+        np.testing.assert_allclose(rotmat_from_quat_wxyz(q), R, atol=1e-12)
+        # (w, x, y, z) is gtsam's Quaternion order too
+        gq = gtsam.Rot3(R).toQuaternion()
+        g_wxyz = [gq.w(), gq.x(), gq.y(), gq.z()]  # type: ignore[attr-defined]
+        np.testing.assert_allclose(np.asarray(g_wxyz) * np.sign(g_wxyz[0]), q, atol=1e-12)
+        T = se3(R, rng.normal(size=3))
+        np.testing.assert_allclose(T @ se3_inverse(T), np.eye(4), atol=1e-12)
+
+
+@pytest.mark.parametrize("camera", [EUROC, PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)])
+def test_camera_projection_matches_opencv_and_undistortion_round_trips(camera: PinholeCamera) -> None:
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-0.8, 0.8, (5000, 2)), np.ones(5000)] * rng.uniform(0.5, 50, (5000, 1))
+    uv, valid = camera.project(pts)
+    assert valid.all()
+    ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), camera.K, camera.dist_coeffs)
+    np.testing.assert_allclose(uv, ref.reshape(-1, 2), atol=1e-9)
+    inside = camera.in_image(uv)
+    # pixel -> normalized -> pixel over the whole image, corners included: 1e-6 px
+    grid = np.stack(
+        np.meshgrid(np.linspace(0, camera.width - 1, 60), np.linspace(0, camera.height - 1, 40)), -1
+    )
+    grid = grid.reshape(-1, 2)
+    xy = camera.undistort_to_normalized(grid)
+    back, _ = camera.project(np.c_[xy, np.ones(len(xy))])
+    np.testing.assert_allclose(back, grid, atol=1e-6)
+    # 3D point -> pixel -> bearing recovers the direction
+    b = camera.bearing(uv[inside])
+    np.testing.assert_allclose(b, pts[inside] / np.linalg.norm(pts[inside], axis=1, keepdims=True), atol=1e-9)
+    und = camera.undistort_pixels(uv[inside])
+    np.testing.assert_allclose(
+        und, (pts[inside, :2] / pts[inside, 2:]) * [camera.fx, camera.fy] + [camera.cx, camera.cy], atol=1e-6
+    )  # noqa: E501
+    # behind the camera: flagged invalid
+    _, v2 = camera.project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 0.0]]))
+    assert not v2.any()
+    assert PinholeCamera.from_dict(camera.to_dict()) == camera
+
+
+def test_stereo_rig_baseline() -> None:
+    b = 0.11
+    rig = StereoRig(EUROC, EUROC, np.eye(4), se3(np.eye(3), [b, 0, 0]))
+    assert rig.baseline == pytest.approx(b)
+    np.testing.assert_allclose(rig.right_from_left[:3, 3], [-b, 0, 0], atol=1e-15)
