@@ -1,0 +1,221 @@
+"""The agent's link to the server: a resumable WebSocket session over protocol v1.
+
+Every message goes through the durable :class:`~hivemap.client.outbox.Outbox` first. On (re)connect
+the link sends ``hello``; the server's ``welcome(last_seq)`` says what it already stored, so the link
+drops that and resends the rest in order: no loss and no duplicates across agent or server restarts
+and dropped connections. Reconnects use exponential backoff with jitter. A refused hello (bad token)
+stops the link with :class:`LinkRefused` instead of retrying forever.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import websockets
+from websockets.exceptions import ConnectionClosed
+
+from hivemap.client.outbox import Outbox
+from hivemap.protocol import Ack, Correction, Hello, Message, ProtocolError, Welcome, decode, encode
+from hivemap.protocol import Bye as ByeMsg
+from hivemap.protocol import Error as ErrorMsg
+
+log = logging.getLogger(__name__)
+
+
+class LinkRefused(RuntimeError):
+    """The server refused this agent (token, agent id): retrying would not help."""
+
+
+@dataclass(frozen=True)
+class LinkOptions:
+    backoff_initial_s: float = 0.2
+    backoff_max_s: float = 10.0
+    window: int = 64  # unacknowledged messages in flight per connection
+    open_timeout_s: float = 10.0
+    max_frame_bytes: int = 8 * 1024 * 1024
+
+
+@dataclass
+class LinkStats:
+    connects: int = 0
+    bytes_up: int = 0
+    bytes_down: int = 0
+    resent: int = 0
+    corrections: int = 0
+    errors: int = 0
+
+
+class AgentLink:
+    """Resumable agent -> server link. Use ``submit`` from the agent, ``run`` as a task."""
+
+    def __init__(
+        self,
+        url: str,
+        agent_id: str,
+        kind: str,
+        camera: dict[str, object],
+        token: str,
+        outbox_path: str | Path,
+        on_correction: Callable[[Correction], None] | None = None,
+        session: int = 0,
+        options: LinkOptions | None = None,
+    ) -> None:
+        self.url = url
+        self.agent_id = agent_id
+        self.kind = kind
+        self.camera = camera
+        self.token = token
+        self.session = session
+        self.on_correction = on_correction
+        self.options = options or LinkOptions()
+        self.outbox = Outbox(outbox_path, agent_id)
+        self.stats = LinkStats()
+        self.connected = asyncio.Event()
+        self._new = asyncio.Event()
+        self._acked = asyncio.Event()
+        self._stop = False
+        self._ws: websockets.ClientConnection | None = None
+        self.server_errors: list[ErrorMsg] = []
+
+    # -- agent side ---------------------------------------------------------------------------------
+    def submit_nowait(self, msg: Message) -> int:
+        """Store ``msg`` durably and schedule it; returns its seq."""
+        seq = self.outbox.put(msg)
+        self._new.set()
+        return seq
+
+    async def submit(self, msg: Message) -> int:
+        return await asyncio.to_thread(self.submit_nowait, msg)
+
+    async def flush(self, timeout: float | None = None) -> None:
+        """Wait until the server acknowledged everything submitted so far."""
+
+        async def wait() -> None:
+            while len(self.outbox):
+                self._acked.clear()
+                if not len(self.outbox):
+                    break
+                await self._acked.wait()
+
+        await asyncio.wait_for(wait(), timeout)
+
+    async def close(self, reason: str = "done") -> None:
+        """Say bye and stop ``run``. Unacknowledged messages stay in the outbox for the next start."""
+        self._stop = True
+        self._new.set()
+        ws = self._ws
+        if ws is not None:
+            with contextlib.suppress(Exception):
+                await ws.send(encode(ByeMsg(reason), 0))
+                await ws.close()
+        self.outbox.close()
+
+    # -- connection loop ----------------------------------------------------------------------------
+    async def run(self) -> None:
+        """Connect, resume, stream; reconnect with backoff until ``close``. Raises LinkRefused."""
+        delay = self.options.backoff_initial_s
+        while not self._stop:
+            try:
+                await self._session()
+                delay = self.options.backoff_initial_s
+            except LinkRefused:
+                raise
+            except (OSError, ConnectionClosed, TimeoutError, ProtocolError, websockets.InvalidHandshake) as e:
+                if self._stop:
+                    break
+                log.warning("link to %s lost (%s); reconnecting in %.1f s", self.url, e, delay)
+            finally:
+                self.connected.clear()
+                self._ws = None
+            if self._stop:
+                break
+            await asyncio.sleep(delay * (0.5 + random.random()))
+            delay = min(delay * 2, self.options.backoff_max_s)
+
+    async def _session(self) -> None:
+        async with websockets.connect(
+            self.url,
+            max_size=self.options.max_frame_bytes,
+            open_timeout=self.options.open_timeout_s,
+            compression=None,
+        ) as ws:
+            self._ws = ws
+            hello = Hello(
+                self.agent_id, self.kind, self.camera, self.token, self.outbox.last_acked, self.session
+            )
+            await ws.send(encode(hello, 0))
+            first = await asyncio.wait_for(ws.recv(), self.options.open_timeout_s)
+            assert isinstance(first, bytes)
+            _, reply = decode(first)
+            if isinstance(reply, ErrorMsg):
+                raise LinkRefused(f"server refused agent {self.agent_id!r}: {reply.message} ({reply.field})")
+            if not isinstance(reply, Welcome):
+                raise ProtocolError(f"expected welcome, got {type(reply).__name__}", "type")
+            await asyncio.to_thread(self.outbox.ack_through, reply.last_seq)
+            self._acked.set()
+            self.stats.connects += 1
+            self.connected.set()
+            log.info(
+                "agent %s connected to %s; server has seq <= %d", self.agent_id, self.url, reply.last_seq
+            )
+            sender = asyncio.create_task(self._send_loop(ws, reply.last_seq))
+            try:
+                await self._recv_loop(ws)
+            finally:
+                sender.cancel()
+                with contextlib.suppress(asyncio.CancelledError, ConnectionClosed):
+                    await sender
+
+    async def _send_loop(self, ws: websockets.ClientConnection, after: int) -> None:
+        sent = after
+        first_pass_end = self.outbox.last_seq
+        while not self._stop:
+            in_flight = sent - self.outbox.last_acked
+            room = self.options.window - in_flight
+            batch = await asyncio.to_thread(self.outbox.pending, sent, max(room, 0)) if room > 0 else []
+            if not batch:
+                self._new.clear()
+                # Wake on new messages or acks (which open the window).
+                waiters = [asyncio.create_task(self._new.wait()), asyncio.create_task(self._acked.wait())]
+                self._acked.clear()
+                _, pend = await asyncio.wait(waiters, timeout=1.0, return_when=asyncio.FIRST_COMPLETED)
+                for p in pend:
+                    p.cancel()
+                continue
+            for seq, frame in batch:
+                await ws.send(frame)
+                self.stats.bytes_up += len(frame)
+                if seq <= first_pass_end:
+                    self.stats.resent += 1
+                sent = seq
+
+    async def _recv_loop(self, ws: websockets.ClientConnection) -> None:
+        async for frame in ws:
+            if not isinstance(frame, bytes):
+                raise ProtocolError("text frame from the server", "frame")
+            self.stats.bytes_down += len(frame)
+            _, msg = decode(frame)
+            if isinstance(msg, Ack):
+                await asyncio.to_thread(self.outbox.ack, msg.seq)
+                self._acked.set()
+            elif isinstance(msg, Correction):
+                self.stats.corrections += 1
+                if self.on_correction is not None:
+                    self.on_correction(msg)
+            elif isinstance(msg, ErrorMsg):
+                self.stats.errors += 1
+                self.server_errors.append(msg)
+                if msg.seq is not None and msg.seq > 0:
+                    # The server will never accept this message: drop it so it is not resent forever.
+                    await asyncio.to_thread(self.outbox.ack, msg.seq)
+                    self._acked.set()
+                log.error("server error on seq %s: %s (field %s)", msg.seq, msg.message, msg.field)
+            elif isinstance(msg, ByeMsg):
+                log.info("server said bye: %s", msg.reason)
+                return
