@@ -637,7 +637,9 @@ def _uav_heights(
     return h
 
 
-def _pick_start(g: RoadGraph, world_size: float, region: str, ugv_len: float | None) -> tuple:
+def _pick_start(
+    g: RoadGraph, world_size: float, region: str, ugv_len: float | None
+) -> tuple[tuple[int, bool], list[tuple[int, bool]] | None, float | None]:
     """Start directed edge (+ cycle for the UGV) near the centre of the region."""
     centre = {
         "all": np.zeros(2),
@@ -652,23 +654,24 @@ def _pick_start(g: RoadGraph, world_size: float, region: str, ugv_len: float | N
         mid = e.pts[len(e.pts) // 2] if len(e.pts) > 2 else e.pts.mean(axis=0)
         cands.append((float(np.linalg.norm(mid - centre)), e.id))
     cands.sort()
-    best = None
-    for _, eid in cands:
-        for fwd in (True, False):
-            de = (eid, fwd)
-            if ugv_len is None:
-                return de, None
-            d0 = _start_offset(g, de)
-            cyc = [c for c in _cycles_through(g, de, ugv_len + d0 - 8.0) if all(x[0] in allowed for x in c)]
-            cyc = [c for c in cyc if sum(g.length(x) for x in c) >= 40.0]
-            if cyc:
-                cyc.sort(key=lambda c: abs(sum(g.length(x) for x in c) - 0.8 * ugv_len))
-                return de, cyc[0]
-            if best is None:
-                best = de
-    if best is None:
+    if not cands:
         raise ValueError("road graph has no edge >= 20 m to start from")
-    return best, None
+    if ugv_len is None:
+        return (cands[0][1], True), None, None
+    # Tier 1: a cycle the UGV closes within its nominal length; tier 2: up to 9 % longer.
+    for tier in (1.0, 1.09):
+        for _, eid in cands:
+            for fwd in (True, False):
+                de = (eid, fwd)
+                d0 = _start_offset(g, de)
+                max_len = tier * ugv_len + d0 - 8.0
+                cyc = [c for c in _cycles_through(g, de, max_len) if all(x[0] in allowed for x in c)]
+                cyc = [c for c in cyc if sum(g.length(x) for x in c) >= 40.0]
+                if cyc:
+                    cyc.sort(key=lambda c: abs(sum(g.length(x) for x in c) - 0.8 * ugv_len))
+                    lc = sum(g.length(x) for x in cyc[0])
+                    return de, cyc[0], max(ugv_len, lc - d0 + 8.0)
+    return (cands[0][1], True), None, ugv_len
 
 
 def _start_offset(g: RoadGraph, de: tuple[int, bool]) -> float:
@@ -718,10 +721,14 @@ def plan_trajectories(
     uavs = [a for a in scenario.agents if a.kind == "uav"]
     crossings: dict[tuple[str, str], list] = {}
     meetings: list[tuple[str, tuple[int, bool]]] = []
+    targets: dict[str, float] = {}
 
     if ugv:
         # Shared start: everyone starts at the UGV (UAVs on its roof).
-        de0, cycle = _pick_start(g, scenario.world_size_m, "all", ugv[0].path_length_m)
+        de0, cycle, ugv_len = _pick_start(g, scenario.world_size_m, "all", ugv[0].path_length_m)
+        if ugv_len is not None and ugv_len > ugv[0].path_length_m + 0.01:
+            log.warning("UGV path lengthened to %.1f m to close its loop", ugv_len)
+            targets[ugv[0].agent_id] = ugv_len
         d0 = _start_offset(g, de0)
         if cycle is None:
             log.warning("no road cycle shorter than the UGV path: the UGV will not close a loop")
@@ -734,13 +741,13 @@ def plan_trajectories(
                 raise ValueError("cannot find a UGV route on the road graph")
             ugv_route = r
         else:
-            ugv_route = Route(cycle * 3, d0, ugv[0].path_length_m)
+            ugv_route = Route(cycle * 3, d0, targets.get(ugv[0].agent_id, ugv[0].path_length_m))
         routes[ugv[0].agent_id] = ugv_route
         starts = {a.agent_id: (de0, d0) for a in scenario.agents}
     else:
         starts = {}
         for a in scenario.agents:
-            de, _ = _pick_start(g, scenario.world_size_m, a.region, None)
+            de, _, _ = _pick_start(g, scenario.world_size_m, a.region, None)
             starts[a.agent_id] = (de, _start_offset(g, de))
 
     # --- UAV routes: seeded search over random walks for loops, pair crossings and meetings.
@@ -856,7 +863,7 @@ def plan_trajectories(
     start_heading = 0.0
     for a in scenario.agents:
         r = routes[a.agent_id]
-        target = a.path_length_m
+        target = targets.get(a.agent_id, a.path_length_m)
         for _ in range(3):  # adjust the route length so that the smoothed 3D path has the target length
             pts3, spans, s = _agent_path(world, g, r, a, road_width, bool(ugv))
             l3 = float(np.sum(np.linalg.norm(np.diff(pts3, axis=0), axis=1)))
