@@ -29,7 +29,7 @@ import logging
 import sqlite3
 import time
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -252,6 +252,11 @@ class MapStore:
             self.conn.rollback()
             raise
         self.conn.commit()
+
+    def transaction(self) -> AbstractContextManager[None]:
+        """Group several writes into one transaction (commits at the end unless the caller already holds
+        one), e.g. ``with store.transaction(): store.save_map(merged); store.delete_map(source_id)``."""
+        return self._tx()
 
     def close(self) -> None:
         self.conn.close()

@@ -163,6 +163,11 @@ def test_writes_join_the_callers_transaction(tmp_path: Path) -> None:
     store.set_meta("k", [1, 2])
     store.conn.rollback()  # ... and rolls everything back: the map rows went with it
     assert store.load_stack().maps == {} and store.get_meta("k") is None
+    with pytest.raises(RuntimeError), store.transaction():  # a failed group leaves nothing behind
+        store.put_points(0, [MapPoint("a", 2, [1, 2, 3])])
+        store.set_meta("k", 1)
+        raise RuntimeError("boom")
+    assert store.load_stack().maps == {} and store.get_meta("k") is None
     store.autocommit = False
     store.put_points(0, [MapPoint("a", 1, [1, 2, 3])])
     store.conn.commit()
@@ -252,3 +257,24 @@ def test_keyframe_without_points_and_gnss_round_trip(tmp_path: Path) -> None:
         store.save_stack(stack)
         loaded = store.load_stack()
     assert map_differences(m, loaded.maps[5]) == [] and loaded.next_map_id == 6
+
+
+def test_incremental_merge_save_map_and_delete_source(tmp_path: Path) -> None:
+    rng = np.random.default_rng(8)
+    stack = MapStack()
+    a = stack.add_map(random_map(rng, 0, "ugv", 15, 800))
+    b = stack.add_map(random_map(rng, 1, "uav1", 15, 800))
+    store = MapStore(tmp_path / "merge.sqlite")
+    for m in (a, b):  # written incrementally first, as the server does
+        store.put_points(m.id, m.points.values())
+        for kf in m.keyframes.values():
+            store.put_keyframe(m.id, kf)
+        store.sync_graph(m)
+    merged = stack.merge(0, 1, Sim3(so3_exp([0.2, 0.1, 0.0]), np.ones(3), 0.5), [(("ugv", 3), ("uav1", 3))])
+    with store.transaction():
+        store.save_map(merged)
+        store.delete_map(1)
+    loaded = store.load_stack()
+    store.close()
+    assert list(loaded.maps) == [0]
+    assert map_differences(merged, loaded.maps[0]) == []
