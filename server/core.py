@@ -39,7 +39,6 @@ from hivemap.maps import MapStack
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import Sim3
 from hivemap.protocol import (
-    Bye,
     Correction,
     Hello,
     Keyframe,
@@ -391,8 +390,6 @@ class HiveServer:
             return self._apply_points(agent, msg)
         if isinstance(msg, PoseUpdates):
             return self._apply_pose_updates(agent, msg), []
-        if isinstance(msg, Bye):
-            return None, []
         raise Rejected("unexpected", f"'{type(msg).__name__}' is not a message an agent sends", "type")
 
     def _session_map(self, agent: AgentState, session: int, create: bool) -> AgentMap:

@@ -181,6 +181,9 @@ class AgentConnection:
                 "already_authenticated", "hello was already accepted on this connection", "type", seq
             )
             return
+        if isinstance(msg, Bye):  # not stored, not acked: the agent leaves
+            await self.close(1000, f"bye: {msg.reason}")
+            return
         try:
             await self.server.handle(self, seq, msg, received_at)
         except Rejected as r:
@@ -188,9 +191,6 @@ class AgentConnection:
                 agent.errors += 1
             self.server.events.add("error", f"{self.agent_id} seq {seq}: {r.message}", agent_id=self.agent_id)
             self._reply_error(r.code, r.message, r.field, seq)
-            return
-        if isinstance(msg, Bye):
-            await self.close(1000, f"bye: {msg.reason}")
 
     async def _on_hello(self, seq: int, msg: Message) -> None:
         if not isinstance(msg, Hello):
