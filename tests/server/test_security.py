@@ -94,7 +94,7 @@ def test_fuzzed_frames_leave_server_up_and_maps_unchanged(server: ServerProcess)
     # The same frames from an authenticated agent ("fz"): rejected, or they touch only fz's own maps.
     ag = SyncAgent(server.ws_url, "fz", "tok-fz")
     ag.welcome()
-    for i, frame in enumerate(frames[:3000]):
+    for i, frame in enumerate(frames[:1000]):
         try:
             ag.send_raw(frame)
         except ConnectionClosed:
