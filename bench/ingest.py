@@ -41,7 +41,7 @@ def start_server(data: Path, n_agents: int, synchronous: str) -> tuple[subproces
     port = free_port()
     cfg = data / "server.toml"
     cfg.write_text(
-        f'sqlite_synchronous = "{synchronous}"\nlog_level = "warning"\n[tokens]\n'
+        f'sqlite_synchronous = "{synchronous}"\nlog_level = "warning"\nbackend = false\n[tokens]\n'
         + "".join(f'a{i} = "t{i}"\n' for i in range(n_agents))
     )
     cmd = [sys.executable, "-m", "hivemap.cli.main", "server", "--port", str(port),

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import importlib
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -23,10 +24,19 @@ logger = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"
 
 
-def create_app(settings: ServerSettings | None = None) -> FastAPI:
-    """Build the app; its :class:`HiveServer` (``app.state.hive``) starts and stops with the lifespan."""
+def create_app(
+    settings: ServerSettings | None = None, extensions: Sequence[Callable[[HiveServer], None]] | None = None
+) -> FastAPI:
+    """Build the app; its :class:`HiveServer` (``app.state.hive``) starts and stops with the lifespan.
+
+    ``extensions``: callables ``(server) -> None`` that install themselves (observers, hooks). Default: the
+    collaboration back-end's ``hivemap.server.backend.install`` when that module exists and
+    ``settings.backend`` is on.
+    """
     settings = settings or ServerSettings()
     server = HiveServer(settings)
+    for install in default_extensions(settings) if extensions is None else extensions:
+        install(server)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -55,6 +65,23 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     if STATIC_DIR.is_dir():
         app.mount("/viewer", StaticFiles(directory=STATIC_DIR, html=True), name="viewer")
     return app
+
+
+def default_extensions(settings: ServerSettings) -> list[Callable[[HiveServer], None]]:
+    """``hivemap.server.backend.install`` if the back-end module exists (and is enabled)."""
+    if not settings.backend:
+        return []
+    try:
+        backend = importlib.import_module("hivemap.server.backend")
+    except ModuleNotFoundError as exc:
+        if exc.name != "hivemap.server.backend":
+            raise  # the back-end exists but one of its imports is missing: say so
+        return []
+    install = getattr(backend, "install", None)
+    if install is None:
+        logger.warning("hivemap.server.backend has no install(server): back-end not started")
+        return []
+    return [install]
 
 
 def uvicorn_config_kwargs(settings: ServerSettings) -> dict[str, object]:

@@ -17,6 +17,8 @@ Hooks for the collaboration back-end:
 * ``await server.apply_merge(target_id, source_id, target_from_source, fused_pairs)``: merge two maps of the
   stack, re-frame the moved agents, persist it all in one commit, publish a ``merge`` event.
 * ``server.events.add(kind, message, ...)``: publish merges, loops, corrections on ``/events``.
+* ``server.startup_hooks`` / ``server.shutdown_hooks``: async ``(server) -> None`` run after the reload /
+  before the store closes (start and stop the back-end's workers there).
 * ``server.loop``: the event loop; from a worker thread use ``asyncio.run_coroutine_threadsafe(.., loop)``.
 """
 
@@ -157,6 +159,9 @@ class HiveServer:
         self.loop: asyncio.AbstractEventLoop | None = None
         self._ingest_open = asyncio.Event()
         self._ingest_open.set()
+        #: async callables ``(server) -> None`` run after the stack is loaded / before the store closes
+        self.startup_hooks: list[Callable[[HiveServer], Awaitable[None]]] = []
+        self.shutdown_hooks: list[Callable[[HiveServer], Awaitable[None]]] = []
         self._uncommitted: asyncio.Semaphore | None = None
 
     # -- lifecycle ----------------------------------------------------------------------------------
@@ -190,8 +195,15 @@ class HiveServer:
             "info",
             f"server started: {len(self.stack.maps)} maps, {len(self.agents)} agents reloaded from {path}",
         )
+        for hook in self.startup_hooks:
+            await hook(self)
 
     async def stop(self) -> None:
+        for hook in self.shutdown_hooks:
+            try:
+                await hook(self)
+            except Exception:
+                logger.exception("shutdown hook failed")
         for agent in list(self.agents.values()):
             if agent.connection is not None:
                 await agent.connection.close(1001, "server shutting down")

@@ -59,6 +59,7 @@ class ServerSettings(BaseSettings):
         default="FULL", description="FULL survives power loss, NORMAL (WAL) survives a process crash."
     )
     per_message_deflate: bool = False
+    backend: bool = Field(default=True, description="Run the collaboration back-end (merging, loops).")
     # Inspection.
     event_buffer: int = Field(default=10000, ge=10, description="Events kept in the /events ring buffer.")
     ping_interval_s: float = Field(default=20.0, gt=0.0)

@@ -25,7 +25,15 @@ def free_port() -> int:
 
 
 def write_config(path: Path, tokens: dict[str, str] = TOKENS, **extra: Any) -> Path:
-    lines = [f"{k} = {v!r}" if not isinstance(v, str) else f'{k} = "{v}"' for k, v in extra.items()]
+    """A server TOML; the back-end is off unless ``backend=True`` (ingest tests need exact maps)."""
+    extra.setdefault("backend", False)
+
+    def toml(v: Any) -> str:
+        return (
+            ("true" if v else "false") if isinstance(v, bool) else f'"{v}"' if isinstance(v, str) else repr(v)
+        )
+
+    lines = [f"{k} = {toml(v)}" for k, v in extra.items()]
     lines.append("[tokens]")
     lines += [f'{a} = "{t}"' for a, t in tokens.items()]
     path.write_text("\n".join(lines) + "\n")

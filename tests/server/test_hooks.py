@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Coroutine, Iterator
+from collections.abc import Callable, Coroutine, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,10 +25,10 @@ from hivemap.server.settings import ServerSettings
 
 
 class InProcessServer:
-    def __init__(self, data_dir: Path) -> None:
+    def __init__(self, data_dir: Path, extensions: list[Callable[[HiveServer], None]] | None = None) -> None:
         self.port = free_port()
         settings = ServerSettings(port=self.port, data_dir=data_dir, tokens=TOKENS, log_level="warning")
-        self.app = create_app(settings)
+        self.app = create_app(settings, extensions=extensions or [])
         self.server = uvicorn.Server(uvicorn.Config(self.app, **uvicorn_config_kwargs(settings)))  # type: ignore[arg-type]
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
@@ -172,3 +172,40 @@ def test_apply_merge_reframes_later_data_and_survives_a_restart(tmp_path: Path) 
             np.testing.assert_allclose(p["position"], t2.kf_poses[p["kf_id"]][:3, 3], atol=1e-9)
     finally:
         srv.stop()
+
+
+def test_extensions_install_and_lifecycle_hooks_run_around_the_reload(tmp_path: Path) -> None:
+    calls: list[str] = []
+
+    def install(server: HiveServer) -> None:
+        calls.append("install")
+
+        async def started(s: HiveServer) -> None:
+            calls.append(f"start maps={len(s.stack.maps)} agents={sorted(s.agents)}")
+
+        async def stopping(s: HiveServer) -> None:
+            calls.append("stop")
+
+        server.startup_hooks.append(started)
+        server.shutdown_hooks.append(stopping)
+
+    msgs, _ = synthetic_stream("uav1", 2, seed=51)
+    srv = InProcessServer(tmp_path / "data", extensions=[install])
+    with SyncAgent(srv.ws_url, "uav1", TOKENS["uav1"]) as ag:
+        ag.welcome()
+        assert not ag.send_all(msgs)[1]
+    srv.stop()
+    srv = InProcessServer(tmp_path / "data", extensions=[install])
+    srv.stop()
+    # The second start sees the reloaded stack: start hooks run after the reload.
+    assert calls == [
+        "install",
+        "start maps=0 agents=[]",
+        "stop",
+        "install",
+        "start maps=1 agents=['uav1']",
+        "stop",
+    ]
+    from hivemap.server.app import default_extensions
+
+    assert default_extensions(ServerSettings(backend=False)) == []
