@@ -162,7 +162,7 @@ def optimize_pose(
             except np.linalg.LinAlgError:
                 return T, inl
             T = left_update(T, d)
-            if np.linalg.norm(d) < 1e-8:
+            if np.linalg.norm(d) < 1e-7:
                 break
         pc = X @ T[:3, :3].T + T[:3, 3]
         chi2 = chi2_of(k, pc, meas, inv_sigma2)
@@ -214,57 +214,49 @@ def bundle_adjust(
     nf = len(free)
     lam = 1e-4
     cost = _ba_cost(k, poses, points, prob, act)
+    rel = 1.0
     for _ in range(iterations):
         ci, pi, meas = prob.cam_idx[act], prob.pt_idx[act], prob.meas[act]
+        n = len(ci)
         R = poses[ci, :3, :3]
         pc = np.einsum("nij,nj->ni", R, points[pi]) + poses[ci, :3, 3]
         e, mask = _residuals(k, pc, meas)
         chi2 = (e * e).sum(1) * prob.inv_sigma2[act]
         w = prob.inv_sigma2[act] * _huber_weights(chi2, th_all[act])
-        bad = pc[:, 2] <= 1e-3
-        w[bad] = 0.0
+        w[pc[:, 2] <= 1e-3] = 0.0
         W = mask * w[:, None]
         Jpc = _linearize(k, pc)
-        Jx = np.concatenate([-Jpc @ _skew_batch(pc), Jpc], axis=2)  # (n,3,6)
-        Jp = Jpc @ R  # (n,3,3)
-        JxW = Jx * W[:, :, None]
-        JpW = Jp * W[:, :, None]
-        Hpp = np.zeros((P, 3, 3))
-        np.add.at(Hpp, pi, np.einsum("nri,nrj->nij", JpW, Jp))
-        gp = np.zeros((P, 3))
-        np.add.at(gp, pi, np.einsum("nri,nr->ni", JpW, e))
+        Jx = np.concatenate([-np.matmul(Jpc, _skew_batch(pc)), Jpc], axis=2)  # (n,3,6)
+        Jp = np.matmul(Jpc, R)  # (n,3,3)
+        JxW_T = (Jx * W[:, :, None]).transpose(0, 2, 1)  # (n,6,3)
+        JpW_T = (Jp * W[:, :, None]).transpose(0, 2, 1)  # (n,3,3)
+        # per-point / per-camera sums as sparse aggregation products (much faster than np.add.at)
+        agg_p = sp.csr_matrix((np.ones(n), (pi, np.arange(n))), shape=(P, n))
+        Hpp = (agg_p @ np.matmul(JpW_T, Jp).reshape(n, 9)).reshape(P, 3, 3)
+        gp = agg_p @ np.matmul(JpW_T, e[:, :, None])[:, :, 0]
         fi = free_index[ci]
-        hasc = fi >= 0
-        Hcc = np.zeros((nf, 6, 6))
-        np.add.at(Hcc, fi[hasc], np.einsum("nri,nrj->nij", JxW[hasc], Jx[hasc]))
-        gc = np.zeros((nf, 6))
-        np.add.at(gc, fi[hasc], np.einsum("nri,nr->ni", JxW[hasc], e[hasc]))
-        Hcp_blocks = np.einsum("nri,nrj->nij", JxW[hasc], Jp[hasc])  # (m,6,3)
-        rows = (6 * fi[hasc])[:, None, None] + np.arange(6)[None, :, None]
-        cols = (3 * pi[hasc])[:, None, None] + np.arange(3)[None, None, :]
-        rows_b = np.broadcast_to(rows, Hcp_blocks.shape).ravel()
-        cols_b = np.broadcast_to(cols, Hcp_blocks.shape).ravel()
-        Hcp = sp.csr_matrix((Hcp_blocks.ravel(), (rows_b, cols_b)), shape=(6 * nf, 3 * P))
+        hasc = np.flatnonzero(fi >= 0)
+        fh = fi[hasc]
+        agg_c = sp.csr_matrix((np.ones(len(hasc)), (fh, np.arange(len(hasc)))), shape=(nf, len(hasc)))
+        Hcc = (agg_c @ np.matmul(JxW_T[hasc], Jx[hasc]).reshape(-1, 36)).reshape(nf, 6, 6)
+        gc = agg_c @ np.matmul(JxW_T[hasc], e[hasc][:, :, None])[:, :, 0]
+        # camera-point blocks, dense (6 nf x P x 3): one observation per (keyframe, point)
+        Hcp4 = np.zeros((nf, P, 6, 3))
+        Hcp4[fh, pi[hasc]] = np.matmul(JxW_T[hasc], Jp[hasc])
+        Hcp = Hcp4.transpose(0, 2, 1, 3).reshape(6 * nf, 3 * P)
+        diag_c = np.einsum("nii->ni", Hcc)
+        diag_p = np.einsum("nii->ni", Hpp)
         for _try in range(4):
-            Hpp_d = Hpp + lam * (Hpp * np.eye(3)) + 1e-9 * np.eye(3)
-            # points without information keep their value (tiny diagonal)
+            Hpp_d = Hpp.copy()
+            Hpp_d[:, np.arange(3), np.arange(3)] += lam * diag_p + 1e-9
             Hpp_inv = np.linalg.inv(Hpp_d)
-            r3 = (3 * np.arange(P))[:, None, None] + np.arange(3)[None, :, None]
-            c3 = (3 * np.arange(P))[:, None, None] + np.arange(3)[None, None, :]
-            Vinv = sp.csr_matrix(
-                (
-                    Hpp_inv.ravel(),
-                    (np.broadcast_to(r3, Hpp_inv.shape).ravel(), np.broadcast_to(c3, Hpp_inv.shape).ravel()),
-                ),
-                shape=(3 * P, 3 * P),
-            )
             if nf > 0:
                 Hcc_full = np.zeros((6 * nf, 6 * nf))
                 for j in range(nf):
-                    blk = Hcc[j] + lam * (Hcc[j] * np.eye(6)) + 1e-9 * np.eye(6)
+                    blk = Hcc[j] + np.diag(lam * diag_c[j] + 1e-9)
                     Hcc_full[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = blk
-                Y = Hcp @ Vinv
-                S = Hcc_full - (Y @ Hcp.T).toarray()
+                Y = np.einsum("cpi,pij->cpj", Hcp.reshape(6 * nf, P, 3), Hpp_inv).reshape(6 * nf, 3 * P)
+                S = Hcc_full - Y @ Hcp.T
                 rhs = -gc.ravel() + Y @ gp.ravel()
                 try:
                     dc = np.linalg.solve(S, rhs)

@@ -38,7 +38,7 @@ class FrontendOptions:
     kf_max_interval_s: float = 0.5
     kf_min_interval_frames: int = 0
     # local mapping
-    ba_window: int = 7
+    ba_window: int = 10
     ba_fixed_max: int = 10
     ba_iterations: int = 6
     triangulation_neighbours: int = 3
