@@ -70,6 +70,11 @@ class RoadGraph:
     nodes: F64
     edges: list[RoadEdge]
     adj: dict[int, list[tuple[int, bool]]] = field(default_factory=dict)  # node -> outgoing directed edges
+    air: set[int] = field(default_factory=set)  # edges off the roads (UAV only: across blocks, over roofs)
+
+    @property
+    def road_edges(self) -> set[int]:
+        return {e.id for e in self.edges} - self.air
 
     def start_node(self, de: tuple[int, bool]) -> int:
         e = self.edges[de[0]]
@@ -175,6 +180,56 @@ def build_road_graph(roads: list[Any], snap_tol: float = 4.0, merge_tol: float =
     return g
 
 
+def _air_polylines(g: RoadGraph) -> list[F64]:
+    """Straight lines across every 4-sided block, joining the midpoints of opposite sides ('+' shape)."""
+    seen: set[frozenset[int]] = set()
+    out: list[F64] = []
+    for e in g.edges:
+        for de in ((e.id, True), (e.id, False)):
+            for cyc in _cycles_through(g, de, 200.0, 4):
+                key = frozenset(x[0] for x in cyc)
+                if len(cyc) != 4 or key in seen:
+                    continue
+                seen.add(key)
+                mids = []
+                for x in cyc:
+                    geo = g.geometry(x)
+                    seg = np.linalg.norm(np.diff(geo, axis=0), axis=1)
+                    sc = np.concatenate([[0.0], np.cumsum(seg)])
+                    h = sc[-1] / 2
+                    mids.append(np.array([np.interp(h, sc, geo[:, 0]), np.interp(h, sc, geo[:, 1])]))
+                out.append(np.stack([mids[0], mids[2]]))
+                out.append(np.stack([mids[1], mids[3]]))
+    return out
+
+
+def _with_air_edges(g: RoadGraph, roads: list[F64], snap: float, road_width: float) -> RoadGraph:
+    """Road graph plus the UAV-only air lines across blocks (marked in ``RoadGraph.air``)."""
+    air = _air_polylines(g)
+    if not air:
+        return g
+    g2 = build_road_graph(roads + air, snap_tol=snap)
+    segs = [
+        (np.asarray(r, dtype=np.float64)[k], np.asarray(r, dtype=np.float64)[k + 1])
+        for r in roads
+        for k in range(len(r) - 1)
+    ]
+    for e in g2.edges:
+        seg = np.linalg.norm(np.diff(e.pts, axis=0), axis=1)
+        sc = np.concatenate([[0.0], np.cumsum(seg)])
+        mid = np.array([np.interp(sc[-1] / 2, sc, e.pts[:, 0]), np.interp(sc[-1] / 2, sc, e.pts[:, 1])])
+        dmin = min(_point_seg_dist(mid, a, b) for a, b in segs)
+        if dmin > road_width / 2:
+            g2.air.add(e.id)
+    return g2
+
+
+def _point_seg_dist(p: F64, a: F64, b: F64) -> float:
+    ab = b - a
+    t = float(np.clip(np.dot(p - a, ab) / max(float(np.dot(ab, ab)), 1e-12), 0.0, 1.0))
+    return float(np.linalg.norm(p - (a + t * ab)))
+
+
 def _turn_ok(g: RoadGraph, a: tuple[int, bool], b: tuple[int, bool], min_angle_deg: float = 60.0) -> bool:
     """Whether going from directed edge a into b is not (nearly) a U-turn."""
     if a[0] == b[0]:
@@ -186,7 +241,9 @@ def _turn_ok(g: RoadGraph, a: tuple[int, bool], b: tuple[int, bool], min_angle_d
     return c > np.cos(np.deg2rad(180.0 - min_angle_deg))
 
 
-def _cycles_through(g: RoadGraph, de0: tuple[int, bool], max_len: float, max_edges: int = 10) -> list[list]:
+def _cycles_through(
+    g: RoadGraph, de0: tuple[int, bool], max_len: float, max_edges: int = 10, allowed: set[int] | None = None
+) -> list[list]:
     """Simple directed cycles starting with ``de0`` (no U-turns), length <= max_len."""
     out: list[list] = []
     start = g.start_node(de0)
@@ -203,6 +260,8 @@ def _cycles_through(g: RoadGraph, de0: tuple[int, bool], max_len: float, max_edg
         for de in g.adj.get(n, []):
             m = g.end_node(de)
             if (m in visited and m != start) or not _turn_ok(g, last, de):
+                continue
+            if allowed is not None and de[0] not in allowed:
                 continue
             nl = length + g.length(de)
             if nl > max_len:
@@ -351,14 +410,20 @@ class Route:
         return np.concatenate([start[None], poly[inner], end[None]]), spans
 
 
-def _edge_coverage(route: Route, g: RoadGraph, min_cover: float = 8.0) -> list[tuple[int, bool]]:
-    """Directed edges of the route actually travelled for at least ``min_cover`` metres (in order)."""
+CLIMB_M = 20.0  # a UAV's first metres are its take-off climb: no crossing/meeting/loop counts there
+
+
+def _edge_coverage(
+    route: Route, g: RoadGraph, min_cover: float = 8.0, skip_first: float = 0.0
+) -> list[tuple[int, bool]]:
+    """Directed edges of the route travelled for at least ``min_cover`` metres (in order), ignoring
+    passes that start within the first ``skip_first`` metres."""
     out = []
     s_acc = -route.start_offset
     for de in route.edges:
         L = g.length(de)
         lo, hi = max(s_acc, 0.0), min(s_acc + L, route.length)
-        if hi - lo >= min(min_cover, 0.8 * L):
+        if hi - lo >= min(min_cover, 0.8 * L) and lo >= skip_first:
             out.append(de)
         s_acc += L
     return out
@@ -366,8 +431,11 @@ def _edge_coverage(route: Route, g: RoadGraph, min_cover: float = 8.0) -> list[t
 
 def _random_walk(
     g: RoadGraph, de0: tuple[int, bool], start_offset: float, length: float, rng: np.random.Generator,
-    allowed: set[int] | None = None,
+    allowed: set[int] | None = None, follow: dict[tuple[int, bool], tuple[int, bool]] | None = None,
+    p_follow: float = 0.0,
 ) -> Route | None:  # fmt: skip
+    """Random non-U-turn walk; on an edge of ``follow`` (e.g. the UGV's route) it takes the same next
+    edge with probability ``p_follow``."""
     edges = [de0]
     total = g.length(de0) - start_offset
     while total < 1.1 * length + 3.0:
@@ -377,15 +445,32 @@ def _random_walk(
             opts = [de for de in opts if de[0] in allowed]
         if not opts:
             return None
-        de = opts[int(rng.integers(len(opts)))]
+        nxt = follow.get(last) if follow else None
+        if nxt is not None and nxt in opts and rng.random() < p_follow:
+            de = nxt
+        else:
+            de = opts[int(rng.integers(len(opts)))]
         edges.append(de)
         total += g.length(de)
     return Route(edges, start_offset, length)
 
 
+def _repeated_edges(route: Route, g: RoadGraph, climb: float = CLIMB_M) -> set[tuple[int, bool]]:
+    """Directed edges travelled twice (>= 8 m each time), not counting passes that start within the
+    first ``climb`` metres (the take-off climb)."""
+    seen: list[tuple[int, bool]] = []
+    s_acc = -route.start_offset
+    for de in route.edges:
+        L = g.length(de)
+        lo, hi = max(s_acc, 0.0), min(s_acc + L, route.length)
+        if hi - lo >= min(8.0, 0.8 * L) and lo >= climb:
+            seen.append(de)
+        s_acc += L
+    return {de for de in seen if seen.count(de) > 1}
+
+
 def _has_self_loop(route: Route, g: RoadGraph) -> bool:
-    cov = _edge_coverage(route, g)
-    return len(set(cov)) < len(cov)
+    return bool(_repeated_edges(route, g))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -591,7 +676,7 @@ def _xy_path(route: Route, g: RoadGraph, road_width: float) -> tuple[F64, F64, l
     f = _fillet(poly, max_radius=6.0, max_cut=0.3 * road_width)
     xy, s = _resample(f, 0.25)
     xy_s = gaussian_filter1d(xy, sigma=4.0, axis=0, mode="nearest")
-    xy_s[0], xy_s[-1] = xy[0], xy[-1]
+    xy_s[0] = xy[0]
     # Re-measure arc length after smoothing and map edge spans (defined on the raw polyline) onto it.
     s2 = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy_s, axis=0), axis=1))])
     return xy_s, s2 * (s[-1] / max(s2[-1], 1e-9)) if s2[-1] > 0 else s2, spans
@@ -607,7 +692,7 @@ def _uav_heights(
     phase: float,
 ) -> F64:
     """UAV height along the path (xy arc length s): take-off ramp, cruise with variation, low passes."""
-    h = spec.cruise_height_m + 0.75 * np.sin(2 * np.pi * s / 70.0 + phase)
+    h = spec.cruise_height_m + 0.5 * np.sin(2 * np.pi * s / 70.0 + phase)
     # low passes: blend towards UAV_LOW_HEIGHT with 14 m transitions
     w = np.zeros_like(s)
     trans = 14.0
@@ -647,15 +732,17 @@ def _pick_start(
         "east": np.array([world_size / 3, 0.0]),
     }[region]
     allowed = _region_edges(g, region, world_size)
+    if ugv_len is not None:
+        allowed &= g.road_edges
     cands = []
     for e in g.edges:
-        if e.id not in allowed or e.length < 20.0:
+        if e.id not in allowed or e.length < 10.0:
             continue
         mid = e.pts[len(e.pts) // 2] if len(e.pts) > 2 else e.pts.mean(axis=0)
         cands.append((float(np.linalg.norm(mid - centre)), e.id))
     cands.sort()
     if not cands:
-        raise ValueError("road graph has no edge >= 20 m to start from")
+        raise ValueError("road graph has no edge >= 10 m to start from")
     if ugv_len is None:
         return (cands[0][1], True), None, None
     # Tier 1: a cycle the UGV closes within its nominal length; tier 2: up to 9 % longer.
@@ -664,18 +751,19 @@ def _pick_start(
             for fwd in (True, False):
                 de = (eid, fwd)
                 d0 = _start_offset(g, de)
-                max_len = tier * ugv_len + d0 - 8.0
-                cyc = [c for c in _cycles_through(g, de, max_len) if all(x[0] in allowed for x in c)]
+                max_len = tier * ugv_len + d0 - 5.0
+                cyc = _cycles_through(g, de, max_len, 12, allowed)
                 cyc = [c for c in cyc if sum(g.length(x) for x in c) >= 40.0]
                 if cyc:
                     cyc.sort(key=lambda c: abs(sum(g.length(x) for x in c) - 0.8 * ugv_len))
                     lc = sum(g.length(x) for x in cyc[0])
-                    return de, cyc[0], max(ugv_len, lc - d0 + 8.0)
+                    return de, cyc[0], max(ugv_len, lc - d0 + 5.0)
     return (cands[0][1], True), None, ugv_len
 
 
 def _start_offset(g: RoadGraph, de: tuple[int, bool]) -> float:
-    return min(15.0, 0.45 * g.length(de))
+    L = g.length(de)
+    return min(15.0, max(0.45 * L, L - 6.0))
 
 
 def _region_edges(g: RoadGraph, region: str, world_size: float) -> set[int]:
@@ -684,6 +772,70 @@ def _region_edges(g: RoadGraph, region: str, world_size: float) -> set[int]:
     sign = -1.0 if region == "west" else 1.0
     lim = 0.1 * world_size
     return {e.id for e in g.edges if sign * float(np.mean(e.pts[:, 0])) > lim}
+
+
+def _passes(
+    route: Route, g: RoadGraph, skip_first: float = CLIMB_M
+) -> list[tuple[int, tuple[int, bool], F64]]:
+    """(index in route.edges, directed edge, xy midpoint) of the covered passes after the climb."""
+    out = []
+    s_acc = -route.start_offset
+    for i, de in enumerate(route.edges):
+        L = g.length(de)
+        lo, hi = max(s_acc, 0.0), min(s_acc + L, route.length)
+        if hi - lo >= min(8.0, 0.8 * L) and lo >= skip_first:
+            p = g.edges[de[0]].pts
+            out.append((i, de, np.asarray(0.5 * (p[0] + p[-1]))))
+        s_acc += L
+    return out
+
+
+def _choose_meetings(
+    uav_routes: dict[str, Route],
+    g: RoadGraph,
+    ugv_cov: set[tuple[int, bool]],
+    de_start: tuple[int, bool] | None,
+    facade: dict[tuple[int, bool], bool],
+) -> list[tuple[str, int]]:
+    """Up to 3 low passes (uav, index into its route.edges) over edges the UGV drives in the same
+    direction, >= 25 m apart, facade-facing first, spread over the UAVs, such that every UAV keeps a
+    loop (an edge passed twice at cruise height) and every UAV pair keeps >= 2 shared edges at cruise.
+    A low pass at index i also disturbs passes i-1 and i+1 (descent, climb)."""
+    passes = {k: _passes(r, g) for k, r in uav_routes.items()}
+    ids = list(uav_routes)
+    low: dict[str, set[int]] = {k: set() for k in ids}
+
+    def cruise_edges(k: str, lows: set[int]) -> list[tuple[int, bool]]:
+        bad = {j for i in lows for j in (i - 1, i, i + 1)}
+        return [de for i, de, _ in passes[k] if i not in bad and de != de_start]
+
+    def feasible(k: str, lows: set[int]) -> bool:
+        ce = cruise_edges(k, lows)
+        if not any(ce.count(de) > 1 for de in ce):
+            return False
+        return all(len(set(ce) & set(cruise_edges(kk, low[kk]))) >= 2 for kk in ids if kk != k)
+
+    chosen: list[tuple[str, int, F64]] = []
+    while len(chosen) < 3:
+        best: tuple[tuple[int, bool, int], str, int, F64] | None = None
+        for k in ids:
+            n_used = sum(1 for c in chosen if c[0] == k)
+            for i, de, m in passes[k]:
+                if de not in ugv_cov or de == de_start or i in low[k]:
+                    continue
+                if any(np.linalg.norm(m - c[2]) < 25.0 for c in chosen):
+                    continue
+                if not feasible(k, low[k] | {i}):
+                    continue
+                key = (n_used, not facade.get(de, False), i)
+                if best is None or key < best[0]:
+                    best = (key, k, i, m)
+        if best is None:
+            break
+        _, k, i, m = best
+        low[k].add(i)
+        chosen.append((k, i, m))
+    return [(k, i) for k, i, _ in chosen]
 
 
 def _agent_path(
@@ -712,7 +864,10 @@ def plan_trajectories(
 ) -> TrajectoryPlan:
     """Plan every agent's trajectory for ``scenario`` on ``world`` (deterministic for the scenario seed)."""
     rng = np.random.default_rng(scenario.seed + 1000)
-    g = build_road_graph(list(world.roads), snap_tol=max(2.0, float(world.road_width)))
+    snap = max(2.0, float(world.road_width))
+    g = build_road_graph(list(world.roads), snap_tol=snap)
+    if any(a.kind == "uav" for a in scenario.agents):
+        g = _with_air_edges(g, list(world.roads), snap, float(world.road_width))
     road_width = float(world.road_width)
     routes: dict[str, Route] = {}
     loops: dict[str, list] = {}
@@ -752,6 +907,10 @@ def plan_trajectories(
 
     # --- UAV routes: seeded search over random walks for loops, pair crossings and meetings.
     ugv_cov = set(_edge_coverage(routes[ugv[0].agent_id], g)) if ugv else set()
+    follow: dict[tuple[int, bool], tuple[int, bool]] = {}
+    if ugv:
+        ue = routes[ugv[0].agent_id].edges
+        follow = {x: y for x, y in zip(ue[:-1], ue[1:], strict=True)}
     de_start = starts[uavs[0].agent_id][0] if uavs else None
     facade: dict[tuple[int, bool], bool] = {}
     for de in ugv_cov:
@@ -764,7 +923,9 @@ def plan_trajectories(
         allowed = _region_edges(g, a.region, scenario.world_size_m)
         lst: list[Route] = []
         for _ in range(n_candidates):
-            r = _random_walk(g, de, d0, a.path_length_m, rng, allowed)
+            r = _random_walk(
+                g, de, d0, a.path_length_m, rng, allowed, follow, float(rng.choice([0.0, 0.5, 0.8]))
+            )
             if r is not None and _has_self_loop(r, g):
                 lst.append(r)
         if not lst:
@@ -775,33 +936,71 @@ def plan_trajectories(
             log.warning("%s: no looping route found on the road graph", a.agent_id)
         if not lst:
             raise ValueError(f"cannot find a route for {a.agent_id}")
-        cands[a.agent_id] = lst
+        uniq: dict[tuple, Route] = {}
+        for r in lst:
+            uniq.setdefault(tuple(_edge_coverage(r, g)), r)
+        cands[a.agent_id] = list(uniq.values())
+        log.debug("%s: %d distinct candidate routes", a.agent_id, len(uniq))
 
     best: tuple[float, dict[str, Route]] | None = None
     shared_mode = bool(ugv)
-    for _ in range(n_trials if len(uavs) > 1 or shared_mode else 1):
-        pick = {a.agent_id: cands[a.agent_id][int(rng.integers(len(cands[a.agent_id])))] for a in uavs}
-        covs = {k: set(_edge_coverage(r, g)) - {de_start} for k, r in pick.items()}
-        score = 0.0
-        ok = True
-        if shared_mode:
-            ids = list(pick)
-            for i in range(len(ids)):
-                for j in range(i + 1, len(ids)):
-                    n_shared = len(covs[ids[i]] & covs[ids[j]])
-                    if n_shared < 3:
-                        ok = False
-                    score += min(n_shared, 5)
-            meet = set().union(*covs.values()) & (ugv_cov - {de_start}) if covs else set()
-            if len(meet) < 2:
-                ok = False
-            score += 2.0 * min(len(meet), 4) + 3.0 * sum(facade.get(m, False) for m in meet)
+    ids = [a.agent_id for a in uavs]
+    covs_all = {
+        k: [set(_edge_coverage(r, g, skip_first=CLIMB_M)) - {de_start} for r in cands[k]] for k in ids
+    }
+    lists_all = {k: [_edge_coverage(r, g) for r in cands[k]] for k in ids}
+    orders = {k: [int(i) for i in rng.permutation(len(cands[k]))] for k in ids}
+
+    def evaluate(sel: dict[str, int]) -> float:
+        pick = {k: cands[k][i] for k, i in sel.items()}
+        covs = {k: covs_all[k][i] for k, i in sel.items()}
         union = set().union(*covs.values()) if covs else set()
-        score += 1.5 * len({de[0] for de in union})
-        if not ok:
+        score = 3.0 * len({de[0] for de in union})
+        if not shared_mode:
+            return score
+        for x in range(len(ids)):
+            for y in range(x + 1, len(ids)):
+                kx, ky = ids[x], ids[y]
+                n_shared = len(covs[kx] & covs[ky])
+                score += min(n_shared, 3) - 2.0 * max(0, n_shared - 4)
+                # flying the same edges at the same time is formation flight, not a crossing
+                ca, cb = lists_all[kx][sel[kx]], lists_all[ky][sel[ky]]
+                prefix = next(
+                    (n for n, (u, v) in enumerate(zip(ca, cb, strict=False)) if u != v), min(len(ca), len(cb))
+                )
+                score -= 30.0 * max(0, prefix - 2)
+        meet = _choose_meetings(pick, g, ugv_cov, de_start, facade)
+        if len(meet) < 2:
             score -= 1000.0
-        if best is None or score > best[0]:
-            best = (score, pick)
+        return score + 4.0 * len(meet) + 3.0 * sum(facade.get(pick[k].edges[i], False) for k, i in meet)
+
+    n_eval = 0
+
+    def search(depth: int, sel: dict[str, int]) -> None:
+        nonlocal best, n_eval
+        if n_eval >= n_trials:
+            return
+        if depth == len(ids):
+            n_eval += 1
+            sc = evaluate(sel)
+            if best is None or sc > best[0]:
+                best = (sc, {k: cands[k][i] for k, i in sel.items()})
+            return
+        k = ids[depth]
+        for i in orders[k]:
+            ok = True
+            if shared_mode:
+                for kk, j in sel.items():
+                    sh = covs_all[k][i] & covs_all[kk][j]
+                    if len(sh) < 2 or covs_all[k][i] == covs_all[kk][j]:
+                        ok = False
+                        break
+            if ok:
+                search(depth + 1, {**sel, k: i})
+
+    search(0, {})
+    if best is None and ids:  # no pairwise-feasible combination: take any
+        best = (-2000.0, {k: cands[k][0] for k in ids})
     if best is not None and best[0] < 0:
         log.warning("UAV routes do not meet every crossing/meeting constraint (score %.1f)", best[0])
     uav_routes = best[1] if best is not None else {}
@@ -809,49 +1008,19 @@ def plan_trajectories(
     # Meetings: up to 3 UGV segments flown low by a UAV (facade-facing first), keeping >= 2 crossings
     # per UAV pair.
     if ugv and uav_routes:
-        cov_lists = {k: _edge_coverage(r, g) for k, r in uav_routes.items()}
-        options = sorted(
-            {(de, k) for k, c in cov_lists.items() for de in c if de in ugv_cov and de != de_start},
-            key=lambda x: (not facade.get(x[0], False), x[1], x[0]),
-        )
-        ids = list(uav_routes)
-        shared = {
-            (ids[i], ids[j]): (set(cov_lists[ids[i]]) & set(cov_lists[ids[j]])) - {de_start}
-            for i in range(len(ids))
-            for j in range(i + 1, len(ids))
-        }
-        used_uav: dict[str, int] = {}
-        while len(meetings) < 3:
-            avail = [
-                (de, k)
-                for de, k in options
-                if de not in {m[1] for m in meetings}
-                and all(len(sh - {de}) >= 2 for pair, sh in shared.items() if k in pair)
-            ]
-            if not avail:
-                break
-            de, k = min(avail, key=lambda x: (used_uav.get(x[1], 0), not facade.get(x[0], False)))
-            meetings.append((k, de))
-            used_uav[k] = used_uav.get(k, 0) + 1
-            for pair in shared:
-                if k in pair:
-                    shared[pair] = shared[pair] - {de}
+        low = _choose_meetings(uav_routes, g, ugv_cov, de_start, facade)
         for k, r in uav_routes.items():
-            low = {de for kk, de in meetings if kk == k}
-            first_idx = [i for i, de in enumerate(r.edges) if de in low]
-            seen: set = set()
-            r.low_edges = []
-            for i in first_idx:
-                if r.edges[i] not in seen:
-                    r.low_edges.append(i)
-                    seen.add(r.edges[i])
+            r.low_edges = sorted(i for kk, i in low if kk == k)
+        meetings = [(k, uav_routes[k].edges[i]) for k, i in low]
         ids = list(uav_routes)
-        low_by = {k: {de for kk, de in meetings if kk == k} for k in ids}
+
+        def cruise(k: str) -> set[tuple[int, bool]]:
+            bad = {j for i in uav_routes[k].low_edges for j in (i - 1, i, i + 1)}
+            return {de for i, de, _ in _passes(uav_routes[k], g) if i not in bad and de != de_start}
+
         for i in range(len(ids)):
             for j in range(i + 1, len(ids)):
-                a, b = ids[i], ids[j]
-                sh = (set(cov_lists[a]) & set(cov_lists[b])) - {de_start} - low_by[a] - low_by[b]
-                crossings[(a, b)] = sorted(sh)
+                crossings[(ids[i], ids[j])] = sorted(cruise(ids[i]) & cruise(ids[j]))
     routes.update(uav_routes)
 
     for k, r in routes.items():
