@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import se3_inverse
-from hivemap.sim.world import GROUND_SHADE, World, box_quads
+from hivemap.sim.world import GROUND_SHADE, TEXTURE_M, World, box_quads
 
 log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
@@ -139,6 +139,12 @@ def _scene_vertices(world: World) -> NDArray[np.float32]:
             c = np.array([[x0, y0, 0], [x0 + t, y0, 0], [x0 + t, y0 + t, 0], [x0, y0 + t, 0]], float)
             uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
             verts.append(_quad_tris(c, uv, world.tile_layer(ix, iy), GROUND_SHADE))
+    # Far-field ground: four quads around the tiled site out to world.apron_m.
+    h, A = n * t / 2, world.apron_m
+    for x0, y0, x1, y1 in ((-A, -A, A, -h), (-A, h, A, A), (-A, -h, -h, h), (h, -h, A, h)):
+        c = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], float)
+        uv = c[:, :2] / TEXTURE_M
+        verts.append(_quad_tris(c, uv, world.apron_layer, GROUND_SHADE))
     corners, uvs, layers, shades = box_quads(world)
     for c, uv, lay, sh in zip(corners, uvs, layers, shades, strict=True):
         verts.append(_quad_tris(c, uv, int(lay), float(sh)))
@@ -158,7 +164,7 @@ def _quad_tris(c: F64, uv: F64, layer: int, shade: float) -> F64:
 class GLRenderer:
     """moderngl + headless EGL renderer (see module docstring)."""
 
-    def __init__(self, world: World, camera: PinholeCamera, near: float = 0.05, far: float = 400.0) -> None:
+    def __init__(self, world: World, camera: PinholeCamera, near: float = 0.05, far: float = 3000.0) -> None:
         import moderngl
 
         self.camera = camera
@@ -256,8 +262,16 @@ class NumpyRenderer:
         hit = o + tg[:, None] * d
         w = self.world
         half = w.tiles_n * w.tile_m / 2
-        ok &= (np.abs(hit[:, 0]) < half) & (np.abs(hit[:, 1]) < half)
+        ok &= (np.abs(hit[:, 0]) < w.apron_m) & (np.abs(hit[:, 1]) < w.apron_m)
         best[ok] = tg[ok]
+        apron = ok & ((np.abs(hit[:, 0]) >= half) | (np.abs(hit[:, 1]) >= half))
+        val[apron] = (
+            self._sample(
+                np.full(int(apron.sum()), w.apron_layer), hit[apron, 0] / TEXTURE_M, hit[apron, 1] / TEXTURE_M
+            )
+            * GROUND_SHADE
+        )
+        ok &= ~apron
         gx = (hit[ok, 0] - w.tiles_origin[0]) / w.tile_m
         gy = (hit[ok, 1] - w.tiles_origin[1]) / w.tile_m
         ix, iy = np.clip(gx.astype(int), 0, w.tiles_n - 1), np.clip(gy.astype(int), 0, w.tiles_n - 1)

@@ -63,6 +63,8 @@ class World:
     tiles_n: int  # tiles per side
     layers: NDArray[np.float32]  # (L, TEX, TEX) texture array, ground tiles first
     box_layers: list[list[int]] = field(default_factory=list)  # per box: [+x, +y, -x, -y, top] layer
+    apron_layer: int = 0  # ground texture outside the tiled site (repeats every TEXTURE_M)
+    apron_m: float = 1500.0  # half-size of the far-field ground
     sun_dir: F64 = field(default_factory=lambda: np.array([0.45, 0.3, 0.84]))
 
     @property
@@ -160,6 +162,17 @@ def generate_world(seed: int, size_m: float = 120.0, tile_m: float = 8.0) -> Wor
             obstacles.append(Box(np.array([x, y, 2.0]), np.array([0.5, 0.5, 4.0]), 0.0, f"P{k}"))
     for k, yv in enumerate((ys[0] - road_width / 2 - 2.0, ys[-1] + road_width / 2 + 2.0)):
         obstacles.append(Box(np.array([0.0, yv, 0.9]), np.array([60.0, 0.15, 1.8]), 0.0, f"F{k}"))
+    # The site's perimeter wall (4 m), so views along the roads end on texture rather than sky.
+    wall = half + 1.0
+    for k, (cx, cy, sx, sy) in enumerate(
+        (
+            (wall, 0.0, 0.4, 2 * wall),
+            (-wall, 0.0, 0.4, 2 * wall),
+            (0.0, wall, 2 * wall, 0.4),
+            (0.0, -wall, 2 * wall, 0.4),
+        )
+    ):
+        obstacles.append(Box(np.array([cx, cy, 2.0]), np.array([sx, sy, 4.0]), 0.0, f"W{k + 1}"))
     # Textures: ground tiles first (with roads painted in), then 5 per box.
     n_tiles = int(np.ceil(size_m / tile_m))
     origin = np.array([-n_tiles * tile_m / 2, -n_tiles * tile_m / 2])
@@ -190,6 +203,12 @@ def generate_world(seed: int, size_m: float = 120.0, tile_m: float = 8.0) -> Wor
                     terrain,
                 )
             )
+    apron_layer = len(layers)
+    layers.append(
+        (0.25 + 0.5 * textures.photo("gravel") * (0.7 + 0.3 * textures.fractal_noise(rng, s, 5, 4))).astype(
+            np.float32
+        )
+    )
     box_layers: list[list[int]] = []
     for bx in buildings + obstacles:
         ids = []
@@ -228,6 +247,7 @@ def generate_world(seed: int, size_m: float = 120.0, tile_m: float = 8.0) -> Wor
         tiles_n=n_tiles,
         layers=np.stack(layers).astype(np.float32),
         box_layers=box_layers,
+        apron_layer=apron_layer,
     )
 
 
