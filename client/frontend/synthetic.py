@@ -64,7 +64,11 @@ class SyntheticScene:
         """Gray image (H,W) of the scene (no distortion support needed for tests: dist must be 0)."""
         H, W = camera.height, camera.width
         uu, vv = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-        rays_c = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy, np.ones_like(uu)], -1)
+        if camera.has_distortion:  # rays of the distorted pixels
+            xy = camera.undistort_to_normalized(np.stack([uu.ravel(), vv.ravel()], 1)).reshape(H, W, 2)
+            rays_c = np.concatenate([xy, np.ones((H, W, 1))], -1)
+        else:
+            rays_c = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy, np.ones_like(uu)], -1)
         R, c = world_from_cam[:3, :3], world_from_cam[:3, 3]
         rays = rays_c.reshape(-1, 3) @ R.T
         best_t = np.full(len(rays), np.inf)
@@ -99,9 +103,14 @@ def body_from_cam_pitched(pitch_down_deg: float) -> F64:
 
 
 def make_rig(
-    width: int = 640, height: int = 480, f: float = 420.0, baseline: float = 0.12, pitch: float = 30.0
+    width: int = 640,
+    height: int = 480,
+    f: float = 420.0,
+    baseline: float = 0.12,
+    pitch: float = 30.0,
+    dist: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
 ) -> StereoRig:
-    cam = PinholeCamera(width, height, f, f, width / 2 - 0.5, height / 2 - 0.5)
+    cam = PinholeCamera(width, height, f, f, width / 2 - 0.5, height / 2 - 0.5, dist)
     b_l = body_from_cam_pitched(pitch)
     b_r = b_l @ se3(np.eye(3), np.array([baseline, 0.0, 0.0]))
     return StereoRig(cam, cam, b_l, b_r)
@@ -139,9 +148,10 @@ def make_sequence(
     imu_rate: float = 200.0,
     scene_size: float = 50.0,
     focal: float = 420.0,
+    dist: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
 ) -> SyntheticSequence:
     """Body on a circle of ``radius`` at ``height`` (with a gentle bobbing), yaw along the path."""
-    rig = make_rig(baseline=baseline, pitch=pitch, f=focal)
+    rig = make_rig(baseline=baseline, pitch=pitch, f=focal, dist=dist)
 
     def pose(t: F64) -> tuple[F64, F64]:
         ang = speed * t / radius
