@@ -68,7 +68,8 @@ class SyntheticScene:
             xy = camera.undistort_to_normalized(np.stack([uu.ravel(), vv.ravel()], 1)).reshape(H, W, 2)
             rays_c = np.concatenate([xy, np.ones((H, W, 1))], -1)
         else:
-            rays_c = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy, np.ones_like(uu)], -1)
+            xn, yn = (uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy
+            rays_c = np.stack([xn, yn, np.ones_like(uu)], -1)
         R, c = world_from_cam[:3, :3], world_from_cam[:3, 3]
         rays = rays_c.reshape(-1, 3) @ R.T
         best_t = np.full(len(rays), np.inf)
