@@ -24,6 +24,7 @@ import hashlib
 import json
 import logging
 import os
+import shutil
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, replace
@@ -52,6 +53,7 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 COMPLETE_MARK = ".render_complete"
+STARTED_MARK = ".render_started"
 FORMAT_VERSION = 1
 
 IMU_HEADER = (
@@ -284,9 +286,14 @@ class AgentReport:
     bytes: int
 
 
-def fingerprint(scenario: Scenario, spec: AgentSpec, duration: float) -> str:
+def fingerprint(scenario: Scenario, spec: AgentSpec, duration: float, traj: Trajectory | None = None) -> str:
+    """Hash of everything an agent's files depend on (config, and the planned camera poses)."""
     d = {"v": FORMAT_VERSION, "scenario": asdict(scenario), "agent": asdict(spec), "duration": duration}
-    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    h = hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode())
+    if traj is not None:
+        t = sample_times(duration, scenario.camera.rate_hz)
+        h.update(np.round(traj.world_from_body(t), 9).tobytes())
+    return h.hexdigest()[:16]
 
 
 def _dir_bytes(p: Path) -> int:
@@ -328,8 +335,9 @@ def render_agent(
 ) -> AgentReport:
     """Render (or resume) one agent into ``agent_dir``."""
     dur = traj.duration if duration is None else min(duration, traj.duration)
-    fp = fingerprint(scenario, spec, dur)
+    fp = fingerprint(scenario, spec, dur, traj)
     mark = agent_dir / COMPLETE_MARK
+    started = agent_dir / STARTED_MARK
     t_start = time.perf_counter()
     if mark.is_file() and mark.read_text().strip() == fp:
         n = len(sample_times(dur, scenario.camera.rate_hz))
@@ -337,6 +345,17 @@ def render_agent(
         return AgentReport(spec.agent_id, n, 0, True, 0.0, _dir_bytes(agent_dir))
     if mark.exists():
         mark.unlink()
+    if started.is_file() and started.read_text().strip() != fp:
+        # an earlier render with another configuration or trajectory: its frames cannot be reused
+        log.warning(
+            "%s: existing frames were rendered for another configuration; re-rendering", spec.agent_id
+        )
+        for cam in ("cam0", "cam1"):
+            shutil.rmtree(agent_dir / "mav0" / cam / "data", ignore_errors=True)
+    elif not started.is_file() and (agent_dir / "mav0").exists():
+        for cam in ("cam0", "cam1"):
+            shutil.rmtree(agent_dir / "mav0" / cam / "data", ignore_errors=True)
+    _write_text(started, fp + "\n")
     write_agent_sensors(agent_dir, scenario, spec, agent_index, traj, dur)
 
     import cv2
