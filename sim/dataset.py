@@ -20,6 +20,7 @@ down by the agent's camera pitch; cam1 = cam0 shifted by the baseline along cam0
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -454,6 +455,14 @@ class RenderResult:
     seconds: float
 
 
+@functools.lru_cache(maxsize=2)
+def cached_world(seed: int, size_m: float) -> Any:
+    """``generate_world(seed, size_m)``, cached per process (generation takes seconds)."""
+    from hivemap.sim.world import generate_world
+
+    return generate_world(seed, size_m)
+
+
 def render_scenario(
     scenario: Scenario,
     out_dir: str | Path,
@@ -470,9 +479,7 @@ def render_scenario(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if world is None:
-        from hivemap.sim.world import generate_world
-
-        world = generate_world(scenario.seed, scenario.world_size_m)
+        world = cached_world(scenario.seed, scenario.world_size_m)
     plan = plan_trajectories(world, scenario)
     wanted = agents if agents else [a.agent_id for a in scenario.agents]
     for a in wanted:
