@@ -124,7 +124,8 @@ def pose_hessian(k: Intrinsics, T_cw: F64, X: F64, meas: F64, inv_sigma2: F64) -
     Jp = _linearize(k, pc)
     Jx = np.concatenate([-Jp @ _skew_batch(pc), Jp], axis=2)
     W = mask * inv_sigma2[:, None]
-    return np.einsum("nri,nr,nrj->ij", Jx, W, Jx)
+    A = Jx.reshape(-1, 6)
+    return (A * W.reshape(-1, 1)).T @ A  # type: ignore[no-any-return]
 
 
 def optimize_pose(
@@ -155,8 +156,10 @@ def optimize_pose(
             Jp = _linearize(k, pc)
             Jx = np.concatenate([-Jp @ _skew_batch(pc), Jp], axis=2)
             W = mask * w[:, None]
-            H = np.einsum("nri,nr,nrj->ij", Jx, W, Jx)
-            g = np.einsum("nri,nr,nr->i", Jx, W, e)
+            A = Jx.reshape(-1, 6)
+            AW = A * W.reshape(-1, 1)
+            H = AW.T @ A
+            g = AW.T @ e.reshape(-1)
             try:
                 d = np.linalg.solve(H + 1e-9 * np.eye(6), -g)
             except np.linalg.LinAlgError:
