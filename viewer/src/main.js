@@ -97,6 +97,16 @@ async function refreshPoints() {
   }
   pointGroup.clear();
   for (const c of children) pointGroup.add(c);
+  if (!state.fitted && total > 0) {
+    // First data: frame the whole map.
+    const box = new THREE.Box3().setFromObject(pointGroup);
+    const center = box.getCenter(new THREE.Vector3());
+    const size = Math.max(10, box.getSize(new THREE.Vector3()).length());
+    controls.target.copy(center);
+    camera.position.set(center.x - 0.5 * size, center.y - 0.7 * size, center.z + 0.8 * size);
+    controls.update();
+    state.fitted = true;
+  }
   state.drawnPoints = total;
   document.body.dataset.points = String(total);
 }
@@ -105,6 +115,7 @@ async function refreshTrajectories() {
   trajGroup.clear();
   agentGroup.clear();
   for (const a of state.agents) {
+    if (!a.keyframes) continue; // configured but nothing received yet
     let traj;
     try { traj = await getJSON(`/agents/${encodeURIComponent(a.agent_id)}/trajectory?frame=global&format=json`); }
     catch { continue; }
