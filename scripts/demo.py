@@ -1,0 +1,155 @@
+"""`make demo`: render a small scenario, start the server, stream four agents to it, print per-agent ATE.
+
+Usage: .venv/bin/python scripts/demo.py [--scenario tiny] [--port 8765] [--exit]
+Without --exit the server keeps running for the viewer until Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+HIVEMAP = [sys.executable, "-m", "hivemap.cli.main"]
+
+
+def log(msg: str) -> None:
+    print(f"[demo] {msg}", flush=True)
+
+
+def wait_health(url: str, proc: subprocess.Popen[bytes], timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise SystemExit(f"server exited with code {proc.returncode}; see its log")
+        try:
+            if httpx.get(url + "/health", timeout=1.0).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    raise SystemExit("server did not become healthy in time")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--scenario", default="tiny")
+    ap.add_argument("--port", type=int, default=8765)
+    ap.add_argument("--work", type=Path, default=ROOT / "data" / "demo")
+    ap.add_argument("--exit", action="store_true", help="stop after printing the results")
+    args = ap.parse_args()
+
+    from hivemap.client.dataset import load_scenario
+    from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum
+
+    work: Path = args.work
+    scen_dir = work / args.scenario
+    log(f"rendering scenario '{args.scenario}' into {scen_dir} (reused when already complete)")
+    subprocess.run(
+        [*HIVEMAP, "sim", "render", "--scenario", args.scenario, "--out", str(scen_dir)], check=True
+    )
+    scenario = load_scenario(scen_dir)
+    agents = [a.id for a in scenario.agents]
+    tokens = {a: f"demo-{a}-token" for a in agents}
+
+    server_dir = work / "server"
+    shutil.rmtree(server_dir, ignore_errors=True)
+    server_dir.mkdir(parents=True)
+    cfg = server_dir / "server.toml"
+    cfg.write_text("[tokens]\n" + "".join(f'{a} = "{t}"\n' for a, t in tokens.items()))
+    url = f"http://127.0.0.1:{args.port}"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
+    server_log = open(server_dir / "server.log", "wb")  # noqa: SIM115
+    log(f"starting the server on {url} (log: {server_dir / 'server.log'})")
+    server = subprocess.Popen(
+        [*HIVEMAP, "server", "--host", "127.0.0.1", "--port", str(args.port),
+         "--data-dir", str(server_dir / "data"), "--config", str(cfg)],
+        stdout=server_log, stderr=subprocess.STDOUT, env=env,
+    )  # fmt: skip
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        wait_health(url, server)
+        log(f"streaming {len(agents)} agents: {', '.join(agents)}")
+        t0 = time.monotonic()
+        for a in agents:
+            out = work / "agents" / a
+            shutil.rmtree(out, ignore_errors=True)
+            procs.append(
+                subprocess.Popen(
+                    [
+                        *HIVEMAP,
+                        "agent",
+                        "--dataset",
+                        str(scen_dir / a),
+                        "--server",
+                        f"ws://127.0.0.1:{args.port}/ws",
+                        "--agent-id",
+                        a,
+                        "--token",
+                        tokens[a],
+                        "--out",
+                        str(out),
+                        "--no-progress",
+                    ],
+                    env=env,
+                )  # fmt: skip
+            )
+        codes = [p.wait() for p in procs]
+        log(f"agents finished in {time.monotonic() - t0:.1f} s (exit codes {codes})")
+        if any(codes):
+            log("an agent failed; see its output above")
+        time.sleep(2.0)  # let the back-end finish its last optimisation
+        maps = httpx.get(url + "/maps").json()["maps"]
+        agent_map = {a["agent_id"]: a["map_id"] for a in httpx.get(url + "/agents").json()["agents"]}
+        print()
+        print(f"{'agent':<8}{'map':>5}{'keyframes':>11}{'path m':>9}{'ATE RMSE m':>12}{'ATE % path':>12}")
+        for a in agents:
+            r = httpx.get(url + f"/agents/{a}/trajectory", params={"frame": "global", "format": "tum"})
+            if r.status_code != 200 or not r.text.strip():
+                print(f"{a:<8}{'-':>5}{0:>11}   (no keyframes on the server)")
+                continue
+            tum = work / "agents" / f"{a}.server.tum"
+            tum.parent.mkdir(parents=True, exist_ok=True)
+            tum.write_text(r.text)
+            est = read_tum(tum)
+            gt = groundtruth_trajectory(scenario.agent(a).path, sensor="cam0")
+            res = ate(est, gt, "se3", max_diff=0.02)
+            xyz = np.asarray(gt.positions_xyz)
+            path = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum())
+            n = len(est.timestamps)
+            pct = 100 * res.stats.rmse / max(path, 1e-9)
+            print(f"{a:<8}{agent_map.get(a)!s:>5}{n:>11}{path:>9.1f}{res.stats.rmse:>12.3f}{pct:>11.2f}%")
+        print(f"\nmaps on the server: {len(maps)} " + ", ".join(f"#{m['id']} {m['agents']}" for m in maps))
+        print(f"viewer: {url}/   REST: {url}/docs")
+        if not args.exit:
+            log("server keeps running for the viewer; Ctrl-C to stop")
+            while server.poll() is None:
+                time.sleep(0.5)
+        return 0 if not any(codes) else 1
+    except KeyboardInterrupt:
+        log("stopping")
+        return 0
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        if server.poll() is None:
+            server.send_signal(signal.SIGINT)
+            try:
+                server.wait(15)
+            except subprocess.TimeoutExpired:
+                server.kill()
+        server_log.close()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
