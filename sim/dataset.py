@@ -322,6 +322,16 @@ def _condition_presets(scenario: Scenario) -> tuple[Any, Any]:
     return get("Lighting", scenario.lighting), get("Weather", scenario.weather)
 
 
+def _fast_texture_filtering(renderer: Any) -> None:
+    """Work-around: anisotropic filtering on Mesa llvmpipe costs ~400x at grazing angles (measured:
+    UGV 0-deg frame 640x480 3.6 s with anisotropy 16, 2 or 4; 8.6 ms with 1). Trilinear mipmapping
+    stays on."""
+    tex = getattr(renderer, "tex", None)
+    if tex is not None and float(getattr(tex, "anisotropy", 1.0)) > 1.0:
+        log.info("texture anisotropy %.0f -> 1 (too slow on llvmpipe)", tex.anisotropy)
+        tex.anisotropy = 1.0
+
+
 def render_agent(
     world: Any,
     scenario: Scenario,
@@ -380,6 +390,7 @@ def render_agent(
     rendered = 0
     if todo:
         renderer = renderer_factory(world, cam, backend=backend)
+        _fast_texture_filtering(renderer)
         try:
             from tqdm import tqdm
 
