@@ -12,10 +12,9 @@ import pytest
 from typer.testing import CliRunner
 
 from hivemap.client.dataset import load_dataset, load_scenario
-from hivemap.sim.dataset import COMPLETE_MARK, render_scenario, stereo_extrinsics
+from hivemap.sim.dataset import COMPLETE_MARK, cached_world, render_scenario, stereo_extrinsics
 from hivemap.sim.scenarios import get_scenario
 from hivemap.sim.sensors import simulate_gnss, simulate_imu
-from hivemap.sim.dataset import cached_world
 
 DURATION = 4.0
 AGENTS = ["uav1", "ugv"]
@@ -30,7 +29,9 @@ def world():
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory, world):
     out = tmp_path_factory.mktemp("tiny")
-    res = render_scenario(get_scenario("tiny"), out, agents=AGENTS, duration=DURATION, progress=False, world=world)
+    res = render_scenario(
+        get_scenario("tiny"), out, agents=AGENTS, duration=DURATION, progress=False, world=world
+    )
     return out, res
 
 
@@ -55,10 +56,14 @@ def test_written_and_read_back_equal(rendered):
         g0, g1 = ds.frames.load(len(ds.frames) - 1)
         assert g0.shape == (sc.camera.height, sc.camera.width) and g1 is not None
         # IMU and GNSS: exactly the simulated samples (same seed streams), floats written losslessly
-        imu = simulate_imu(traj, sc.imu_rate_hz, sc.imu_noise, np.random.default_rng([sc.seed, idx, 1]), DURATION)
+        imu = simulate_imu(
+            traj, sc.imu_rate_hz, sc.imu_noise, np.random.default_rng([sc.seed, idx, 1]), DURATION
+        )
         assert np.array_equal(ds.imu[:, 1:4], imu.gyro) and np.array_equal(ds.imu[:, 4:7], imu.accel)
         assert np.array_equal(ds.imu_t_ns, sc.start_time_ns + np.round(imu.t * 1e9).astype(np.int64))
-        gn = simulate_gnss(traj, sc.gnss_rate_hz, sc.gnss_noise, np.random.default_rng([sc.seed, idx, 2]), DURATION)
+        gn = simulate_gnss(
+            traj, sc.gnss_rate_hz, sc.gnss_noise, np.random.default_rng([sc.seed, idx, 2]), DURATION
+        )
         assert ds.gnss is not None and np.array_equal(ds.gnss.enu, gn.enu)
         assert np.allclose(ds.gnss.sigma, [0.05, 0.15])
         # ground truth = trajectory poses (quaternion round trip ~1e-15)
@@ -69,7 +74,9 @@ def test_written_and_read_back_equal(rendered):
         assert np.allclose(gt.velocity, traj.velocity(t_s), atol=1e-12)
         assert np.array_equal(gt.bias_gyro, imu.bias_gyro)
         # camera-rate ground truth = rows of the IMU-rate one (camera stamps are IMU stamps)
-        assert np.allclose(ds.groundtruth_at_frames(), traj.world_from_body(ds.frames.timestamps - ds.frames.timestamps[0]))
+        assert np.allclose(
+            ds.groundtruth_at_frames(), traj.world_from_body(ds.frames.timestamps - ds.frames.timestamps[0])
+        )
 
 
 def test_stereo_and_groundtruth_consistency(rendered, world):
@@ -123,7 +130,9 @@ def test_resume_renders_only_missing_frames(rendered, world, tmp_path):
     for p in victims:
         p.unlink()
     (dst / "ugv" / COMPLETE_MARK).unlink()
-    res = render_scenario(get_scenario("tiny"), dst, agents=AGENTS, duration=DURATION, progress=False, world=world)
+    res = render_scenario(
+        get_scenario("tiny"), dst, agents=AGENTS, duration=DURATION, progress=False, world=world
+    )
     by = {r.agent_id: r for r in res.agents}
     assert by["uav1"].skipped and by["uav1"].rendered == 0
     assert not by["ugv"].skipped and by["ugv"].rendered == 2
@@ -141,7 +150,18 @@ def test_cli_list_and_render(tmp_path: Path):
     for n in [f"factory0{i}" for i in range(1, 9)] + ["tiny", "disjoint"]:
         assert n in res.output
     out = tmp_path / "cli"
-    args = ["render", "--scenario", "tiny", "--out", str(out), "--agents", "ugv", "--duration", "1", "--no-progress"]
+    args = [
+        "render",
+        "--scenario",
+        "tiny",
+        "--out",
+        str(out),
+        "--agents",
+        "ugv",
+        "--duration",
+        "1",
+        "--no-progress",
+    ]
     res = runner.invoke(app, args)
     assert res.exit_code == 0, res.output
     assert "ugv: 11 stereo frames" in res.output

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hivemap.sim.dataset import cached_world
 from hivemap.sim.scenarios import GnssNoise, ImuNoise, get_scenario
 from hivemap.sim.sensors import (
     GeodeticOrigin,
@@ -17,7 +18,6 @@ from hivemap.sim.sensors import (
     simulate_imu,
 )
 from hivemap.sim.trajectories import plan_trajectories
-from hivemap.sim.dataset import cached_world
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hivemap.sim.dataset import cached_world
 from hivemap.sim.scenarios import UGV_ROOF_HEIGHT, get_scenario
 from hivemap.sim.trajectories import box_top, inside_box_footprint, plan_trajectories
-from hivemap.sim.dataset import cached_world
 
 DT = 0.05
 
@@ -65,7 +65,7 @@ def test_path_lengths_match_table4(plan):
 def test_speeds_heights_and_start_together(plan):
     ugv = plan.trajectories["ugv"]
     p0 = ugv.position(0.0)[0]
-    for k, tr in plan.trajectories.items():
+    for tr in plan.trajectories.values():
         t, p, v = _samples(tr)
         sp = np.linalg.norm(v, axis=1)
         if tr.kind == "ugv":
