@@ -1,1 +1,48 @@
-"""Stereo(-inertial) ORB visual odometry front-end of the agent."""
+"""Stereo(-inertial) ORB visual odometry front-end of the agent (issue 4, items 1-2).
+
+Usage::
+
+    from hivemap.client.frontend import Frontend, FrontendOptions
+    fe = Frontend(rig, FrontendOptions(), imu_params={})          # imu_params=None: stereo only
+    res = fe.process(t, left_gray, right_gray, imu_samples, gnss_epoch=False)   # -> FrameResult
+    for ev in fe.poll_events(): ...   # KeyframeEvent / PoseUpdateEvent / NewSessionEvent
+    fe.flush()                        # end of run: emit the keyframes still held back
+
+Pipeline per frame: ORB (grid-thinned, adaptive FAST threshold) on the left image; stereo depth by
+pyramidal LK into the right image, checked on rectified rows and forward-backward; prediction by the
+constant-velocity model with the gyro rotation (gtsam preintegration; full IMU prediction once the VIO
+frame is gravity-aligned); guided matching of the local map by projection, P3P RANSAC, motion-only
+Gauss-Newton with Huber and stereo residuals, then track-local-map and a second refinement.
+Keyframes: tracked ratio vs reference keyframe, close-point starvation, 0.5 s, GNSS epochs, after a
+relocalisation.  Local mapping: stereo points (all close ones, >= 100), multi-view triangulation with
+3 neighbours, local BA over the 10 best covisible keyframes (+10 fixed) with numpy/scipy Schur LM
+(see ``optim``), observation and point culling.  Lost: relocalisation (BF descriptors of the last 20
+keyframes' points + P3P RANSAC), then the prediction bridge; after ``max_lost_frames`` a new session.
+
+Frames: poses are in the agent's VIO frame, z up (gravity) when an IMU is given.  Body = IMU frame
+(``rig.body_from_left`` = EuRoC ``T_BS`` of cam0).
+"""
+
+from hivemap.client.frontend.options import FrontendOptions
+from hivemap.client.frontend.tracker import (
+    Event,
+    FrameResult,
+    Frontend,
+    FrontendStats,
+    KeyframeEvent,
+    NewSessionEvent,
+    PoseUpdateEvent,
+    TrackingState,
+)
+
+__all__ = [
+    "Event",
+    "FrameResult",
+    "Frontend",
+    "FrontendOptions",
+    "FrontendStats",
+    "KeyframeEvent",
+    "NewSessionEvent",
+    "PoseUpdateEvent",
+    "TrackingState",
+]
