@@ -190,6 +190,7 @@ class Frontend:
         self._last_T_wb: F64 | None = None
         self._last_tracked = False
         self._pending_new_map = False
+        self._align_failures = 0
 
     # ------------------------------------------------------------------ public API
     @property
@@ -407,9 +408,13 @@ class Frontend:
         v1 = (ps[-1] - ps[-1 - k]) / (ts[-1] - ts[-1 - k])
         g_up = f_w.mean(0) - (v1 - v0) / ((ts[-1] + ts[-1 - k]) / 2 - (ts[k] + ts[0]) / 2)
         if not 8.0 < np.linalg.norm(g_up) < 11.6:
-            log.warning("gravity estimate %.2f m/s^2 implausible; retrying", np.linalg.norm(g_up))
-            self._align_buffer = buf[len(buf) // 2 :]
-            return
+            self._align_failures += 1
+            if self._align_failures < 5:
+                log.warning("gravity estimate %.2f m/s^2 implausible; retrying", np.linalg.norm(g_up))
+                self._align_buffer = buf[len(buf) // 2 :]
+                return
+            g_up = f_w.mean(0)  # give up on the motion correction: assume a small mean acceleration
+            log.warning("gravity from the mean specific force only (%.2f m/s^2)", np.linalg.norm(g_up))
         a = g_up / np.linalg.norm(g_up)
         z = np.array([0.0, 0.0, 1.0])
         axis = np.cross(a, z)
