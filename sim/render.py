@@ -176,7 +176,9 @@ class GLRenderer:
         self.tex = self.ctx.texture_array((s, s, L), 1, layers.tobytes())
         self.tex.build_mipmaps()
         self.tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-        self.tex.anisotropy = 16.0
+        # No anisotropic filtering: on Mesa llvmpipe it costs ~400x at grazing angles (a UGV frame took
+        # 3.6 s with anisotropy 16 vs 8.6 ms without); trilinear mipmapping keeps distant ground alias-free.
+        self.tex.anisotropy = 1.0
         self.tex.repeat_x = self.tex.repeat_y = True
         self.prog = self.ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER)
         vbo = self.ctx.buffer(_scene_vertices(world).tobytes())
