@@ -26,7 +26,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -151,7 +151,7 @@ def _gnss_table(ds: object) -> _Gnss:
     if g is None:
         z = np.zeros(0)
         return _Gnss(z, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, bool))
-    t = _seconds(np.asarray(g.t))
+    t = _seconds(np.asarray(g.timestamps if hasattr(g, "timestamps") else g.t))
     enu = np.asarray(g.enu, dtype=np.float64).reshape(-1, 3)
     sig = np.asarray(g.sigma, dtype=np.float64)
     if sig.ndim == 1:
@@ -405,6 +405,29 @@ class OfflineAgent:
         return np.asarray(self.vio_t), np.asarray(out).reshape(-1, 4, 4)
 
 
+def _make_agent(
+    ds: Any,
+    gnss: _Gnss,
+    options: RunnerOptions,
+    frontend_options: object | None,
+    second_stage_options: object | None,
+) -> OfflineAgent:
+    from hivemap.client.second_stage import SecondStageOptions
+
+    if getattr(ds, "rig", None) is None:
+        raise ValueError("the dataset has no stereo pair (cam1): the built-in front-end needs stereo")
+    imu_params = _imu_params(ds)
+    if second_stage_options is None:
+        # second-stage nodes are body poses: the antenna lever arm is T_BS(gnss0)'s translation
+        T_BS = getattr(ds, "T_BS", {}) or {}
+        lever = np.asarray(T_BS.get("gnss0", np.eye(4)), dtype=np.float64)[:3, 3]
+        second_stage_options = SecondStageOptions(
+            gravity_aligned=imu_params is not None,
+            kf_from_antenna=(float(lever[0]), float(lever[1]), float(lever[2])),
+        )
+    return OfflineAgent(ds.rig, imu_params, gnss, options, frontend_options, second_stage_options)
+
+
 def run_offline(
     agent_dir: str | Path,
     out_dir: str | Path,
@@ -429,7 +452,7 @@ def run_offline(
         times = times[: options.max_frames]
     imu = _imu(ds)
     gnss = _gnss_table(ds)
-    agent = OfflineAgent(ds.rig, _imu_params(ds), gnss, options, frontend_options, second_stage_options)
+    agent = _make_agent(ds, gnss, options, frontend_options, second_stage_options)
     agent.select(times)
     summary = RunSummary(agent_id=agent_id, gnss_mode=str(options.gnss))
     summary.gnss_available = int(gnss.valid.sum())
