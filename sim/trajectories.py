@@ -933,7 +933,8 @@ def plan_trajectories(
                 r = _random_walk(g, de, d0, a.path_length_m, rng, allowed)
                 if r is not None:
                     lst.append(r)
-            log.warning("%s: no looping route found on the road graph", a.agent_id)
+            level = logging.WARNING if a.path_length_m > 100.0 else logging.INFO
+            log.log(level, "%s: no looping route found on the road graph", a.agent_id)
         if not lst:
             raise ValueError(f"cannot find a route for {a.agent_id}")
         uniq: dict[tuple, Route] = {}
