@@ -160,8 +160,8 @@ def ground_tile(
     def sample(img: F32, period_m: float, ox: float = 0.0, oy: float = 0.0) -> F32:
         mx = ((X + ox) / period_m * img.shape[1]).astype(np.float32)
         my = ((Y + oy) / period_m * img.shape[0]).astype(np.float32)
-        out = np.asarray(cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP), dtype=np.float32)
-        return out
+        out = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        return np.asarray(out, dtype=np.float32)
 
     grass = 0.15 + 0.7 * sample(photo("grass"), 3.0)
     gravel = 0.2 + 0.7 * sample(photo("gravel"), 2.5, 1.3, 0.7)
