@@ -53,10 +53,15 @@ def agent_command(
         return
     if not token:
         raise typer.BadParameter("--token is required with --server", param_hint="--token")
+    from hivemap.client.link import LinkRefused
     from hivemap.client.runner import run_streaming
 
     try:
-        run_streaming(dataset, out_dir, server or "", agent_id, token, options)
-    except NotImplementedError as exc:
+        summary = run_streaming(dataset, out_dir, server or "", agent_id, token, options)
+    except LinkRefused as exc:
         typer.echo(f"hivemap agent: {exc}", err=True)
-        raise typer.Exit(2) from exc
+        raise typer.Exit(3) from exc
+    typer.echo(
+        f"agent {summary.agent_id}: streamed {summary.keyframes} keyframes of {summary.frames} frames to "
+        f"{server}, {summary.tracking_losses} tracking losses -> {out_dir}"
+    )

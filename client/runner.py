@@ -24,6 +24,7 @@ import json
 import logging
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -98,6 +99,9 @@ class RunnerOptions:
     seed: int = 0  # for random GNSS modes
     max_frames: int | None = None  # stop after this many frames (tests, quick looks)
     gnss_max_dt_s: float = 0.03  # a fix is attached to the frame closest in time within this
+    colocation_sigma: tuple[float, float] = (0.01, 0.05)  # rad, m: prior of a server-corrected pose
+    flush_timeout_s: float = 60.0  # streaming: wait this long for the server's acks at the end
+    corrections_grace_s: float = 2.0  # streaming: then wait this long for late corrections
     progress: bool = True
 
 
@@ -261,6 +265,9 @@ class OfflineAgent:
         self._was_lost = False
         self.stage_ms: list[float] = []
         self.fe_ms: list[float] = []
+        self.on_event: Callable[[object], None] | None = None  # every front-end event, after fusion
+        self.kf_fix: dict[tuple[int, int], int] = {}  # (session, kf_id) -> index of its accepted fix
+        self.corrections_applied = 0
 
     def select(self, frame_times: F64) -> None:
         """Choose the fixes of the GNSS mode and attach each to the closest frame time."""
@@ -352,15 +359,17 @@ class OfflineAgent:
     def _consume(self, events: list[object]) -> None:
         from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
 
+        cam_from_body = np.linalg.inv(self.frontend.body_from_cam)
         for ev in events:
             if isinstance(ev, KeyframeEvent):
                 self._add_keyframe(ev)
             elif isinstance(ev, PoseUpdateEvent):
-                cam_from_body = np.linalg.inv(self.frontend.body_from_cam)
                 for kid, T_wc in zip(ev.kf_ids, ev.world_from_cam, strict=True):
                     node = self._node_of.get((ev.session, int(kid)))
                     if node is not None:
                         self.stage.update_vio_pose(node, T_wc @ cam_from_body)
+            if self.on_event is not None:
+                self.on_event(ev)
 
     def _add_keyframe(self, ev: object) -> None:
         from hivemap.client.frontend.tracker import KeyframeEvent
@@ -389,8 +398,39 @@ class OfflineAgent:
             d = self.stage.add_gnss(node, self.gnss.enu[fix], self.gnss.cov[fix])
             if d.accepted:
                 self.gnss_used += 1
+                self.kf_fix[(ev.session, ev.kf_id)] = fix
             else:
                 self.gnss_rejected += 1
+
+    def apply_correction(
+        self, session: int, kf_ids: NDArray[np.int64], global_from_kf_cam: F64, global_from_sent: F64
+    ) -> int:
+        """Co-location factors from a server correction (poses of the agent's keyframes in the global
+        frame + ``global_from_local`` of the frame the keyframes were sent in, here the VIO frame).
+
+        Each corrected pose is brought back into the sent (VIO) frame, then into the local frame with
+        the segment's current ``local_from_vio``, and added as a prior with ``options.colocation_sigma``.
+        Returns the number of keyframes used.
+        """
+        from hivemap.maps.geometry import Sim3
+
+        sent_from_global = Sim3.from_matrix(np.asarray(global_from_sent, dtype=np.float64)).inverse()
+        cam_from_body = np.linalg.inv(self.frontend.body_from_cam)
+        rot, trans = self.options.colocation_sigma
+        cov = np.diag([rot**2] * 3 + [trans**2] * 3)
+        n = 0
+        for kid, T_gc in zip(
+            np.asarray(kf_ids), np.asarray(global_from_kf_cam).reshape(-1, 4, 4), strict=True
+        ):
+            node = self._node_of.get((int(session), int(kid)))
+            if node is None:
+                continue
+            vio_from_body = sent_from_global.transform_pose(T_gc @ cam_from_body)
+            seg = self.stage.keyframe_segment(node)
+            self.stage.add_colocation(node, self.stage.local_from_vio(seg) @ vio_from_body, cov)
+            n += 1
+        self.corrections_applied += n
+        return n
 
     def local_trajectory(self) -> tuple[F64, F64]:
         """Every tracked frame's pose in the local frame (final estimate, interpolated corrections)."""
@@ -467,13 +507,20 @@ def run_offline(
         prev_t = t
     agent.finish()
     summary.wall_s = time.perf_counter() - wall0
+    _write_outputs(agent, out, summary, len(times))
+    log.info(
+        "agent %s: %d frames, %d keyframes, %d tracking losses, GNSS %d used / %d rejected, %.1f fps",
+        agent_id, summary.frames, summary.keyframes, summary.tracking_losses, summary.gnss_used,
+        summary.gnss_rejected, summary.fps,
+    )  # fmt: skip
+    return summary
 
-    # outputs
+
+def _write_outputs(agent: OfflineAgent, out: Path, summary: RunSummary, n_frames: int) -> None:
+    """Write vio/local/keyframe TUM files, frames.csv and run.json; fill the summary."""
     vio_t, vio_poses = agent.vio_trajectory()
     loc_t, loc_poses = agent.local_trajectory()
-    kf_t, kf_poses = (
-        agent.stage.keyframe_poses() if agent.stage.keyframe_ids else (np.zeros(0), np.zeros((0, 4, 4)))
-    )
+    kf_t, kf_poses = agent.stage.keyframe_poses()
     order = np.argsort(kf_t, kind="stable")
     files = {
         "vio": out / "vio.tum",
@@ -486,7 +533,7 @@ def run_offline(
     write_tum_poses(files["local"], loc_t, loc_poses)
     write_tum_poses(files["keyframes_local"], kf_t[order], kf_poses[order])
     _write_frames_csv(files["frames"], agent.frame_log)
-    summary.frames = len(times)
+    summary.frames = n_frames
     summary.tracked_frames = len(vio_t)
     summary.keyframes = len(agent.stage.keyframe_ids)
     summary.tracking_losses = agent.losses
@@ -501,12 +548,6 @@ def run_offline(
     summary.fps = summary.frames / summary.wall_s if summary.wall_s > 0 else 0.0
     summary.outputs = {k: str(v) for k, v in files.items()}
     files["run"].write_text(summary.to_json())
-    log.info(
-        "agent %s: %d frames, %d keyframes, %d tracking losses, GNSS %d used / %d rejected, %.1f fps",
-        agent_id, summary.frames, summary.keyframes, summary.tracking_losses, summary.gnss_used,
-        summary.gnss_rejected, summary.fps,
-    )  # fmt: skip
-    return summary
 
 
 def _write_frames_csv(path: Path, rows: list[dict[str, float | int | str]]) -> None:
@@ -527,12 +568,154 @@ def run_streaming(
     agent_id: str | None,
     token: str,
     options: RunnerOptions | None = None,
+    frontend_options: object | None = None,
+    second_stage_options: object | None = None,
 ) -> RunSummary:
-    """Replay a dataset and stream keyframes/points to a server (``hivemap.client.link.AgentLink``)."""
+    """Replay a dataset as an agent streaming to a server (``hivemap.client.link.AgentLink``).
+
+    Same processing and outputs as :func:`run_offline`; in addition every front-end event becomes a
+    protocol message (``map_points`` before the ``keyframe`` that references them, the fix used at
+    that keyframe attached; ``pose_updates`` after local BA), durably queued in ``out/outbox.sqlite``
+    and streamed; server ``correction`` messages become co-location factors of the second stage.
+    """
+    import asyncio
+
+    return asyncio.run(
+        _stream(agent_dir, out_dir, server, agent_id, token, options, frontend_options, second_stage_options)
+    )
+
+
+async def _stream(
+    agent_dir: str | Path,
+    out_dir: str | Path,
+    server: str,
+    agent_id: str | None,
+    token: str,
+    options: RunnerOptions | None,
+    frontend_options: object | None,
+    second_stage_options: object | None,
+) -> RunSummary:
+    import asyncio
+    import threading
+    import time
+
+    from tqdm import tqdm
+
+    from hivemap.client.dataset import load_dataset
+    from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
+    from hivemap.client.link import AgentLink
+    from hivemap.protocol import Correction, Keyframe, MapPoints, PoseUpdates
+
+    options = options or RunnerOptions()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ds = load_dataset(Path(agent_dir))
+    aid = agent_id or str(getattr(ds, "agent_id", Path(agent_dir).name))
+    times = _frame_times(ds)
+    if options.max_frames is not None:
+        times = times[: options.max_frames]
+    imu = _imu(ds)
+    gnss = _gnss_table(ds)
+    agent = _make_agent(ds, gnss, options, frontend_options, second_stage_options)
+    agent.select(times)
+
+    pending: list[Correction] = []
+    lock = threading.Lock()
+
+    def on_correction(msg: Correction) -> None:  # called in the event loop; applied between frames
+        with lock:
+            pending.append(msg)
+
+    link = AgentLink(
+        server, aid, str(getattr(ds, "kind", "uav")), ds.camera.to_dict(), token, out / "outbox.sqlite",
+        on_correction=on_correction,
+    )  # fmt: skip
+    outgoing: list[object] = []
+
+    def on_event(ev: object) -> None:
+        if isinstance(ev, KeyframeEvent):
+            if len(ev.new_point_ids):
+                outgoing.append(
+                    MapPoints(ev.new_point_ids, ev.new_point_xyz, ev.new_point_descriptors, ev.session)
+                )
+            fix = agent.kf_fix.get((ev.session, ev.kf_id))
+            outgoing.append(
+                Keyframe(
+                    ev.kf_id,
+                    ev.timestamp,
+                    ev.world_from_cam,
+                    ev.keypoints,
+                    ev.octaves,
+                    ev.descriptors,
+                    ev.point_ids,
+                    None if fix is None else gnss.enu[fix],
+                    None if fix is None else gnss.cov[fix],
+                    ev.session,
+                )  # fmt: skip
+            )
+        elif isinstance(ev, PoseUpdateEvent):
+            outgoing.append(PoseUpdates(ev.kf_ids, ev.world_from_cam, ev.point_ids, ev.xyz, ev.session))
+
+    agent.on_event = on_event
+
+    def apply_pending() -> None:
+        with lock:
+            todo = list(pending)
+            pending.clear()
+        for c in todo:
+            n = agent.apply_correction(c.session, c.kf_ids, c.world_from_cam, c.global_from_local)
+            log.info("correction from map %d: %d keyframes fused as co-location factors", c.map_id, n)
+
+    def step(i: int, prev_t: float) -> None:
+        apply_pending()
+        t = float(times[i])
+        left, right = _load_pair(ds, i)
+        sel = (imu[:, 0] > prev_t) & (imu[:, 0] <= t) if len(imu) else None
+        agent.step(t, left, right, imu[sel] if sel is not None else None)
+
+    link_task = asyncio.create_task(link.run())
+    summary = RunSummary(agent_id=aid, gnss_mode=str(options.gnss))
+    summary.gnss_available = int(gnss.valid.sum())
+    summary.gnss_selected = int(agent.selected.sum())
+    wall0 = time.perf_counter()
+    prev_t = -math.inf
     try:
-        from hivemap.client import link  # noqa: F401
-    except ImportError as exc:
-        raise NotImplementedError(
-            "streaming mode needs hivemap.client.link (AgentLink), which is not available yet; use --offline"
-        ) from exc
-    raise NotImplementedError("streaming mode is not wired to AgentLink yet; use --offline")
+        for i in tqdm(range(len(times)), desc=f"agent {aid}", unit="frame", disable=not options.progress):
+            await asyncio.to_thread(step, i, prev_t)
+            prev_t = float(times[i])
+            for msg in outgoing:
+                link.submit_nowait(msg)  # type: ignore[arg-type]
+            outgoing.clear()
+            if link_task.done():
+                link_task.result()  # raises LinkRefused
+        await asyncio.to_thread(agent.finish)
+        for msg in outgoing:
+            link.submit_nowait(msg)  # type: ignore[arg-type]
+        outgoing.clear()
+        try:
+            await link.flush(timeout=options.flush_timeout_s)
+        except TimeoutError:
+            log.warning("server did not acknowledge everything within %.0f s", options.flush_timeout_s)
+        await asyncio.sleep(options.corrections_grace_s)  # late corrections
+        apply_pending()
+    finally:
+        await link.close()
+        link_task.cancel()
+        with contextlib_suppress():
+            await link_task
+    summary.wall_s = time.perf_counter() - wall0
+    _write_outputs(agent, out, summary, len(times))
+    summary.outputs["outbox"] = str(out / "outbox.sqlite")
+    (out / "run.json").write_text(summary.to_json())
+    log.info(
+        "agent %s streamed: %d keyframes, %d corrections applied, up %d B, down %d B",
+        aid, summary.keyframes, agent.corrections_applied, link.stats.bytes_up, link.stats.bytes_down,
+    )  # fmt: skip
+    return summary
+
+
+def contextlib_suppress() -> Any:
+    import asyncio
+    import contextlib
+
+    return contextlib.suppress(asyncio.CancelledError, Exception)
