@@ -1,0 +1,58 @@
+"""The offline agent (client/runner.py) with the real front-end and second stage on a rendered
+synthetic stereo + IMU sequence (the front-end's own synthetic scene), GNSS from ground truth + noise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hivemap.client.frontend.synthetic import make_sequence
+from hivemap.client.runner import OfflineAgent, RunnerOptions, _Gnss, parse_gnss_mode, write_tum_poses
+from hivemap.eval.trajectory import ate, read_tum, trajectory_from_poses
+
+SIGMA_H, SIGMA_V = 0.05, 0.15  # paper Table 3
+
+
+@pytest.fixture(scope="module")
+def run_all():
+    seq = make_sequence(n_frames=60)  # 3 s, 20 Hz, ~6 m of a circle, 3 m above the origin
+    rng = np.random.default_rng(0)
+    tg = seq.times[::4]  # 5 Hz GNSS
+    enu = seq.world_from_body[::4, :3, 3] + rng.normal(0, 1, (len(tg), 3)) * [SIGMA_H, SIGMA_H, SIGMA_V]
+    cov = np.tile(np.diag([SIGMA_H**2, SIGMA_H**2, SIGMA_V**2]), (len(tg), 1, 1))
+    gnss = _Gnss(tg, enu, cov, np.ones(len(tg), bool))
+    agent = OfflineAgent(seq.rig, {}, gnss, RunnerOptions(gnss=parse_gnss_mode("all"), progress=False))
+    agent.select(seq.times)
+    prev = None
+    for i, t in enumerate(seq.times):
+        left, right = seq.images(i)
+        agent.step(float(t), left, right, seq.imu_between(prev, float(t)))
+        prev = float(t)
+    agent.finish()
+    return seq, agent
+
+
+def test_offline_agent_fuses_gnss(run_all):
+    seq, agent = run_all
+    gt = trajectory_from_poses(seq.times, seq.world_from_body)
+    tv, vio = agent.vio_trajectory()
+    tl, local = agent.local_trajectory()
+    assert len(tv) == len(seq.times) and agent.losses == 0
+    assert len(agent.stage.keyframe_ids) >= 5
+    assert agent.gnss_used == int(agent.selected.sum()) > 5 and agent.gnss_rejected == 0
+    vio_none = ate(trajectory_from_poses(tv, vio), gt, "none").stats.rmse
+    local_none = ate(trajectory_from_poses(tl, local), gt, "none").stats.rmse
+    # The VIO frame starts at the first body pose (3 m below the truth's): unaligned it is metres off.
+    assert vio_none > 2.0
+    # Fused with 5 Hz GNSS (5 cm horizontal, 15 cm vertical): every frame in ENU within 0.15 m RMS
+    # (measured 0.04 m) without any alignment.
+    assert local_none < 0.15, local_none
+
+
+def test_tum_output_round_trip(run_all, tmp_path):
+    _, agent = run_all
+    tl, local = agent.local_trajectory()
+    write_tum_poses(tmp_path / "local.tum", tl, local)
+    back = read_tum(tmp_path / "local.tum")
+    assert np.allclose(back.timestamps, tl)
+    assert np.abs(np.asarray(back.positions_xyz) - local[:, :3, 3]).max() < 1e-5  # 6 decimals written

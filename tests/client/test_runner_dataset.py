@@ -1,0 +1,94 @@
+"""`hivemap agent` end to end on a rendered dataset (tiny preset, one UAV, first 6 s):
+offline with GNSS, and streaming to a real `hivemap server` subprocess."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+
+import httpx
+import pytest
+from typer.testing import CliRunner
+
+from hivemap.cli.main import app
+from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tiny")
+    res = CliRunner().invoke(
+        app, ["sim", "render", "--scenario", "tiny", "--agents", "uav1", "--duration", "6", "--out", str(out),
+              "--no-progress"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    return out / "uav1"
+
+
+def test_offline_agent_command_with_gnss(dataset, tmp_path):
+    out = tmp_path / "run"
+    args = ["agent", "--dataset", str(dataset), "--offline", "--out", str(out), "--gnss", "all"]
+    args.append("--no-progress")
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    summary = json.loads((out / "run.json").read_text())
+    gt = groundtruth_trajectory(dataset)
+    assert summary["frames"] == gt.num_poses or summary["frames"] > 50
+    assert summary["tracking_losses"] == 0
+    assert summary["keyframes"] >= 10
+    assert summary["gnss_used"] == summary["gnss_selected"] > 20 and summary["gnss_rejected"] == 0
+    local = read_tum(out / "local.tum")
+    vio = read_tum(out / "vio.tum")
+    assert local.num_poses == vio.num_poses == summary["tracked_frames"]
+    # GNSS at 5 Hz (5 cm / 15 cm): the local-frame trajectory is in ENU, no alignment needed.
+    # Bound 0.15 m = the issue's acceptance for every:20s on full runs; measured ~0.04 m here.
+    assert ate(local, gt, "none").stats.rmse < 0.15
+    # The VIO frame is not ENU (it starts at the first body pose): unaligned it is far off.
+    assert ate(vio, gt, "none").stats.rmse > 1.0
+    assert ate(vio, gt, "se3").stats.rmse < 0.15
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_streaming_agent_command_reaches_the_server(dataset, tmp_path):
+    port = _free_port()
+    cfg = tmp_path / "server.toml"
+    cfg.write_text('[tokens]\nuav1 = "tok-uav1"\n')
+    server = subprocess.Popen(
+        [sys.executable, "-m", "hivemap.cli.main", "server", "--host", "127.0.0.1", "--port", str(port),
+         "--data-dir", str(tmp_path / "data"), "--config", str(cfg)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        url = f"http://127.0.0.1:{port}"
+        for _ in range(100):
+            try:
+                if httpx.get(url + "/health", timeout=1).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                time.sleep(0.2)
+        out = tmp_path / "stream"
+        ws = f"ws://127.0.0.1:{port}/ws"
+        base = ["agent", "--dataset", str(dataset), "--server", ws, "--agent-id", "uav1", "--no-progress"]
+        res = CliRunner().invoke(app, [*base, "--token", "tok-uav1", "--out", str(out), "--gnss", "every:2s"])
+        assert res.exit_code == 0, res.output
+        summary = json.loads((out / "run.json").read_text())
+        agents = {a["agent_id"]: a for a in httpx.get(url + "/agents", timeout=5).json()["agents"]}
+        # every keyframe the second stage saw reached the server, nothing was rejected
+        assert agents["uav1"]["keyframes"] == summary["keyframes"] > 5
+        assert agents["uav1"]["errors"] == 0
+        # a wrong token is refused with a clear exit code, not retried forever
+        bad = CliRunner().invoke(
+            app, [*base, "--token", "wrong", "--out", str(tmp_path / "bad"), "--max-frames", "5"]
+        )
+        assert bad.exit_code == 3
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
