@@ -15,7 +15,7 @@ SIGMA_H, SIGMA_V = 0.05, 0.15  # paper Table 3
 
 @pytest.fixture(scope="module")
 def run_all():
-    seq = make_sequence(n_frames=60)  # 3 s, 20 Hz, ~6 m of a circle, 3 m above the origin
+    seq = make_sequence(n_frames=40)  # 2 s, 20 Hz, ~4 m of a circle, 3 m above the origin
     rng = np.random.default_rng(0)
     tg = seq.times[::4]  # 5 Hz GNSS
     enu = seq.world_from_body[::4, :3, 3] + rng.normal(0, 1, (len(tg), 3)) * [SIGMA_H, SIGMA_H, SIGMA_V]
