@@ -1,0 +1,673 @@
+"""The collaboration back-end: place recognition, merges, loop closures, global BA, GNSS stage, corrections.
+
+Attached to a :class:`~hivemap.server.core.HiveServer` by :func:`install` (the app factory calls it when
+``settings.backend`` is on). Threads and ownership:
+
+* the event loop (core's rule): every map mutation (merge, applying optimisation results, agent transforms);
+* one place-recognition thread: BoW + keyframe database + ``PlaceRecognizer.detect`` (the recogniser and
+  its database are only touched there, so they need no lock);
+* one optimisation thread: Sim(3) pose graph, global BA (pycolmap), GNSS stage, on snapshots taken on the
+  loop. Results are applied on the loop; keyframes that arrived meanwhile follow their spanning-tree
+  parent's correction (ORB-SLAM's propagation). Ingest never waits for them.
+
+Per inserted keyframe (observer, quick): enqueue. Worker: index (BoW, database), then detect against the
+other maps (merge) and the same map outside the covisible keyframes (loop), within a budget of
+verifications per second. A confirmed merge: the map holding a UGV (else the older map) keeps its frame
+(paper 2.4), ``server.apply_merge`` fuses duplicates and re-frames the agents; then pose graph with the
+merge edge, global BA, GNSS stage, corrections. A confirmed loop: loop edge, pose graph, BA, corrections.
+Every candidate and rejection reason is published on ``/events`` (``placerec_candidate``, ``placerec``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.geometry import Sim3, rotation_angle_deg
+from hivemap.protocol import Correction, encode
+from hivemap.server.convert import split_folded
+from hivemap.server.placerec import Detection, PlaceRecognizer, PlaceRecOptions, RecognitionResult
+
+logger = logging.getLogger(__name__)
+
+KfKey = tuple[str, int]
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class BackendOptions:
+    verifications_per_s: float = 40.0  # budget of geometric verifications (token bucket)
+    queue_max: int = 5000  # queued query keyframes (oldest dropped beyond)
+    fix_scale: bool = False  # SE(3) instead of Sim(3) between maps (all agents metric)
+    pose_graph: bool = True
+    global_ba: bool = True
+    ba_max_keyframes: int = 4000
+    ba_max_iterations: int = 30
+    gnss: bool = True
+    correction_min_move_m: float = 0.01  # a keyframe is "changed" if it moved this much (local frame)
+    correction_min_rot_deg: float = 0.1
+    correction_max_kfs: int = 50  # keyframes per correction (largest moves first): bounds the downlink
+    placerec: PlaceRecOptions = field(default_factory=PlaceRecOptions)
+
+
+@dataclass
+class _Snapshot:
+    map_id: int
+    generation: int
+    keys: list[KfKey]
+    poses: F64  # (N, 4, 4) world_from_cam at snapshot time
+
+
+class Backend:
+    def __init__(self, server: Any, options: BackendOptions | None = None, vocabulary: Any = None) -> None:
+        self.server = server
+        self.options = options or BackendOptions()
+        self._vocabulary = vocabulary
+        self.recognizer: PlaceRecognizer | None = None
+        self.queue: deque[KfKey] = deque(maxlen=self.options.queue_max)
+        self._wake = asyncio.Event()
+        self._pr_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-placerec")
+        self._opt_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-optim")
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._worker: asyncio.Task[None] | None = None
+        self._busy = 0  # queries or optimisations in flight
+        self._generation: dict[int, int] = {}  # bumped when a map changes frame (merge / GNSS)
+        self._opt_running: set[int] = set()
+        self._opt_again: dict[int, list[tuple[KfKey, KfKey, Sim3]]] = {}
+        self._tokens = self.options.verifications_per_s
+        self._last_refill = time.monotonic()
+        # figures
+        self.queries = 0
+        self.verifications = 0
+        self.merges: list[dict[str, Any]] = []
+        self.loops: list[dict[str, Any]] = []
+        self.correction_bytes: dict[str, int] = {}
+        self.correction_latencies: list[float] = []
+        self.ba_runs: list[dict[str, Any]] = []
+
+    # -- lifecycle ----------------------------------------------------------------------------------
+    async def start(self, server: Any) -> None:
+        loop = asyncio.get_running_loop()
+
+        def init() -> None:
+            from hivemap.maps.kfdb import KeyframeDatabase
+            from hivemap.maps.vocabulary import default_vocabulary
+
+            vocab = self._vocabulary if self._vocabulary is not None else default_vocabulary()
+            self.recognizer = PlaceRecognizer(vocab, KeyframeDatabase(), self.options.placerec)
+
+        await loop.run_in_executor(self._pr_exec, init)
+        # keyframes reloaded from the store: index them (no detection on old keyframes)
+        keys = [(m.id, k) for m in server.stack.maps.values() for k in m.keyframes]
+        if keys:
+            await loop.run_in_executor(self._pr_exec, self._index_many, keys)
+        self._worker = asyncio.create_task(self._run(), name="hive-backend")
+        server.events.add("info", f"back-end started ({len(keys)} keyframes indexed)")
+
+    async def stop(self, server: Any) -> None:
+        if self._worker is not None:
+            self._worker.cancel()
+        for t in list(self._tasks):
+            t.cancel()
+        await asyncio.gather(
+            *(t for t in [self._worker, *self._tasks] if t is not None), return_exceptions=True
+        )
+        self._pr_exec.shutdown(wait=True, cancel_futures=True)
+        self._opt_exec.shutdown(wait=True, cancel_futures=True)
+
+    def idle(self) -> bool:
+        """Nothing queued and nothing in flight (tests and benches wait for this)."""
+        return not self.queue and self._busy == 0 and not self._tasks
+
+    # -- observer -----------------------------------------------------------------------------------
+    async def on_keyframe(self, map_id: int, key: KfKey) -> None:
+        if len(self.queue) == self.queue.maxlen:
+            self.server.events.add("placerec", f"query queue full: {self.queue[0]} dropped")
+        self.queue.append(key)
+        self._wake.set()
+
+    # -- place-recognition worker -------------------------------------------------------------------
+    def _index_many(self, keys: list[tuple[int, KfKey]]) -> None:
+        assert self.recognizer is not None
+        for map_id, key in keys:
+            m = self.server.stack.maps.get(map_id)
+            kf = m.keyframes.get(key) if m is not None else None
+            if kf is not None:
+                self.recognizer.add_keyframe(map_id, kf)
+
+    def _detect(self, key: KfKey, n_agents: int) -> RecognitionResult | None:
+        """Place-recognition thread: index the keyframe, then look for its place."""
+        assert self.recognizer is not None
+        stack = self.server.stack
+        for _ in range(3):  # the loop may change a map's dicts meanwhile: retry
+            try:
+                m = stack.map_of_agent(key[0])
+                kf = m.keyframes.get(key) if m is not None else None
+                if m is None or kf is None:
+                    return None  # culled or gone
+                if key not in self.recognizer.kfdb:
+                    self.recognizer.add_keyframe(m.id, kf)
+                return self.recognizer.detect(
+                    stack.maps, m.id, key, n_agents, fix_scale=self.options.fix_scale
+                )
+            except RuntimeError as exc:  # "dictionary changed size during iteration"
+                logger.debug("detect %s retried: %s", key, exc)
+        return None
+
+    def _take_tokens(self) -> float:
+        now = time.monotonic()
+        rate = self.options.verifications_per_s
+        self._tokens = min(rate, self._tokens + (now - self._last_refill) * rate)
+        self._last_refill = now
+        return 0.0 if self._tokens >= 1.0 else (1.0 - self._tokens) / rate
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            if not self.queue:
+                self._wake.clear()
+                await self._wake.wait()
+                continue
+            wait = self._take_tokens()
+            if wait > 0:
+                await asyncio.sleep(wait)
+                continue
+            key = self.queue.popleft()
+            self._busy += 1
+            try:
+                n_agents = max(1, len(self.server.agents))
+                res = await loop.run_in_executor(self._pr_exec, self._detect, key, n_agents)
+                if res is None:
+                    continue
+                self.queries += 1
+                n_verified = sum(1 for c in res.candidates if c.reason != "covered_by_accepted_window")
+                self.verifications += n_verified
+                self._tokens -= n_verified
+                self._publish(res)
+                det = res.confirmed
+                if det is not None:
+                    t_det = time.monotonic()
+                    if det.is_loop:
+                        await self._close_loop(det, t_det)
+                    else:
+                        await self._merge(det, t_det)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                logger.exception("back-end query %s failed", key)
+                self.server.events.add("error", f"back-end query {key} failed (see log)")
+            finally:
+                self._busy -= 1
+
+    def _publish(self, res: RecognitionResult) -> None:
+        if not res.candidates and res.reason in ("no_other_map_keyframes", "no_bow_candidates"):
+            return  # nothing to see: keep /events readable
+        agent = split_folded(res.query_key[0])[0]
+        for ev in res.events():
+            kind = ev.pop("type")
+            if kind == "placerec_candidate":
+                msg = (
+                    f"{ev['kind']} candidate {tuple(ev['candidate_key'])} for {tuple(ev['query_key'])}: "
+                    f"{'accepted' if ev['accepted'] else 'rejected'} ({ev['reason']})"
+                )
+            else:
+                msg = f"place recognition {tuple(ev['query_key'])}: {ev['reason']}"
+            self.server.events.add(kind, msg, agent_id=agent, map_id=res.query_map, data=ev)
+
+    # -- merge ----------------------------------------------------------------------------------------
+    def _agent_kind(self, folded: str) -> str:
+        a = self.server.agents.get(split_folded(folded)[0])
+        return str(a.kind) if a is not None else "uav"
+
+    def _target_of(self, map_a: int, map_b: int) -> int:
+        """The map that keeps its frame: the one holding a UGV, else the older (lower id) one."""
+        maps = self.server.stack.maps
+        ugv = [mid for mid in (map_a, map_b) if any(self._agent_kind(f) == "ugv" for f in maps[mid].agents)]
+        if len(ugv) == 1:
+            return ugv[0]
+        return min(map_a, map_b)
+
+    async def _merge(self, det: Detection, t_det: float) -> None:
+        server = self.server
+        maps = server.stack.maps
+        if det.query_map not in maps or det.candidate_map not in maps or det.query_map == det.candidate_map:
+            server.events.add("merge", f"stale merge detection {det.query_key} dropped", data=det.to_dict())
+            return
+        target = self._target_of(det.query_map, det.candidate_map)
+        target_id, source_id, sim, pairs = det.merge_args(target)
+        t0 = time.perf_counter()
+        merged = await server.apply_merge(target_id, source_id, sim, pairs)
+        merge_ms = (time.perf_counter() - t0) * 1e3
+        self._generation[target_id] = self._generation.get(target_id, 0) + 1
+        self._generation.pop(source_id, None)
+        assert self.recognizer is not None
+        await asyncio.get_running_loop().run_in_executor(
+            self._pr_exec, self.recognizer.on_merge, target_id, source_id
+        )
+        # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
+        edge = (det.candidate_key, det.query_key, self._edge_measure(merged, det, target_id == det.query_map))
+        if det.candidate_key in merged.keyframes and det.query_key in merged.keyframes:
+            merged.add_loop_edge(det.candidate_key, det.query_key)
+        rec = {
+            "target": target_id,
+            "source": source_id,
+            "scale": sim.s,
+            "n_fused": len(pairs),
+            "merge_ms": merge_ms,
+            "target_from_source": sim.matrix().tolist(),
+            "detection": det.to_dict(),
+        }
+        self.merges.append(rec)
+        server.events.add(
+            "merge_detail",
+            f"merge {source_id} -> {target_id}: scale {sim.s:.4f}, {len(pairs)} duplicate points fused, "
+            f"{merge_ms:.0f} ms",
+            map_id=target_id,
+            data=rec,
+        )
+        # agents of the source map get their new global_from_local at once (no keyframe moved locally)
+        await self._send_corrections(target_id, {}, t_det, only_agents=None)
+        self._schedule_optimisation(target_id, [edge], t_det)
+
+    @staticmethod
+    def _edge_measure(m: Any, det: Detection, target_is_query: bool) -> Sim3:
+        """``cand_from_query`` between the two detection keyframes as measured by the detection (after the
+        merge both are in one frame, so it equals their current relative pose up to the merge)."""
+        Tc = Sim3.from_se3(m.keyframes[det.candidate_key].world_from_cam)
+        Tq = Sim3.from_se3(m.keyframes[det.query_key].world_from_cam)
+        return Tc.inverse() @ Tq
+
+    # -- loop closure ---------------------------------------------------------------------------------
+    async def _close_loop(self, det: Detection, t_det: float) -> None:
+        m = self.server.stack.maps.get(det.query_map)
+        if m is None or det.query_key not in m.keyframes or det.candidate_key not in m.keyframes:
+            return
+        Tc = Sim3.from_se3(m.keyframes[det.candidate_key].world_from_cam)
+        Tq = Sim3.from_se3(m.keyframes[det.query_key].world_from_cam)
+        # the detection maps the query's (drifted) frame onto the candidate's: corrected query pose
+        measured = Tc.inverse() @ det.target_from_source @ Tq
+        m.add_loop_edge(det.candidate_key, det.query_key)
+        pairs = list(zip(det.candidate_points, det.query_points, strict=True))
+        rec = {
+            "map": m.id,
+            "query": list(det.query_key),
+            "candidate": list(det.candidate_key),
+            "scale": det.target_from_source.s,
+            "n_inliers": det.n_inliers,
+            "n_pairs": len(pairs),
+        }
+        self.loops.append(rec)
+        self.server.events.add(
+            "loop",
+            f"loop {det.query_key} -> {det.candidate_key} in map {m.id} ({det.n_inliers} inliers)",
+            map_id=m.id,
+            data=rec,
+        )
+        self._schedule_optimisation(m.id, [(det.candidate_key, det.query_key, measured)], t_det, fuse=pairs)
+
+    # -- optimisation pipeline ------------------------------------------------------------------------
+    def _schedule_optimisation(
+        self,
+        map_id: int,
+        edges: list[tuple[KfKey, KfKey, Sim3]],
+        t_det: float,
+        fuse: list[tuple[Any, Any]] | None = None,
+    ) -> None:
+        if map_id in self._opt_running:
+            self._opt_again.setdefault(map_id, []).extend(edges)
+            return
+        task = asyncio.create_task(self._optimise(map_id, edges, t_det, fuse or []))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _optimise(
+        self, map_id: int, edges: list[tuple[KfKey, KfKey, Sim3]], t_det: float, fuse: list[tuple[Any, Any]]
+    ) -> None:
+        self._opt_running.add(map_id)
+        try:
+            while True:
+                await self._optimise_once(map_id, edges, t_det, fuse)
+                again = self._opt_again.pop(map_id, None)
+                if again is None or map_id not in self.server.stack.maps:
+                    break
+                edges, fuse, t_det = again, [], time.monotonic()
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            logger.exception("optimisation of map %d failed", map_id)
+            self.server.events.add("error", f"optimisation of map {map_id} failed (see log)", map_id=map_id)
+        finally:
+            self._opt_running.discard(map_id)
+
+    def _snapshot(self, m: Any) -> _Snapshot:
+        keys = sorted(m.keyframes)
+        poses = np.array([m.keyframes[k].world_from_cam for k in keys]).reshape(-1, 4, 4)
+        return _Snapshot(m.id, self._generation.get(m.id, 0), keys, poses)
+
+    def _current(self, snap: _Snapshot) -> Any:
+        m = self.server.stack.maps.get(snap.map_id)
+        if m is None or self._generation.get(snap.map_id, 0) != snap.generation:
+            return None
+        return m
+
+    def _anchor(self, m: Any, keys: list[KfKey]) -> list[int]:
+        """Indices of the two earliest keyframes of the map's reference agent (UGV, else first agent)."""
+        agents = sorted(m.agents, key=lambda f: (self._agent_kind(f) != "ugv", f))
+        for a in agents:
+            idx = [i for i, k in enumerate(keys) if k[0] == a]
+            if idx:
+                idx.sort(key=lambda i: (m.keyframes[keys[i]].timestamp, keys[i][1]))
+                return idx[:2]
+        return [0]
+
+    async def _optimise_once(
+        self, map_id: int, edges: list[tuple[KfKey, KfKey, Sim3]], t_det: float, fuse: list[tuple[Any, Any]]
+    ) -> None:
+        loop = asyncio.get_running_loop()
+        server = self.server
+        m = server.stack.maps.get(map_id)
+        if m is None or len(m.keyframes) < 2:
+            return
+        for keep, drop in fuse:  # loop: the two sides' duplicate points become one
+            k2, d2 = m.resolve_point(keep), m.resolve_point(drop)
+            if k2 != d2 and k2 in m.points and d2 in m.points:
+                m.fuse_points(k2, d2)
+        before = self._local_poses(m)
+        o = self.options
+        # 1. Sim(3) pose graph over the essential graph + the new edges
+        if o.pose_graph and edges:
+            snap = self._snapshot(m)
+            index = {k: i for i, k in enumerate(snap.keys)}
+            graph_edges = [(index[a], index[b]) for a, b in m.essential_edges() if a in index and b in index]
+            new_edges = [(index[a], index[b], s) for a, b, s in edges if a in index and b in index]
+            fixed = self._anchor(m, snap.keys)[:1]
+            t0 = time.perf_counter()
+            sims = await loop.run_in_executor(
+                self._opt_exec, _pose_graph, snap.poses, graph_edges, new_edges, fixed
+            )
+            pg_ms = (time.perf_counter() - t0) * 1e3
+            cur = self._current(snap)
+            if cur is None:
+                return
+            corr = {k: sims[i] @ Sim3.from_se3(snap.poses[i]).inverse() for i, k in enumerate(snap.keys)}
+            self._apply_corrections(cur, corr, {})
+            server.events.add("pose_graph", f"map {map_id}: pose graph over {len(snap.keys)} keyframes, "
+                              f"{len(graph_edges) + len(new_edges)} edges ({pg_ms:.0f} ms)", map_id=map_id,
+                              data={"n_keyframes": len(snap.keys), "ms": pg_ms})  # fmt: skip
+        # 2. global BA (background; keyframes arriving meanwhile follow their parent)
+        if o.global_ba and 2 <= len(m.keyframes) <= o.ba_max_keyframes:
+            m = server.stack.maps.get(map_id)
+            if m is None:
+                return
+            snap = self._snapshot(m)
+            problem = _ba_problem(m, snap.keys)
+            fixed = self._anchor(m, snap.keys)
+            t0 = time.perf_counter()
+            res = await loop.run_in_executor(
+                self._opt_exec, _run_ba, snap.poses, problem, fixed, o.ba_max_iterations
+            )
+            ba_ms = (time.perf_counter() - t0) * 1e3
+            cur = self._current(snap)
+            if cur is None:
+                server.events.add(
+                    "global_ba", f"map {map_id}: BA result dropped (map changed)", map_id=map_id
+                )
+                return
+            corr = {k: Sim3.from_se3(res.world_from_cam[i]) @ Sim3.from_se3(snap.poses[i]).inverse()
+                    for i, k in enumerate(snap.keys)}  # fmt: skip
+            new_xyz = {pk: res.points[j] for j, pk in enumerate(problem.point_keys)}
+            self._apply_corrections(cur, corr, new_xyz)
+            info = {"n_keyframes": len(snap.keys), "n_points": len(problem.point_keys), "ms": ba_ms,
+                    "rmse_before_px": res.initial_rmse_px, "rmse_after_px": res.final_rmse_px}  # fmt: skip
+            self.ba_runs.append(info)
+            server.events.add("global_ba", f"map {map_id}: global BA {len(snap.keys)} keyframes, rmse "
+                              f"{res.initial_rmse_px:.2f} -> {res.final_rmse_px:.2f} px ({ba_ms:.0f} ms)",
+                              map_id=map_id, data=info)  # fmt: skip
+        # 3. GNSS stage: the whole map into ENU once enough spread fixes
+        m = server.stack.maps.get(map_id)
+        if m is None:
+            return
+        if o.gnss:
+            await self._gnss_stage(m)
+        # 4. persist, 5. corrections
+        kfs, pts = list(m.keyframes.values()), list(m.points.values())
+        await server.persist_exclusive(lambda store: store.maps.update_poses(map_id, kfs, pts))
+        await self._send_corrections(map_id, before, t_det, only_agents=None)
+
+    def _local_poses(self, m: Any) -> dict[KfKey, F64]:
+        """Each keyframe's pose in its agent's local (VIO) frame, as the agent sees it now."""
+        out: dict[KfKey, F64] = {}
+        inv: dict[str, Sim3] = {}
+        for k, kf in m.keyframes.items():
+            g = inv.get(k[0])
+            if g is None:
+                am = self.server._agent_map_by_folded(k[0])
+                g = inv[k[0]] = (am.global_from_vio if am is not None else Sim3.identity()).inverse()
+            out[k] = g.transform_pose(kf.world_from_cam)
+        return out
+
+    def _apply_corrections(self, m: Any, corr: dict[KfKey, Sim3], new_xyz: dict[Any, F64]) -> None:
+        """On the loop: move keyframes by their correction; keyframes that are not in ``corr`` (arrived
+        after the snapshot) by their nearest corrected ancestor's; points by ``new_xyz`` or by the correction
+        of a keyframe observing them; agents' ``global_from_vio`` by their latest keyframe's correction."""
+        full: dict[KfKey, Sim3] = dict(corr)
+
+        def correction_of(k: KfKey) -> Sim3:
+            chain: list[KfKey] = []
+            cur: KfKey | None = k
+            while cur is not None and cur not in full and len(chain) < 10000:
+                chain.append(cur)
+                cur = m.parent(cur) if cur in m.keyframes else None
+            c = full.get(cur, Sim3.identity()) if cur is not None else Sim3.identity()
+            for x in chain:
+                full[x] = c
+            return c
+
+        for k, kf in m.keyframes.items():
+            c = correction_of(k)
+            kf.world_from_cam = c.transform_pose(kf.world_from_cam)
+        for pk, mp in m.points.items():
+            x = new_xyz.get(pk)
+            if x is not None:
+                mp.xyz = np.array(x, dtype=np.float64)
+                continue
+            obs = next(iter(mp.observations), None)
+            if obs is not None and obs in full:
+                mp.xyz = full[obs].apply(mp.xyz[None])[0]
+        for folded in list(m.agents):
+            latest = max((k for k in m.keyframes if k[0] == folded), key=lambda k: k[1], default=None)
+            am = self.server._agent_map_by_folded(folded)
+            if latest is None or am is None:
+                continue
+            c = full.get(latest, Sim3.identity())
+            self.server.set_agent_transform(folded, c @ am.global_from_vio)
+
+    async def _gnss_stage(self, m: Any) -> None:
+        from hivemap.server.gnss_stage import GnssFix, NotEnoughFixes, fuse_gnss
+
+        keys = sorted(m.keyframes, key=lambda k: (k[0], m.keyframes[k].timestamp))
+        fixes = []
+        for i, k in enumerate(keys):
+            kf = m.keyframes[k]
+            if kf.gnss_enu is not None:
+                cov = kf.gnss_cov if kf.gnss_cov is not None else np.eye(3)
+                fixes.append(GnssFix(i, np.asarray(kf.gnss_enu), np.asarray(cov)))
+        if len(fixes) < 3:
+            return
+        chains: dict[str, list[int]] = {}
+        for i, k in enumerate(keys):
+            chains.setdefault(k[0], []).append(i)
+        poses = np.array([m.keyframes[k].world_from_cam for k in keys])
+        snap = _Snapshot(m.id, self._generation.get(m.id, 0), keys, poses)
+        try:
+            res = await asyncio.get_running_loop().run_in_executor(
+                self._opt_exec, fuse_gnss, poses, list(chains.values()), fixes
+            )
+        except NotEnoughFixes as exc:
+            self.server.events.add("gnss_stage", f"map {m.id}: {exc}", map_id=m.id)
+            return
+        cur = self._current(snap)
+        if cur is None:
+            return
+        E = Sim3.from_se3(res.enu_from_map)
+        corr = {k: E for k in cur.keyframes}
+        self._apply_corrections(cur, corr, {pk: E.apply(p.xyz[None])[0] for pk, p in cur.points.items()})
+        self._generation[m.id] = self._generation.get(m.id, 0) + 1
+        used = int(np.sum(res.used))
+        self.server.events.add(
+            "gnss_stage",
+            f"map {m.id} moved into ENU with {used}/{len(fixes)} fixes "
+            f"(median residual {float(np.median(res.residuals_m)):.2f} m)",
+            map_id=m.id,
+            data={"used": used, "n_fixes": len(fixes), "enu_from_map": res.enu_from_map.tolist()},
+        )
+
+    # -- corrections -----------------------------------------------------------------------------------
+    async def _send_corrections(
+        self, map_id: int, before: dict[KfKey, F64], t_det: float, only_agents: set[str] | None
+    ) -> None:
+        server = self.server
+        m = server.stack.maps.get(map_id)
+        if m is None:
+            return
+        after = self._local_poses(m) if before else {}
+        o = self.options
+        for folded in sorted(m.agents):
+            if only_agents is not None and folded not in only_agents:
+                continue
+            am = server._agent_map_by_folded(folded)
+            if am is None:
+                continue
+            moves = []
+            for k, T1 in after.items():
+                T0 = before.get(k)
+                if k[0] != folded or T0 is None:
+                    continue
+                dt = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+                dr = rotation_angle_deg(T1[:3, :3] @ T0[:3, :3].T)
+                if dt >= o.correction_min_move_m or dr >= o.correction_min_rot_deg:
+                    moves.append((dt + 0.05 * dr, k))
+            moves.sort(reverse=True)
+            chosen = sorted(k for _, k in moves[: o.correction_max_kfs])
+            ids = np.array([k[1] for k in chosen], dtype=np.int64)
+            poses = np.array([m.keyframes[k].world_from_cam for k in chosen], dtype=np.float64).reshape(
+                -1, 4, 4
+            )
+            corr = Correction(map_id=map_id, global_from_local=am.global_from_vio.matrix(), kf_ids=ids,
+                              world_from_cam=poses, session=am.session)  # fmt: skip
+            nbytes = len(encode(corr, 0))
+            self.correction_bytes[am.agent_id] = self.correction_bytes.get(am.agent_id, 0) + nbytes
+            try:
+                await server.send_correction(am.agent_id, corr)
+            except KeyError:
+                continue
+            self.correction_latencies.append(time.monotonic() - t_det)
+            server.events.add(
+                "correction_detail",
+                f"{folded}: {len(ids)} keyframes changed, {nbytes} bytes",
+                agent_id=am.agent_id,
+                map_id=map_id,
+                data={
+                    "bytes": nbytes,
+                    "n_keyframes": len(ids),
+                    "total_bytes": self.correction_bytes[am.agent_id],
+                },
+            )
+
+
+# -- compute (worker thread, no map access) ----------------------------------------------------------
+def _pose_graph(
+    poses: F64, graph_edges: list[tuple[int, int]], new_edges: list[tuple[int, int, Sim3]], fixed: list[int]
+) -> list[Sim3]:
+    from hivemap.server.optim import PoseGraphEdge, optimize_pose_graph_sim3, relative_sim3
+
+    edges = [PoseGraphEdge(i, j, relative_sim3(poses[i], poses[j])) for i, j in graph_edges]
+    edges += [PoseGraphEdge(i, j, s, robust=True) for i, j, s in new_edges]
+    return optimize_pose_graph_sim3(poses, edges, set(fixed))
+
+
+@dataclass
+class _BAProblem:
+    cameras: list[Any]
+    camera_index: NDArray[np.int64]
+    point_keys: list[Any]
+    points: F64
+    obs_kf: NDArray[np.int64]
+    obs_pt: NDArray[np.int64]
+    obs_uv: F64
+
+
+def _ba_problem(m: Any, keys: list[KfKey]) -> _BAProblem:
+    """Copy what the BA needs out of the map (on the loop, quick)."""
+    cams: dict[Any, int] = {}
+    cam_list: list[Any] = []
+    cam_idx = np.zeros(len(keys), dtype=np.int64)
+    pidx: dict[Any, int] = {}
+    pkeys: list[Any] = []
+    obs_kf: list[int] = []
+    obs_pt: list[int] = []
+    obs_uv: list[Any] = []
+    for i, k in enumerate(keys):
+        kf = m.keyframes[k]
+        ck = id(kf.camera)
+        if ck not in cams:
+            cams[ck] = len(cam_list)
+            cam_list.append(kf.camera)
+        cam_idx[i] = cams[ck]
+        for idx, pk in kf.referenced_points():
+            pk = m.resolve_point(pk)
+            if pk not in m.points:
+                continue
+            j = pidx.get(pk)
+            if j is None:
+                j = pidx[pk] = len(pkeys)
+                pkeys.append(pk)
+            obs_kf.append(i)
+            obs_pt.append(j)
+            obs_uv.append(kf.keypoints[idx])
+    pts = np.array([m.points[pk].xyz for pk in pkeys], dtype=np.float64).reshape(-1, 3)
+    return _BAProblem(
+        cam_list,
+        cam_idx,
+        pkeys,
+        pts,
+        np.array(obs_kf, dtype=np.int64),
+        np.array(obs_pt, dtype=np.int64),
+        np.array(obs_uv, dtype=np.float64).reshape(-1, 2),
+    )
+
+
+def _run_ba(poses: F64, p: _BAProblem, fixed: list[int], max_iterations: int) -> Any:
+    from hivemap.server.optim import BundleAdjustmentOptions, global_bundle_adjustment
+
+    return global_bundle_adjustment(
+        p.cameras, p.camera_index, poses, p.points, p.obs_kf, p.obs_pt, p.obs_uv, set(fixed),
+        BundleAdjustmentOptions(max_iterations=max_iterations),
+    )  # fmt: skip
+
+
+def install(server: Any, options: BackendOptions | None = None) -> Backend:
+    """Attach a back-end to ``server``: keyframe observer, startup and shutdown hooks."""
+    backend = Backend(server, options)
+    server.backend = backend
+    server.keyframe_observers.append(backend.on_keyframe)
+    server.startup_hooks.append(backend.start)
+    server.shutdown_hooks.append(backend.stop)
+    return backend
+
+
+def installer(options: BackendOptions) -> Callable[[Any], Backend]:
+    """An ``extensions`` entry for ``create_app`` with non-default options."""
+    return lambda server: install(server, options)
+
+
+__all__ = ["Backend", "BackendOptions", "install", "installer"]
