@@ -55,6 +55,7 @@ class BackendOptions:
     gnss: bool = True
     correction_min_move_m: float = 0.01  # a keyframe is "changed" if it moved this much (local frame)
     correction_min_rot_deg: float = 0.1
+    transform_window: int = 20  # recent keyframes whose corrections define an agent's new frame
     correction_max_kfs: int = 50  # keyframes per correction (largest moves first): bounds the downlink
     placerec: PlaceRecOptions = field(default_factory=PlaceRecOptions)
 
@@ -484,11 +485,22 @@ class Backend:
             if obs is not None and obs in full:
                 mp.xyz = full[obs].apply(mp.xyz[None])[0]
         for folded in list(m.agents):
-            latest = max((k for k in m.keyframes if k[0] == folded), key=lambda k: k[1], default=None)
             am = self.server._agent_map_by_folded(folded)
-            if latest is None or am is None:
+            recent = sorted((k for k in full if k[0] == folded and k in m.keyframes), key=lambda k: k[1])
+            if am is None or not recent:
                 continue
-            c = full.get(latest, Sim3.identity())
+            recent = recent[-self.options.transform_window :]
+            c = full[recent[-1]]
+            if len(recent) >= 3:
+                # the agent's frame follows the best Sim(3) fit of its recent keyframes' corrections (one
+                # keyframe's correction carries that keyframe's own noise)
+                # (centres and axis tips: centres alone are nearly collinear along a straight path)
+                old_poses = [full[k].inverse().transform_pose(m.keyframes[k].world_from_cam) for k in recent]
+                centres = np.array([T[:3, 3] for T in old_poses])
+                arm = max(1e-3, float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1))))
+                old = np.concatenate([np.vstack([T[:3, 3], T[:3, 3] + arm * T[:3, :3].T]) for T in old_poses])
+                new = np.concatenate([full[k].apply(old[4 * i : 4 * i + 4]) for i, k in enumerate(recent)])
+                c = _umeyama(old, new)
             self.server.set_agent_transform(folded, c @ am.global_from_vio)
 
     async def _gnss_stage(self, m: Any) -> None:
@@ -582,6 +594,14 @@ class Backend:
                     "total_bytes": self.correction_bytes[am.agent_id],
                 },
             )
+
+
+def _umeyama(src: F64, dst: F64) -> Sim3:
+    """The Sim(3) ``dst ~ s R src + t`` (least squares, evo's Umeyama)."""
+    from evo.core.geometry import umeyama_alignment
+
+    R, t, s = umeyama_alignment(src.T, dst.T, with_scale=True)
+    return Sim3(np.asarray(R), np.asarray(t).reshape(3), float(s))
 
 
 # -- compute (worker thread, no map access) ----------------------------------------------------------
