@@ -88,6 +88,7 @@ class Backend:
         self._last_refill = time.monotonic()
         # figures
         self.queries = 0
+        self.query_ms: list[float] = []
         self.verifications = 0
         self.merges: list[dict[str, Any]] = []
         self.loops: list[dict[str, Any]] = []
@@ -190,6 +191,7 @@ class Backend:
                 if res is None:
                     continue
                 self.queries += 1
+                self.query_ms.append(res.time_ms)
                 n_verified = sum(1 for c in res.candidates if c.reason != "covered_by_accepted_window")
                 self.verifications += n_verified
                 self._tokens -= n_verified

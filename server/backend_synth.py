@@ -1,0 +1,87 @@
+"""Synthetic multi-agent worlds for the back-end's tests and bench (no rendering).
+
+3D points on non-coplanar facades with random 256-bit descriptors; an agent flies along x looking +z and its
+keyframes see the points through a pinhole camera (0.5 px x 1.2^octave noise, 3 flipped descriptor bits per
+observation, clutter keypoints). Each agent's map is the world under its own ``local_from_world`` Sim(3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hivemap.maps.geometry import Sim3, se3, so3_exp
+from hivemap.protocol import Keyframe, MapPoints, Message
+from hivemap.server.loadgen import CAMERA
+
+
+def flip_bits(desc: np.ndarray, rng: np.random.Generator, n_bits: int) -> np.ndarray:
+    bits = np.unpackbits(desc, axis=-1)
+    for row in bits.reshape(-1, 256):
+        row[rng.choice(256, n_bits, replace=False)] ^= 1
+    return np.packbits(bits, axis=-1)
+
+
+def make_world(
+    rng: np.random.Generator, n: int, x_range: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    x = rng.uniform(*x_range, n)
+    kind = rng.integers(0, 3, n)
+    z = np.where(kind == 0, 25.0 + rng.normal(0, 0.3, n), rng.uniform(12, 35, n))
+    y = np.where(kind == 1, 4.0 + rng.normal(0, 0.1, n), rng.uniform(-6, 4, n))
+    return np.stack([x, y, z], axis=1), rng.integers(0, 256, size=(n, 32), dtype=np.uint8)
+
+
+def agent_stream(
+    rng: np.random.Generator,
+    pts: np.ndarray,
+    desc: np.ndarray,
+    centres_x: np.ndarray,
+    local_from_world: Sim3,
+    pose_noise: tuple[float, float] = (0.0, 0.0),
+) -> tuple[list[Message], np.ndarray, np.ndarray]:
+    """Messages of one agent (points first, then keyframes) + true and sent poses in its local frame.
+
+    ``pose_noise`` (metres in the world, degrees): perturbation of the sent keyframe poses (drift-like
+    error the server's global BA should remove); observations come from the true poses."""
+    true = []
+    for cx in centres_x:
+        R = so3_exp(rng.normal(0, 0.05, 3))
+        true.append(se3(R, np.array([cx, rng.normal(0, 0.3), rng.normal(0, 0.3)])))
+    seen: dict[int, list[tuple[int, np.ndarray, int]]] = {}
+    for k, T in enumerate(true):
+        pc = pts @ T[:3, :3] - T[:3, 3] @ T[:3, :3]
+        uv, valid = CAMERA.project(pc)
+        valid &= CAMERA.in_image(uv, margin=5) & (pc[:, 2] > 1)
+        for i in np.flatnonzero(valid).tolist():
+            seen.setdefault(i, []).append((k, uv[i], int(rng.integers(0, 4))))
+    used = sorted(i for i, obs in seen.items() if len(obs) >= 2)
+    ids = {i: j for j, i in enumerate(used)}
+    xyz = local_from_world.apply(pts[used] + rng.normal(0, 0.02, (len(used), 3)))
+    msgs: list[Message] = [
+        MapPoints(
+            ids=np.arange(len(used), dtype=np.int64), xyz=xyz, descriptors=flip_bits(desc[used], rng, 2)
+        )
+    ]
+    sent = []
+    for k, T in enumerate(true):
+        rows = [(i, uv, o) for i in used for (kk, uv, o) in seen[i] if kk == k]
+        n_cl = 150
+        octs = np.array([o for _, _, o in rows] + list(rng.integers(0, 4, n_cl)), dtype=np.uint8)
+        kps = np.concatenate(
+            [np.array([uv for _, uv, _ in rows]).reshape(-1, 2), rng.uniform([0, 0], [640, 480], (n_cl, 2))]
+        )
+        kps[: len(rows)] += rng.normal(0, 0.5, (len(rows), 2)) * (1.2 ** octs[: len(rows), None])
+        d = np.concatenate(
+            [flip_bits(desc[[i for i, _, _ in rows]], rng, 3), rng.integers(0, 256, (n_cl, 32), np.uint8)]
+        )
+        pids = np.array([ids[i] for i, _, _ in rows] + [-1] * n_cl, dtype=np.int64)
+        dT = se3(so3_exp(np.deg2rad(pose_noise[1]) * rng.normal(0, 1, 3) / np.sqrt(3)),
+                 pose_noise[0] * rng.normal(0, 1, 3) / np.sqrt(3))  # fmt: skip
+        T_sent = local_from_world.transform_pose(dT @ T)
+        sent.append(T_sent)
+        msgs.append(
+            Keyframe(kf_id=k, timestamp=float(k), world_from_cam=T_sent, keypoints=kps.astype(np.float32),
+                     octaves=octs, descriptors=d, point_ids=pids)
+        )  # fmt: skip
+    true_local = np.array([local_from_world.transform_pose(T) for T in true])
+    return msgs, true_local, np.array(sent)
