@@ -109,16 +109,53 @@ class BundleAdjustmentOptions:
     max_iterations: int = 50
     huber_px: float = 2.0
     num_threads: int = 1
+    # Observations farther than this from their projection before BA are outliers (wrong matches,
+    # badly fused points) and are left out; points left with < 2 observations are not optimised.
+    max_initial_error_px: float = 8.0
+    min_depth_m: float = 0.05
+    # After BA a point whose worst observation is off by more than this keeps its old position.
+    max_final_error_px: float = 4.0
 
 
 @dataclass
 class BundleAdjustmentResult:
+    """``accepted`` False: BA failed or made things worse; poses and points are the inputs unchanged.
+
+    RMSEs are over the inlier observations (``obs_inlier``); ``point_ok`` marks the points BA moved.
+    """
+
     world_from_cam: F64
     points: F64
     initial_rmse_px: float
     final_rmse_px: float
     iterations: int = 0
     extras: dict[str, float] = field(default_factory=dict)
+    accepted: bool = True
+    obs_inlier: NDArray[np.bool_] | None = None
+    point_ok: NDArray[np.bool_] | None = None
+
+
+def reprojection_errors(
+    cameras: list[PinholeCamera],
+    camera_index: NDArray[np.int64],
+    world_from_cam: F64,
+    points: F64,
+    obs_kf: NDArray[np.int64],
+    obs_pt: NDArray[np.int64],
+    obs_uv: F64,
+) -> tuple[F64, F64]:
+    """Per observation: pixel error (inf when the point is behind the camera) and depth (m)."""
+    err = np.full(len(obs_kf), np.inf)
+    depth = np.zeros(len(obs_kf))
+    for k in np.unique(obs_kf):
+        sel = np.flatnonzero(obs_kf == k)
+        T = world_from_cam[k]
+        pc = (points[obs_pt[sel]] - T[:3, 3]) @ T[:3, :3]
+        uv, valid = cameras[int(camera_index[k])].project(pc)
+        e = np.linalg.norm(uv - obs_uv[sel], axis=1)
+        err[sel] = np.where(valid, e, np.inf)
+        depth[sel] = pc[:, 2]
+    return err, depth
 
 
 def global_bundle_adjustment(
@@ -149,6 +186,11 @@ def global_bundle_adjustment(
         raise ValueError("obs_kf, obs_pt and obs_uv must have the same length")
     if len(obs_kf) and (obs_kf.max() >= n or obs_pt.max() >= m or obs_kf.min() < 0 or obs_pt.min() < 0):
         raise IndexError("observation refers to a keyframe or point out of range")
+    err0, depth0 = reprojection_errors(cameras, camera_index, poses, pts, obs_kf, obs_pt, obs_uv)
+    inlier = (err0 <= options.max_initial_error_px) & (depth0 >= options.min_depth_m)
+    keep = np.flatnonzero(inlier)
+    obs_kf_all = obs_kf
+    obs_kf, obs_pt, obs_uv = obs_kf[keep], obs_pt[keep], obs_uv[keep]
     rec = pycolmap.Reconstruction()
     for ci, cam in enumerate(cameras):
         c = pycolmap.Camera(
@@ -183,8 +225,6 @@ def global_bundle_adjustment(
             continue
         track = pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in tracks[p]])
         point_ids[p] = rec.add_point3D(pts[p], track)
-    rec.update_point_3d_errors()
-    initial = float(rec.compute_mean_reprojection_error())
 
     ba_opts = pycolmap.BundleAdjustmentOptions()
     ba_opts.print_summary = False
@@ -214,7 +254,26 @@ def global_bundle_adjustment(
     for p in range(m):
         if point_ids[p] >= 0:
             out_pts[p] = rec.point3D(int(point_ids[p])).xyz
-    rec.update_point_3d_errors()
-    final = float(rec.compute_mean_reprojection_error())
     iters = int(getattr(summary, "num_successful_steps", 0) or 0)
-    return BundleAdjustmentResult(out_poses, out_pts, initial, final, iters)
+    # Points that ended far from their observations keep their old position.
+    err1, depth1 = reprojection_errors(cameras, camera_index, out_poses, out_pts, obs_kf, obs_pt, obs_uv)
+    bad = np.zeros(m, dtype=bool)
+    np.logical_or.at(bad, obs_pt, ~(err1 <= options.max_final_error_px) | (depth1 < options.min_depth_m))
+    point_ok = (point_ids >= 0) & ~bad
+    out_pts[~point_ok] = pts[~point_ok]
+    good_obs = point_ok[obs_pt]
+    initial = float(np.sqrt(np.mean(err0[keep][good_obs] ** 2))) if good_obs.any() else float("nan")
+    final = float(np.sqrt(np.mean(err1[good_obs] ** 2))) if good_obs.any() else float("nan")
+    obs_inlier = np.zeros(len(obs_kf_all), dtype=bool)
+    obs_inlier[keep[good_obs]] = True
+    ok = bool(np.isfinite(final) and np.isfinite(out_poses).all() and final <= max(initial, 0.0) + 0.5)
+    ok = ok and good_obs.sum() >= 0.5 * len(obs_kf_all)  # most of the problem survived
+    if not ok:
+        log.warning(
+            "global BA rejected: rmse %.3g -> %.3g px, %d of %d observations kept", initial, final,
+            int(good_obs.sum()), len(obs_kf_all),
+        )  # fmt: skip
+        return BundleAdjustmentResult(
+            poses.copy(), pts.copy(), initial, final, iters, {}, False, obs_inlier, point_ok
+        )
+    return BundleAdjustmentResult(out_poses, out_pts, initial, final, iters, {}, True, obs_inlier, point_ok)

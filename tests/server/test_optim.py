@@ -90,3 +90,32 @@ def test_global_ba_recovers_perturbed_poses_and_points() -> None:
     assert err.mean() < np.linalg.norm(init[:, :3, 3] - truth_arr[:, :3, 3], axis=1).mean() / 3
     assert res.final_rmse_px < 0.9 < res.initial_rmse_px
     np.testing.assert_allclose(res.world_from_cam[:2], truth_arr[:2], atol=1e-9)
+
+
+def test_global_ba_ignores_gross_outliers_and_flags_them() -> None:
+    """5% of the observations are wrong matches (random pixels): they are left out, BA still brings
+    the poses within 3 cm, and the result is accepted."""
+    rng = np.random.default_rng(2)
+    cam = PinholeCamera(640, 480, 420.0, 420.0, 320.0, 240.0)
+    n = 12
+    truth = np.array([se3(so3_exp([0.0, 0.02 * k, 0.0]), [0.5 * k, 0.0, 0.0]) for k in range(n)])
+    pts = np.column_stack([rng.uniform(-5, 10, 1500), rng.uniform(-4, 4, 1500), rng.uniform(6, 20, 1500)])
+    kf, pt, uvs = [], [], []
+    for k in range(n):
+        pc = (pts - truth[k, :3, 3]) @ truth[k, :3, :3]
+        uv, valid = cam.project(pc)
+        idx = np.flatnonzero(valid & cam.in_image(uv))
+        kf += [k] * len(idx)
+        pt += idx.tolist()
+        uvs.append(uv[idx] + rng.normal(0, 0.5, (len(idx), 2)))
+    kf_a, pt_a, uv_a = np.array(kf), np.array(pt), np.vstack(uvs)
+    wrong = rng.random(len(kf_a)) < 0.05
+    uv_a[wrong] = rng.uniform([0, 0], [640, 480], (int(wrong.sum()), 2))
+    init = truth.copy()
+    for k in range(2, n):
+        init[k, :3, 3] += rng.normal(0, 0.05, 3)
+    res = global_bundle_adjustment([cam], np.zeros(n, dtype=np.int64), init, pts, kf_a, pt_a, uv_a, {0, 1})
+    assert res.accepted
+    assert res.obs_inlier is not None
+    assert not res.obs_inlier[wrong].mean() > 0.05  # wrong matches are (almost all) left out
+    assert np.linalg.norm(res.world_from_cam[:, :3, 3] - truth[:, :3, 3], axis=1).max() < 0.03
