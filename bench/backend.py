@@ -173,7 +173,7 @@ def bench_end_to_end(pairs: int) -> None:
                 f"  correction latency (detection -> sent): {_stats(np.array(be.correction_latencies) * 1e3)}"
             )
             per_agent = [be.correction_bytes.get(aid, 0) for aid, _, _ in conns]
-            print(f"  correction bytes per agent: median {np.median(per_agent):.0f} B, max {max(per_agent)} B, "
+            print(f"  downlink per agent: median {np.median(per_agent):.0f} B, max {max(per_agent)} B, "
                   f"{elapsed:.1f} s session -> {max(per_agent) / elapsed:.0f} B/s worst agent")  # fmt: skip
             print(f"  corrections received by agents: {sum(len(v) for v in got.values())}")
         finally:

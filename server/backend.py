@@ -26,7 +26,7 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -57,12 +57,16 @@ class BackendOptions:
     correction_min_rot_deg: float = 0.1
     transform_window: int = 20  # recent keyframes whose corrections define an agent's new frame
     correction_max_kfs: int = 50  # keyframes per correction (largest moves first): bounds the downlink
-    # consistency between consecutive detections loosened from placerec's defaults (3 deg / 5 % / 0.05):
-    # single-keyframe Sim(3) scale estimates scatter by ~10 % when query and candidate cameras are close
-    # (measured on the synthetic pairs of bench/backend.py); the merge's global BA fixes the scale after
-    placerec: PlaceRecOptions = field(
-        default_factory=lambda: PlaceRecOptions(consistency_max_log_scale=0.2, consistency_max_rel_shift=0.2)
-    )
+    # Consistency of consecutive detections is checked here, on the Sim(3) re-fitted to each detection's
+    # hundreds of 3D-3D duplicate pairs (trimmed Umeyama): placerec's single-keyframe estimates scatter by
+    # 10-50 % in scale when query and candidate cameras are close (bench/backend.py synthetic pairs).
+    placerec: PlaceRecOptions = field(default_factory=lambda: PlaceRecOptions(consistency_required=1))
+    consistency_required: int = 3
+    consistency_max_gap: int = 8  # keyframe-id gap between consecutive consistent detections
+    consistency_max_rot_deg: float = 2.0
+    consistency_max_log_scale: float = 0.03
+    consistency_max_rel_shift: float = 0.05  # query points moved / their spread
+    min_pair_inlier_ratio: float = 0.5
 
 
 @dataclass
@@ -88,6 +92,7 @@ class Backend:
         self._busy = 0  # queries or optimisations in flight
         self._generation: dict[int, int] = {}  # bumped when a map changes frame (merge / GNSS)
         self._opt_running: set[int] = set()
+        self._consist: dict[tuple[int, int, str], tuple[int, Sim3, int]] = {}
         self._opt_again: dict[int, list[tuple[KfKey, KfKey, Sim3]]] = {}
         self._tokens = self.options.verifications_per_s
         self._last_refill = time.monotonic()
@@ -201,7 +206,7 @@ class Backend:
                 self.verifications += n_verified
                 self._tokens -= n_verified
                 self._publish(res)
-                det = res.confirmed
+                det = self._consistent(res.detection) if res.detection is not None else None
                 if det is not None:
                     t_det = time.monotonic()
                     if det.is_loop:
@@ -252,7 +257,8 @@ class Backend:
             return
         target = self._target_of(det.query_map, det.candidate_map)
         target_id, source_id, sim, pairs = det.merge_args(target)
-        sim = self._refine_with_pairs(maps[target_id], maps[source_id], sim, pairs)
+        for k in [k for k in self._consist if source_id in k[:2] or target_id in k[:2]]:
+            del self._consist[k]
         t0 = time.perf_counter()
         merged = await server.apply_merge(target_id, source_id, sim, pairs)
         merge_ms = (time.perf_counter() - t0) * 1e3
@@ -287,33 +293,48 @@ class Backend:
         await self._send_corrections(target_id, {}, t_det, only_agents=None)
         self._schedule_optimisation(target_id, [edge], t_det)
 
-    def _refine_with_pairs(self, tgt: Any, src: Any, sim: Sim3, pairs: list[tuple[Any, Any]]) -> Sim3:
-        """Re-estimate ``target_from_source`` from all the detection's duplicate point pairs (3D-3D, trimmed
-        Umeyama): the detection's Sim(3) is refined on one keyframe pair and its scale scatters by a few %
-        when the two cameras are close; hundreds of 3D pairs pin it down. Kept only if it agrees."""
-        a, b = [], []
-        for kt, ks in pairs:
-            pt, ps = tgt.points.get(tgt.resolve_point(kt)), src.points.get(src.resolve_point(ks))
-            if pt is not None and ps is not None:
-                a.append(ps.xyz)
-                b.append(pt.xyz)
-        if len(a) < 20:
-            return sim
-        A, B = np.array(a), np.array(b)
-        keep = np.ones(len(A), dtype=bool)
-        est = sim
-        for _ in range(3):
-            r = np.linalg.norm(est.apply(A) - B, axis=1)
-            keep = r <= max(3.0 * float(np.median(r)), 1e-6)
-            if keep.sum() < 20:
-                return sim
-            est = _umeyama(A[keep], B[keep])
-        rel = sim.inverse() @ est
-        if rotation_angle_deg(rel.R) > 5.0 or abs(np.log(rel.s)) > 0.3:
-            logger.info("merge: 3D refinement disagrees with the detection (%.1f deg, scale x%.3f): kept "
-                        "the detection", rotation_angle_deg(rel.R), rel.s)  # fmt: skip
-            return sim
-        return est
+    def _consistent(self, det: Detection) -> Detection | None:
+        """The detection with its re-fitted Sim(3) once ``consistency_required`` consecutive query keyframes
+        of the same agent agree on it; else None."""
+        o = self.options
+        maps = self.server.stack.maps
+        mq, mc = maps.get(det.query_map), maps.get(det.candidate_map)
+        if mq is None or mc is None:
+            return None
+        pairs = list(zip(det.candidate_points, det.query_points, strict=True))
+        sim, src_xyz, n_in = _fit_pairs(mc, mq, pairs, o.min_pair_inlier_ratio)
+        key = (det.query_map, det.candidate_map, det.query_key[0])
+        data: dict[str, Any] = {"query_key": list(det.query_key), "candidate_key": list(det.candidate_key),
+                                "n_pairs": len(pairs), "n_pair_inliers": n_in}  # fmt: skip
+        if sim is None:
+            self.server.events.add("consistency", f"{det.query_key}: 3D pairs do not fit one Sim(3)",
+                                   map_id=det.query_map, data=data)  # fmt: skip
+            return None
+        prev = self._consist.get(key)
+        ok = False
+        if prev is not None and 0 < det.query_key[1] - prev[0] <= o.consistency_max_gap:
+            rel = prev[1].inverse() @ sim
+            pa, pb = prev[1].apply(src_xyz), sim.apply(src_xyz)
+            spread = float(np.median(np.linalg.norm(pb - np.median(pb, axis=0), axis=1))) + 1e-9
+            shift = float(np.median(np.linalg.norm(pa - pb, axis=1))) / spread
+            ok = (
+                rotation_angle_deg(rel.R) <= o.consistency_max_rot_deg
+                and abs(np.log(rel.s)) <= o.consistency_max_log_scale
+                and shift <= o.consistency_max_rel_shift
+            )
+        count = prev[2] + 1 if ok and prev is not None else 1
+        data.update(consistent=count, scale=sim.s, target_from_source=sim.matrix().tolist())
+        self.server.events.add(
+            "consistency",
+            f"{det.kind} {det.query_key} -> {det.candidate_key}: {count}/{o.consistency_required} consistent",
+            map_id=det.query_map,
+            data=data,
+        )
+        if count >= o.consistency_required:
+            self._consist.pop(key, None)
+            return replace(det, target_from_source=sim, consistent=count, confirmed=True)
+        self._consist[key] = (det.query_key[1], sim, count)
+        return None
 
     @staticmethod
     def _edge_measure(m: Any, det: Detection, target_is_query: bool) -> Sim3:
@@ -632,6 +653,34 @@ class Backend:
                     "total_bytes": self.correction_bytes[am.agent_id],
                 },
             )
+
+
+def _fit_pairs(
+    tgt: Any, src: Any, pairs: list[tuple[Any, Any]], min_inlier_ratio: float
+) -> tuple[Sim3 | None, F64, int]:
+    """``target_from_source`` fitted to duplicate point pairs ``(target_point, source_point)`` by trimmed
+    Umeyama; returns (Sim3 or None if most pairs do not fit, inlier source points, number of inliers)."""
+    a, b = [], []
+    for kt, ks in pairs:
+        pt, ps = tgt.points.get(tgt.resolve_point(kt)), src.points.get(src.resolve_point(ks))
+        if pt is not None and ps is not None:
+            a.append(ps.xyz)
+            b.append(pt.xyz)
+    if len(a) < 20:
+        return None, np.zeros((0, 3)), 0
+    A, B = np.array(a), np.array(b)
+    keep = np.ones(len(A), dtype=bool)
+    est = _umeyama(A, B)
+    for _ in range(4):
+        r = np.linalg.norm(est.apply(A) - B, axis=1)
+        keep = r <= max(2.5 * float(np.median(r[keep])), 1e-9)
+        if keep.sum() < 20:
+            return None, np.zeros((0, 3)), int(keep.sum())
+        est = _umeyama(A[keep], B[keep])
+    n_in = int(keep.sum())
+    if n_in < min_inlier_ratio * len(A):
+        return None, A[keep], n_in
+    return est, A[keep], n_in
 
 
 def _umeyama(src: F64, dst: F64) -> Sim3:
