@@ -77,7 +77,7 @@ def agent_stream(
         pids = np.array([ids[i] for i, _, _ in rows] + [-1] * n_cl, dtype=np.int64)
         dT = se3(so3_exp(np.deg2rad(pose_noise[1]) * rng.normal(0, 1, 3) / np.sqrt(3)),
                  pose_noise[0] * rng.normal(0, 1, 3) / np.sqrt(3))  # fmt: skip
-        T_sent = local_from_world.transform_pose(dT @ T)
+        T_sent = local_from_world.transform_pose(T @ dT)  # perturbed in the camera frame
         sent.append(T_sent)
         msgs.append(
             Keyframe(kf_id=k, timestamp=float(k), world_from_cam=T_sent, keypoints=kps.astype(np.float32),
