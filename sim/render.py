@@ -171,7 +171,7 @@ class GLRenderer:
         self.near, self.far = near, far
         self.plan = _plan(camera)
         self.ctx = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]
-        layers = (np.clip(world.layers, 0, 1) * 255).astype(np.uint8)
+        layers = np.ascontiguousarray(world.layers, dtype=np.uint8)
         L, s, _ = layers.shape
         self.tex = self.ctx.texture_array((s, s, L), 1, layers.tobytes())
         self.tex.build_mipmaps()
@@ -307,7 +307,7 @@ class NumpyRenderer:
         s = self.world.layers.shape[1]
         x = (np.floor(np.mod(u, 1.0) * s).astype(int)) % s
         y = (np.floor(np.mod(v, 1.0) * s).astype(int)) % s
-        return self.world.layers[layer, y, x].astype(np.float64)
+        return self.world.layers[layer, y, x].astype(np.float64) / 255.0
 
     def close(self) -> None:
         pass

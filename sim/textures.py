@@ -100,6 +100,19 @@ def wall_texture(rng: np.random.Generator, label: str) -> F32:
     px, py = int(rng.integers(10, s - ps - 10)), int(rng.integers(s // 2, s - ps - 10))
     img[py : py + ps, px : px + ps] = poster
     cv2.rectangle(img, (px - 4, py - 4), (px + ps + 4, py + ps + 4), 0.05, 5)
+    # A door at ground level (texture bottom): a roller shutter or a steel man door with a frame.
+    if rng.random() < 0.5:
+        dw, dh = int(rng.integers(160, 260)), int(rng.integers(200, 260))  # 2.5-4 m wide, 3-4 m high
+        dx = int(rng.integers(0, s - dw))
+        slats = 0.5 + 0.1 * np.sin(np.arange(dh, dtype=np.float32) * 1.3)[:, None]
+        img[s - dh :, dx : dx + dw] = slats * (0.8 + 0.4 * rng.random())
+        cv2.rectangle(img, (dx - 6, s - dh - 6), (dx + dw + 6, s), 0.1, 6)
+    else:
+        dw, dh = 64, 140  # 1 m x 2.2 m
+        dx = int(rng.integers(0, s - dw))
+        img[s - dh :, dx : dx + dw] = 0.25 + 0.5 * rng.random()
+        cv2.rectangle(img, (dx - 4, s - dh - 4), (dx + dw + 4, s), 0.9, 4)
+        cv2.circle(img, (dx + dw - 12, s - dh // 2), 4, 0.95, -1)
     # A unique label: building number + wall letter, big and high contrast.
     sign_y = int(rng.integers(s // 2 + 40, s - 20))
     cv2.rectangle(img, (20, sign_y - 70), (20 + 60 * len(label), sign_y + 15), 0.95, -1)
@@ -112,15 +125,55 @@ def wall_texture(rng: np.random.Generator, label: str) -> F32:
 
 
 def roof_texture(rng: np.random.Generator) -> F32:
+    """A flat roof (8 m x 8 m): fine ballast gravel on a membrane, seams, vents, AC units and hatches."""
     s = TEX
-    img = 0.3 + 0.35 * fractal_noise(rng, s, 6, 8)
-    for _ in range(int(rng.integers(3, 8))):  # vents, AC units, hatches
+    gravel = np.tile(photo("gravel", s // 4), (4, 4))  # ~6 cm stones
+    img = 0.3 + 0.25 * fractal_noise(rng, s, 6, 8) + 0.3 * (gravel - 0.5)
+    for y in range(int(rng.integers(0, 64)), s, 96):  # membrane seams
+        img[y : y + 2, :] *= 0.7
+    for _ in range(int(rng.integers(3, 8))):
         w, h = (int(v) for v in rng.integers(20, 90, 2))
         x, y = (int(v) for v in rng.integers(0, s - 100, 2))
-        val = float(rng.uniform(0.1, 0.9))
-        img[y : y + h, x : x + w] = val
-        cv2.rectangle(img, (x, y), (x + w, y + h), 1.0 - val, 3)
-    img += 0.25 * (photo("gravel") - 0.5)
+        val = float(rng.uniform(0.15, 0.9))
+        unit = float(val + 0.12 * (rng.random() - 0.5))
+        img[y : y + h, x : x + w] = unit
+        for k in range(x + 4, x + w - 3, 6):  # grille
+            cv2.line(img, (k, y + 3), (k, y + h - 3), unit * 0.6, 1)
+        cv2.rectangle(img, (x, y), (x + w, y + h), 1.0 - val, 2)
+        cv2.line(img, (x + w + 1, y + 2), (x + w + 1, y + h + 1), 0.1, 3)  # its shadow
+        cv2.line(img, (x + 2, y + h + 1), (x + w + 1, y + h + 1), 0.1, 3)
+    return np.clip(img, 0, 1).astype(np.float32)
+
+
+def fence_texture(rng: np.random.Generator, label: str) -> F32:
+    """A steel palisade fence: the bottom ~2 m of the texture (rows near the bottom touch the ground)
+    holds pales with gaps showing a dark, noisy background, two rails and a unique site sign."""
+    s = TEX
+    img = 0.12 + 0.2 * fractal_noise(rng, s, 6, 24)  # what is seen through the gaps
+    tone = float(rng.uniform(0.55, 0.8))
+    pale = 7 + int(rng.integers(0, 3))
+    for x in range(0, s, pale + 4):
+        img[:, x : x + pale] = tone + 0.1 * (fractal_noise(rng, 32, 3, 2)[:1, :1].item() - 0.5)
+        img[:, x + pale - 1 : x + pale] *= 0.7
+    img += 0.08 * (fractal_noise(rng, s, 6, 32) - 0.5)
+    for y in (s - 110, s - 30):
+        img[y : y + 6, :] = tone * 0.8
+    sign_x = int(rng.integers(20, s - 200))
+    cv2.rectangle(img, (sign_x, s - 100), (sign_x + 170, s - 50), 0.95, -1)
+    _put_text(img, label, (sign_x + 10, s - 62), 1.2, 0.05, 3)
+    grime = np.linspace(0, 1, s, dtype=np.float32)[:, None] ** 6
+    img *= 1.0 - 0.3 * grime * fractal_noise(rng, s, 5, 8)
+    return np.clip(img, 0, 1).astype(np.float32)
+
+
+def pillar_texture(rng: np.random.Generator, label: str) -> F32:
+    """A concrete post: noisy concrete, a yellow/black hazard band at the foot and a painted number."""
+    s = TEX
+    img = 0.45 + 0.3 * fractal_noise(rng, s, 6, 16) + 0.15 * (photo("gravel") - 0.5)
+    band = np.arange(s)[None, :] + np.arange(s)[:, None]
+    stripes = np.where((band // 24) % 2 == 0, 0.85, 0.1).astype(np.float32)
+    img[s - 64 :, :] = stripes[s - 64 :, :]
+    _put_text(img, label, (2, s - 150), 0.45, 0.08, 1)  # a post is 0.5 m = 32 texels wide
     return np.clip(img, 0, 1).astype(np.float32)
 
 
@@ -136,57 +189,112 @@ def container_texture(rng: np.random.Generator, label: str) -> F32:
     return np.clip(img, 0, 1).astype(np.float32)
 
 
+class GroundSources:
+    """Periodic ground materials pre-scaled to the ground texel size, cropped per tile (no resampling)."""
+
+    def __init__(self, rng: np.random.Generator, m_per_px: float) -> None:
+        def periodic(img: F32, period_m: float) -> F32:
+            n = max(8, round(period_m / m_per_px))
+            return np.asarray(cv2.resize(img, (n, n), interpolation=cv2.INTER_AREA), dtype=np.float32)
+
+        self.m_per_px = m_per_px
+        # Large-scale patches break up the visible repetition of the photographs.
+        self.grass = periodic(photo("grass"), 3.0)
+        self.grass2 = periodic(np.ascontiguousarray(photo("grass")[::-1, ::-1].T), 2.3)
+        self.gravel = periodic(photo("gravel"), 2.5)
+        self.asphalt = periodic(photo("gravel"), 1.7)
+        self.fine = periodic(fractal_noise(rng, TEX, 4, 32), 1.1)  # asphalt grain, 2 cm features
+        self.patches = periodic(fractal_noise(rng, TEX, 5, 4), 37.0)
+
+    @staticmethod
+    def crop(src: F32, ox: int, oy: int, n: int = TEX) -> F32:
+        """``n`` x ``n`` window of the periodic ``src`` starting at global texel (ox, oy)."""
+        h, w = src.shape
+        rows = (oy + np.arange(n)) % h
+        cols = (ox + np.arange(n)) % w
+        return src[rows][:, cols]
+
+
+def shading_map(
+    footprints: list[tuple[F32, float]], sun: F32, origin: tuple[float, float], n: int, m_per_px: float
+) -> F32:
+    """Sunlight factor on the ground (n x n texels from ``origin``): baked shadows of the boxes and
+    ambient occlusion at their feet. ``footprints``: (corners (4, 2) in metres, height) per box."""
+    lit = np.full((n, n), 255, np.uint8)
+    feet = np.full((n, n), 255, np.uint8)
+    shift = -np.asarray(sun[:2]) / max(float(sun[2]), 1e-3)  # ground offset of a point 1 m up
+    for corners, height in footprints:
+        pts = np.concatenate([corners, corners + height * shift[None, :]])
+        px = ((pts - np.asarray(origin)[None, :]) / m_per_px).astype(np.float32)
+        hull = cv2.convexHull(px).astype(np.int32)
+        cv2.fillConvexPoly(lit, hull, 0, cv2.LINE_AA)
+        foot = ((corners - np.asarray(origin)[None, :]) / m_per_px).astype(np.int32)
+        cv2.fillConvexPoly(feet, foot, 0)
+    shadow = cv2.GaussianBlur(lit.astype(np.float32) / 255.0, (0, 0), 0.06 / m_per_px)
+    dist = cv2.distanceTransform(feet, cv2.DIST_L2, 5) * m_per_px
+    occlusion = 1.0 - 0.3 * np.exp(-dist / 0.7)
+    return ((0.62 + 0.38 * shadow) * occlusion).astype(np.float32)
+
+
 def ground_tile(
     rng: np.random.Generator,
-    x0: float,
-    y0: float,
-    tile_m: float,
+    src: GroundSources,
+    ox: int,
+    oy: int,
     road_dist: F32,
     road_along: F32,
     road_width: float,
     terrain: F32,
+    light: F32,
 ) -> F32:
-    """Ground texture for the tile [x0, x0 + tile_m] x [y0, y0 + tile_m] (texture row 0 at y0).
+    """Ground texture for the tile whose first texel is global texel (ox, oy) (texture row 0 at low y).
 
     road_dist: (TEX, TEX) distance of each texel to the nearest road centre line (m); road_along:
-    arc length along that road (m, for dashes); terrain: (TEX, TEX) in [0, 1] (grass <-> gravel).
+    arc length along that road (m, for dashes); terrain: (TEX, TEX) in [0, 1] (grass <-> gravel);
+    light: (TEX, TEX) baked sunlight factor (shadows, occlusion).
     """
     s = TEX
-    m_per_px = tile_m / s
-    xs = x0 + (np.arange(s, dtype=np.float32) + 0.5) * m_per_px
-    ys = y0 + (np.arange(s, dtype=np.float32) + 0.5) * m_per_px
-    X, Y = np.meshgrid(xs, ys)
-
-    def sample(img: F32, period_m: float, ox: float = 0.0, oy: float = 0.0) -> F32:
-        mx = ((X + ox) / period_m * img.shape[1]).astype(np.float32)
-        my = ((Y + oy) / period_m * img.shape[0]).astype(np.float32)
-        out = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-        return np.asarray(out, dtype=np.float32)
-
-    grass = 0.15 + 0.7 * sample(photo("grass"), 3.0)
-    gravel = 0.2 + 0.7 * sample(photo("gravel"), 2.5, 1.3, 0.7)
+    crop = src.crop
+    mix = crop(src.patches, ox, oy)
+    grass = 0.12 + 0.72 * (mix * crop(src.grass, ox, oy) + (1 - mix) * crop(src.grass2, ox, oy))
+    gravel = 0.2 + 0.7 * crop(src.gravel, ox + 83, oy + 45)
     img = grass * (1 - terrain) + gravel * terrain
-    asphalt = 0.22 + 0.2 * sample(photo("gravel"), 1.7, 3.1, 2.2) + 0.08 * (fractal_noise(rng, s, 6, 8) - 0.5)
+    wear = crop(src.patches, ox + 1000, oy + 700)
+    asphalt = (
+        0.2
+        + 0.16 * crop(src.asphalt, ox + 198, oy + 141)
+        + 0.1 * (crop(src.fine, ox, oy) - 0.5)
+        + 0.08 * wear
+    )
     half = road_width / 2
     on_road = road_dist < half
     img = np.where(on_road, asphalt, img)
-    # Curb: a light strip along the road edge.
+    # Curb: a light concrete strip along the road edge.
     curb = (road_dist >= half) & (road_dist < half + 0.25)
-    img = np.where(curb, 0.75 + 0.1 * (gravel - 0.5), img)
-    # Markings: dashed centre line (3 m dash, 3 m gap) and solid edge lines.
+    img = np.where(curb, 0.72 + 0.15 * (gravel - 0.5), img)
+    # Markings: dashed centre line (3 m dash, 3 m gap) and solid edge lines, worn by the traffic.
     centre = (road_dist < 0.08) & (np.mod(road_along, 6.0) < 3.0)
     edge = on_road & (np.abs(road_dist - (half - 0.3)) < 0.07)
-    img = np.where(centre | edge, 0.92, img)
-    # Unique clutter: manhole covers, oil stains, cracks.
+    paint = 0.7 + 0.25 * crop(src.fine, ox + 311, oy + 97)
+    img = np.where(centre | edge, paint, img)
+    # Unique clutter: manhole covers, oil stains, tar-sealed cracks.
     for _ in range(int(rng.integers(0, 3))):
-        cx, cy, r = int(rng.integers(0, s)), int(rng.integers(0, s)), int(rng.integers(15, 40))
+        r = int(rng.integers(15, 40))  # whole covers: a tile edge must not cut one in half
+        cx, cy = int(rng.integers(r + 4, s - r - 4)), int(rng.integers(r + 4, s - r - 4))
         cv2.circle(img, (cx, cy), r, 0.12, -1)
         cv2.circle(img, (cx, cy), r, 0.6, 3)
         for k in range(-r + 6, r - 5, 8):
             cv2.line(img, (cx - r + 5, cy + k), (cx + r - 5, cy + k), 0.35, 1)
+    for _ in range(int(rng.integers(0, 3))):
+        cx, cy = int(rng.integers(80, s - 80)), int(rng.integers(80, s - 80))
+        ax = (int(rng.integers(10, 60)), int(rng.integers(8, 40)))
+        stain = np.zeros((s, s), np.float32)
+        cv2.ellipse(stain, (cx, cy), ax, float(rng.uniform(0, 180)), 0, 360, 1.0, -1)
+        img *= 1.0 - 0.35 * cv2.GaussianBlur(stain, (0, 0), 6)
     for _ in range(int(rng.integers(1, 4))):
         p = [(int(rng.integers(0, s)), int(rng.integers(0, s)))]
         for _ in range(6):
-            p.append((p[-1][0] + int(rng.integers(-40, 41)), p[-1][1] + int(rng.integers(-40, 41))))
+            step = rng.integers(-40, 41, 2)
+            p.append((int(np.clip(p[-1][0] + step[0], 3, s - 4)), int(np.clip(p[-1][1] + step[1], 3, s - 4))))
         cv2.polylines(img, [np.array(p, np.int32)], False, 0.08, 2)
-    return np.clip(img, 0, 1).astype(np.float32)
+    return np.clip(img * light, 0, 1).astype(np.float32)

@@ -61,7 +61,7 @@ class World:
     tile_m: float
     tiles_origin: F64  # (x, y) of the ground grid corner
     tiles_n: int  # tiles per side
-    layers: NDArray[np.float32]  # (L, TEX, TEX) texture array, ground tiles first
+    layers: NDArray[np.uint8]  # (L, TEX, TEX) texture array (0..255), ground tiles first
     box_layers: list[list[int]] = field(default_factory=list)  # per box: [+x, +y, -x, -y, top] layer
     apron_layer: int = 0  # ground texture outside the tiled site (repeats every TEXTURE_M)
     apron_m: float = 1500.0  # half-size of the far-field ground
@@ -73,6 +73,10 @@ class World:
 
     def tile_layer(self, ix: int, iy: int) -> int:
         return iy * self.tiles_n + ix
+
+
+def _to_u8(img: NDArray[np.floating]) -> NDArray[np.uint8]:
+    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
 def _segments(roads: list[F64]) -> tuple[F64, F64, F64]:
@@ -173,13 +177,27 @@ def generate_world(seed: int, size_m: float = 120.0, tile_m: float = 8.0) -> Wor
         )
     ):
         obstacles.append(Box(np.array([cx, cy, 2.0]), np.array([sx, sy, 4.0]), 0.0, f"W{k + 1}"))
-    # Textures: ground tiles first (with roads painted in), then 5 per box.
+    # Textures: ground tiles first (with roads painted in, shadows baked), then 5 per box.
     n_tiles = int(np.ceil(size_m / tile_m))
     origin = np.array([-n_tiles * tile_m / 2, -n_tiles * tile_m / 2])
-    layers: list[NDArray[np.float32]] = []
+    layers: list[NDArray[np.uint8]] = []
     s = textures.TEX
     coarse = textures.fractal_noise(rng, 256, 5, 4)  # terrain mix over the whole site
+    m_per_px = tile_m / s
+    src = textures.GroundSources(rng, m_per_px)
+    shade_px = 160  # sunlight map texels per tile (5 cm for 8 m tiles)
+    sun = np.array([0.45, 0.3, 0.84])
+    all_boxes = buildings + obstacles
+    light = textures.shading_map(
+        [(b.corners_xy().astype(np.float32), float(b.center[2] + b.size[2] / 2)) for b in all_boxes],
+        sun.astype(np.float32),
+        (float(origin[0]), float(origin[1])),
+        n_tiles * shade_px,
+        tile_m / shade_px,
+    )
     px = (np.arange(s) + 0.5) / s * tile_m
+    ox0 = round(float(origin[0]) / m_per_px)
+    oy0 = round(float(origin[1]) / m_per_px)
     for iy in range(n_tiles):
         for ix in range(n_tiles):
             gx0 = origin[0] + ix * tile_m
@@ -189,25 +207,24 @@ def generate_world(seed: int, size_m: float = 120.0, tile_m: float = 8.0) -> Wor
             dist = np.minimum(dist, 1e3)
             u = ((X - origin[0]) / (n_tiles * tile_m) * 255).astype(np.float32)
             v = ((Y - origin[1]) / (n_tiles * tile_m) * 255).astype(np.float32)
-            terrain = cv2.remap(coarse, u, v, cv2.INTER_LINEAR)
+            terrain = cv2.remap(coarse, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             terrain = np.clip((terrain - 0.35) * 3, 0, 1)
-            layers.append(
-                textures.ground_tile(
-                    rng,
-                    gx0,
-                    gy0,
-                    tile_m,
-                    dist.astype(np.float32),
-                    along.astype(np.float32),
-                    road_width,
-                    terrain,
-                )
+            window = light[iy * shade_px : (iy + 1) * shade_px, ix * shade_px : (ix + 1) * shade_px]
+            tile = textures.ground_tile(
+                rng,
+                src,
+                ox0 + ix * s,
+                oy0 + iy * s,
+                dist.astype(np.float32),
+                along.astype(np.float32),
+                road_width,
+                terrain,
+                cv2.resize(window, (s, s), interpolation=cv2.INTER_LINEAR),
             )
+            layers.append(_to_u8(tile))
     apron_layer = len(layers)
     layers.append(
-        (0.25 + 0.5 * textures.photo("gravel") * (0.7 + 0.3 * textures.fractal_noise(rng, s, 5, 4))).astype(
-            np.float32
-        )
+        _to_u8(0.25 + 0.5 * textures.photo("gravel") * (0.7 + 0.3 * textures.fractal_noise(rng, s, 5, 4)))
     )
     box_layers: list[list[int]] = []
     for bx in buildings + obstacles:
@@ -216,17 +233,16 @@ def generate_world(seed: int, size_m: float = 120.0, tile_m: float = 8.0) -> Wor
             label = f"{bx.name}{face}"
             if bx.name.startswith("C"):
                 tex = textures.container_texture(rng, label)
-            elif bx.name.startswith(("P", "F")):
-                tex = (0.3 + 0.5 * textures.fractal_noise(rng, s, 6, 16)).astype(np.float32)
-                if bx.name.startswith("F"):
-                    tex[::24, :] = 0.9
-                    tex[:, ::24] = 0.9
+            elif bx.name.startswith("P"):
+                tex = textures.pillar_texture(rng, label)
+            elif bx.name.startswith("F"):
+                tex = textures.fence_texture(rng, label)
             else:
                 tex = textures.wall_texture(rng, label)
             ids.append(len(layers))
-            layers.append(tex)
+            layers.append(_to_u8(tex))
         ids.append(len(layers))
-        layers.append(textures.roof_texture(rng))
+        layers.append(_to_u8(textures.roof_texture(rng)))
         box_layers.append(ids)
     log.debug(
         "world %d: %d buildings, %d obstacles, %d texture layers",
@@ -245,7 +261,7 @@ def generate_world(seed: int, size_m: float = 120.0, tile_m: float = 8.0) -> Wor
         tile_m=tile_m,
         tiles_origin=origin,
         tiles_n=n_tiles,
-        layers=np.stack(layers).astype(np.float32),
+        layers=np.stack(layers),
         box_layers=box_layers,
         apron_layer=apron_layer,
     )
