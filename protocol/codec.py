@@ -153,8 +153,31 @@ def _arr(
     return v
 
 
+def _rotation_error(R: list[list[float]]) -> tuple[float, float]:
+    """max |R^T R - I| and det(R) of a 3x3 matrix given as nested lists (cheaper than numpy at 3x3)."""
+    err = 0.0
+    for i in range(3):
+        for j in range(i, 3):
+            d = R[0][i] * R[0][j] + R[1][i] * R[1][j] + R[2][i] * R[2][j] - (1.0 if i == j else 0.0)
+            err = max(err, abs(d))
+    det = (
+        R[0][0] * (R[1][1] * R[2][2] - R[1][2] * R[2][1])
+        - R[0][1] * (R[1][0] * R[2][2] - R[1][2] * R[2][0])
+        + R[0][2] * (R[1][0] * R[2][1] - R[1][1] * R[2][0])
+    )
+    return err, det
+
+
 def _rigid(m: np.ndarray, path: str) -> None:
-    """(..., 4, 4) SE(3): last row [0, 0, 0, 1], rotation orthonormal with det +1."""
+    """(..., 4, 4) SE(3): last row [0, 0, 0, 1], rotation orthonormal to 1e-6 with det +1."""
+    if m.ndim == 2:
+        rows = m.tolist()
+        if rows[3] != [0.0, 0.0, 0.0, 1.0]:
+            raise FieldError("last row of a pose must be [0, 0, 0, 1]", path)
+        err, det = _rotation_error([r[:3] for r in rows[:3]])
+        if err > _POSE_TOL or det <= 0:
+            raise FieldError("rotation block is not a proper orthonormal rotation", path)
+        return
     bottom = m[..., 3, :]
     if not (bottom == _BOTTOM).all():
         raise FieldError("last row of a pose must be [0, 0, 0, 1]", path)
@@ -173,6 +196,20 @@ def _similarity(m: np.ndarray, path: str) -> None:
     R = m[:3, :3] / np.cbrt(det)
     if np.abs(R.T @ R - np.eye(3)).max() > _POSE_TOL:
         raise FieldError("Sim(3) rotation block is not a scaled rotation", path)
+
+
+def _spd3(c: list[list[float]]) -> bool:
+    """Symmetric (to 1e-12 relative) and positive definite (Sylvester: leading minors > 0)."""
+    scale = max(abs(x) for row in c for x in row)
+    if any(abs(c[i][j] - c[j][i]) > 1e-12 * scale for i in range(3) for j in range(i + 1, 3)):
+        return False
+    m2 = c[0][0] * c[1][1] - c[0][1] * c[1][0]
+    m3 = (
+        c[0][0] * (c[1][1] * c[2][2] - c[1][2] * c[2][1])
+        - c[0][1] * (c[1][0] * c[2][2] - c[1][2] * c[2][0])
+        + c[0][2] * (c[1][0] * c[2][1] - c[1][1] * c[2][0])
+    )
+    return c[0][0] > 0 and m2 > 0 and m3 > 0
 
 
 def _same_rows(path_a: str, a: np.ndarray, path_b: str, b: np.ndarray) -> None:
@@ -250,10 +287,7 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
     if enu is not None:
         enu = _arr(enu, "body.gnss_enu", "<f8", (3,))
         cov = _arr(cov, "body.gnss_cov", "<f8", (3, 3))
-        if (
-            not (np.abs(cov - cov.T) <= 1e-12 * np.abs(cov).max()).all()
-            or (np.linalg.eigvalsh(cov) <= 0).any()
-        ):
+        if not _spd3(cov.tolist()):
             raise FieldError("covariance must be symmetric positive definite", "body.gnss_cov")
     return Keyframe(
         kf_id=_int(b["kf_id"], "body.kf_id", 0),

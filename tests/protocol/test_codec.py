@@ -194,7 +194,7 @@ def _tamper(frame: bytes, **changes: Any) -> bytes:
         (lambda m: replace(m, gnss_enu=np.zeros(3)), FieldError, "body.gnss_cov"),
     ],
 )
-def test_bad_keyframe_fields_are_named(mutate: Any, error: type, field: str) -> None:
+def test_bad_keyframe_fields_are_named(mutate: Any, error: type[ProtocolError], field: str) -> None:
     with pytest.raises(error) as e:
         decode(encode(mutate(_kf()), 1))
     assert e.value.field == field
@@ -237,3 +237,46 @@ def test_decoded_arrays_are_read_only() -> None:
     assert isinstance(kf, Keyframe)
     with pytest.raises(ValueError):
         kf.keypoints[0, 0] = 1.0
+
+
+def test_pose_rigidity_threshold() -> None:
+    """Rotation blocks must be orthonormal to 1e-6 (well above float64 noise from composing poses)."""
+    R = so3_exp(np.array([0.3, -0.2, 0.1]))
+    ok = se3(R, np.array([1.0, 2.0, 3.0]))
+    ok[0, 0] += 1e-8  # below the tolerance: accepted
+    decode(encode(replace(_kf(), world_from_cam=ok), 1))
+    bad = ok.copy()
+    bad[0, 0] += 1e-5  # non-orthonormal beyond 1e-6
+    with pytest.raises(FieldError) as e:
+        decode(encode(replace(_kf(), world_from_cam=bad), 1))
+    assert e.value.field == "body.world_from_cam"
+    mirror = se3(R @ np.diag([1.0, 1.0, -1.0]), np.zeros(3))  # orthonormal but det -1
+    bottom = se3(R, np.zeros(3))
+    bottom[3, 0] = 1e-3
+    stack = np.stack([se3(R, np.zeros(3)), mirror])
+    for msg, field in (
+        (replace(_kf(), world_from_cam=mirror), "body.world_from_cam"),
+        (replace(_kf(), world_from_cam=bottom), "body.world_from_cam"),
+        (PoseUpdates(np.arange(2), stack, np.zeros(0, np.int64), np.zeros((0, 3))), "body.world_from_cam"),
+        (Correction(1, np.eye(4), np.arange(2), stack), "body.world_from_cam"),
+        (
+            Correction(1, np.diag([1.0, 2.0, 1.0, 1.0]), np.zeros(0, np.int64), np.zeros((0, 4, 4))),
+            "body.global_from_local",
+        ),
+        (replace(_kf(), gnss_enu=np.zeros(3), gnss_cov=np.diag([1.0, -1.0, 1.0])), "body.gnss_cov"),
+        (
+            replace(_kf(), gnss_enu=np.zeros(3), gnss_cov=np.array([[1.0, 0.5, 0], [0, 1, 0], [0, 0, 1]])),
+            "body.gnss_cov",
+        ),
+        (replace(_kf(), gnss_enu=np.array([0.0, np.nan, 0.0]), gnss_cov=np.eye(3)), "body.gnss_enu"),
+    ):
+        with pytest.raises(FieldError) as e:
+            decode(encode(msg, 1))
+        assert e.value.field == field, (msg, e.value)
+
+
+def test_huge_finite_values_are_not_mistaken_for_inf() -> None:
+    """Finite values near the float64 maximum are valid data, not inf."""
+    xyz = np.full((10, 3), 1e308)
+    _, got = decode(encode(MapPoints(np.arange(10), xyz, np.zeros((10, 32), np.uint8)), 1))
+    assert isinstance(got, MapPoints) and np.array_equal(got.xyz, xyz)
