@@ -32,10 +32,10 @@ def sample_poses(world: World) -> dict[str, np.ndarray]:
     xs = [float(r[0, 0]) for r in world.roads[:4]]
     ys = [float(r[0, 1]) for r in world.roads[4:]]
     return {
-        "uav": pose(xs[1] - 14, ys[1] - 12, 10.0, 40, 45),
-        "ugv": pose(xs[1] + 1.8, ys[1] - 16, 1.0, 90, 0),
-        "fog": pose(xs[2] - 1.8, ys[2] - 22, 1.0, 95, 0),
-        "somber": pose(xs[2] + 12, ys[1] + 14, 12.0, 220, 45),
+        "uav": pose(xs[1] - 2, ys[0] + 3, 12.0, 60, 45),
+        "ugv": pose(xs[1] + 1.8, ys[0] + 6, 1.0, 90, 0),
+        "fog": pose(xs[2] - 1.8, ys[0] + 2, 1.0, 93, 0),
+        "somber": pose(xs[2], ys[2] - 10, 8.0, 100, 45),
     }
 
 

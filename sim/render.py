@@ -72,18 +72,17 @@ def _plan(camera: PinholeCamera) -> _UndistortPlan:
     )
 
 
-def _remap_depth(depth: F32, map_x: F32, map_y: F32) -> F32:
-    """Resample depth: bilinear on smooth surfaces (exact for planes at sub-pixel positions), nearest
-    across depth edges and sky (never blends a foreground and a background surface)."""
-    near = cv2.remap(depth, map_x, map_y, cv2.INTER_NEAREST)
-    finite = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
-    lin = cv2.remap(finite, map_x, map_y, cv2.INTER_LINEAR)
-    inv = cv2.remap(
-        1.0 / np.where(np.isfinite(depth), depth, np.inf).astype(np.float32), map_x, map_y, cv2.INTER_LINEAR
-    )
-    # For a plane, 1/z is affine in the image: interpolate 1/z where the neighbourhood is smooth.
-    smooth = np.isfinite(near) & (np.abs(lin - near) < 0.05 * near) & (inv > 0)
-    return np.where(smooth, 1.0 / np.where(inv > 0, inv, 1.0), near).astype(np.float32)
+def _remap_inverse_depth(inv: F32, map_x: F32, map_y: F32) -> F32:
+    """Resample inverse depth (0 = sky) and return depth (inf = sky). For a plane 1/z is affine in the
+    undistorted image, so bilinear interpolation of 1/z is exact on smooth surfaces; across depth edges
+    and at the sky the nearest sample is kept (never a blend of a foreground and a background surface)."""
+    near = cv2.remap(inv, map_x, map_y, cv2.INTER_NEAREST)
+    lin = cv2.remap(inv, map_x, map_y, cv2.INTER_LINEAR)
+    smooth = np.abs(lin - near) < 0.05 * near
+    inv_out = np.where(smooth, lin, near)
+    depth = np.full(inv_out.shape, np.inf, np.float32)
+    np.divide(1.0, inv_out, out=depth, where=inv_out > 0)
+    return depth
 
 
 def _sky(depth: F32, gray: F32, camera_rows: int) -> F32:
@@ -120,10 +119,10 @@ flat in float v_layer;
 in float v_shade;
 in float v_depth;
 layout(location = 0) out float out_gray;
-layout(location = 1) out float out_depth;
+layout(location = 1) out float out_inv_depth;
 void main() {
     out_gray = texture(tex, vec3(v_uv, v_layer)).r * v_shade;
-    out_depth = v_depth;
+    out_inv_depth = -1.0 / v_depth;  // camera looks along -z in GL: 1 / (depth in metres); 0 = sky
 }
 """
 
@@ -191,6 +190,7 @@ class GLRenderer:
         self.zbuf = self.ctx.depth_renderbuffer((w, h))
         self.fbo = self.ctx.framebuffer([self.color, self.depth_out], self.zbuf)
         self.proj = self._projection(self.plan.K_render, w, h)
+        self._map_y_gl = np.ascontiguousarray((h - 1) - self.plan.map_y, dtype=np.float32)
 
     def _projection(self, K: F64, w: int, h: int) -> F64:
         """OpenCV intrinsics -> GL projection for the GL camera (x right, y up, z backwards)."""
@@ -221,16 +221,18 @@ class GLRenderer:
         self.vao.render(moderngl.TRIANGLES)
         w, h = self.plan.size
         gray = np.frombuffer(self.fbo.read(components=1, attachment=0, dtype="f4"), np.float32).reshape(h, w)
-        zneg = np.frombuffer(self.fbo.read(components=1, attachment=1, dtype="f4"), np.float32).reshape(h, w)
-        gray, zneg = gray[::-1], zneg[::-1]  # GL rows start at the bottom
-        depth = np.where(zneg < 0, -zneg, np.inf).astype(np.float32)
+        inv = np.frombuffer(self.fbo.read(components=1, attachment=1, dtype="f4"), np.float32).reshape(h, w)
         p = self.plan
         if self.camera.has_distortion or p.size != (self.camera.width, self.camera.height):
-            gray = cv2.remap(np.ascontiguousarray(gray), p.map_x, p.map_y, cv2.INTER_LINEAR).astype(
-                np.float32
-            )
-            depth = _remap_depth(depth, p.map_x, p.map_y)
-        gray = _sky(depth, gray * 255.0, self.camera.height)
+            # GL rows start at the bottom: the maps sample the flipped image directly (no copy).
+            gray = np.asarray(cv2.remap(gray, p.map_x, self._map_y_gl, cv2.INTER_LINEAR), np.float32)
+            depth = _remap_inverse_depth(inv, p.map_x, self._map_y_gl)
+        else:
+            gray = gray[::-1]
+            inv = inv[::-1]
+            depth = np.full(inv.shape, np.inf, np.float32)
+            np.divide(1.0, inv, out=depth, where=inv > 0)
+        gray = _sky(depth, gray * np.float32(255.0), self.camera.height)
         return np.clip(gray + 0.5, 0, 255).astype(np.uint8), depth
 
     def close(self) -> None:

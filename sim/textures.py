@@ -296,5 +296,7 @@ def ground_tile(
         for _ in range(6):
             step = rng.integers(-40, 41, 2)
             p.append((int(np.clip(p[-1][0] + step[0], 3, s - 4)), int(np.clip(p[-1][1] + step[1], 3, s - 4))))
-        cv2.polylines(img, [np.array(p, np.int32)], False, 0.08, 2)
+        crack = np.zeros((s, s), np.float32)
+        cv2.polylines(crack, [np.array(p, np.int32)], False, 1.0, 2, cv2.LINE_AA)
+        img *= 1.0 - 0.45 * crack  # tar-sealed: darker than the surface, not black
     return np.clip(img * light, 0, 1).astype(np.float32)
