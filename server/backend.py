@@ -370,7 +370,14 @@ class Backend:
             map_id=m.id,
             data=rec,
         )
-        self._schedule_optimisation(m.id, [(det.candidate_key, det.query_key, measured)], t_det, fuse=pairs)
+        # ORB-SLAM: the query's covisible neighbourhood starts the pose graph already corrected by the
+        # detection's Sim(3) (its odometry edges keep their uncorrected relative poses)
+        hood = [det.query_key, *m.best_covisible(det.query_key, 30)]
+        hood = [k for k in hood if k not in m.loop_neighbours(det.query_key) or k == det.query_key]
+        pre = (det.target_from_source, hood)
+        self._schedule_optimisation(
+            m.id, [(det.candidate_key, det.query_key, measured)], t_det, fuse=pairs, pre=pre
+        )
 
     # -- optimisation pipeline ------------------------------------------------------------------------
     def _schedule_optimisation(
@@ -379,21 +386,28 @@ class Backend:
         edges: list[tuple[KfKey, KfKey, Sim3]],
         t_det: float,
         fuse: list[tuple[Any, Any]] | None = None,
+        pre: tuple[Sim3, list[KfKey]] | None = None,
     ) -> None:
         if map_id in self._opt_running:
             self._opt_again.setdefault(map_id, []).extend(edges)
             return
-        task = asyncio.create_task(self._optimise(map_id, edges, t_det, fuse or []))
+        task = asyncio.create_task(self._optimise(map_id, edges, t_det, fuse or [], pre))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
     async def _optimise(
-        self, map_id: int, edges: list[tuple[KfKey, KfKey, Sim3]], t_det: float, fuse: list[tuple[Any, Any]]
+        self,
+        map_id: int,
+        edges: list[tuple[KfKey, KfKey, Sim3]],
+        t_det: float,
+        fuse: list[tuple[Any, Any]],
+        pre: tuple[Sim3, list[KfKey]] | None = None,
     ) -> None:
         self._opt_running.add(map_id)
         try:
             while True:
-                await self._optimise_once(map_id, edges, t_det, fuse)
+                await self._optimise_once(map_id, edges, t_det, fuse, pre)
+                pre = None
                 again = self._opt_again.pop(map_id, None)
                 if again is None or map_id not in self.server.stack.maps:
                     break
@@ -428,29 +442,40 @@ class Backend:
         return [0]
 
     async def _optimise_once(
-        self, map_id: int, edges: list[tuple[KfKey, KfKey, Sim3]], t_det: float, fuse: list[tuple[Any, Any]]
+        self,
+        map_id: int,
+        edges: list[tuple[KfKey, KfKey, Sim3]],
+        t_det: float,
+        fuse: list[tuple[Any, Any]],
+        pre: tuple[Sim3, list[KfKey]] | None = None,
     ) -> None:
         loop = asyncio.get_running_loop()
         server = self.server
         m = server.stack.maps.get(map_id)
         if m is None or len(m.keyframes) < 2:
             return
-        for keep, drop in fuse:  # loop: the two sides' duplicate points become one
-            k2, d2 = m.resolve_point(keep), m.resolve_point(drop)
-            if k2 != d2 and k2 in m.points and d2 in m.points:
-                m.fuse_points(k2, d2)
         before = self._local_poses(m)
         o = self.options
         # 1. Sim(3) pose graph over the essential graph + the new edges
         if o.pose_graph and edges:
             snap = self._snapshot(m)
             index = {k: i for i, k in enumerate(snap.keys)}
-            graph_edges = [(index[a], index[b]) for a, b in m.essential_edges() if a in index and b in index]
+            new_pairs = {frozenset((a, b)) for a, b, _ in edges}
+            graph_edges = [
+                (index[a], index[b])
+                for a, b in m.essential_edges()
+                if a in index and b in index and frozenset((a, b)) not in new_pairs
+            ]
             new_edges = [(index[a], index[b], s) for a, b, s in edges if a in index and b in index]
             fixed = self._anchor(m, snap.keys)[:1]
+            initial = snap.poses.copy()
+            if pre is not None:
+                for k in pre[1]:
+                    if k in index and index[k] not in fixed:
+                        initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
             t0 = time.perf_counter()
             sims = await loop.run_in_executor(
-                self._opt_exec, _pose_graph, snap.poses, graph_edges, new_edges, fixed
+                self._opt_exec, _pose_graph, initial, snap.poses, graph_edges, new_edges, fixed
             )
             pg_ms = (time.perf_counter() - t0) * 1e3
             cur = self._current(snap)
@@ -461,6 +486,15 @@ class Backend:
             server.events.add("pose_graph", f"map {map_id}: pose graph over {len(snap.keys)} keyframes, "
                               f"{len(graph_edges) + len(new_edges)} edges ({pg_ms:.0f} ms)", map_id=map_id,
                               data={"n_keyframes": len(snap.keys), "ms": pg_ms})  # fmt: skip
+        # loop: the two sides' duplicate points become one only now (fused earlier, their covisibility
+        # edges would hold the uncorrected relative poses in the pose graph)
+        m = server.stack.maps.get(map_id)
+        if m is None:
+            return
+        for keep, drop in fuse:
+            k2, d2 = m.resolve_point(keep), m.resolve_point(drop)
+            if k2 != d2 and k2 in m.points and d2 in m.points:
+                m.fuse_points(k2, d2)
         # 2. global BA (background; keyframes arriving meanwhile follow their parent)
         if o.global_ba and 2 <= len(m.keyframes) <= o.ba_max_keyframes:
             m = server.stack.maps.get(map_id)
@@ -693,13 +727,18 @@ def _umeyama(src: F64, dst: F64) -> Sim3:
 
 # -- compute (worker thread, no map access) ----------------------------------------------------------
 def _pose_graph(
-    poses: F64, graph_edges: list[tuple[int, int]], new_edges: list[tuple[int, int, Sim3]], fixed: list[int]
+    initial: F64,
+    poses: F64,
+    graph_edges: list[tuple[int, int]],
+    new_edges: list[tuple[int, int, Sim3]],
+    fixed: list[int],
 ) -> list[Sim3]:
+    """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected)."""
     from hivemap.server.optim import PoseGraphEdge, optimize_pose_graph_sim3, relative_sim3
 
     edges = [PoseGraphEdge(i, j, relative_sim3(poses[i], poses[j])) for i, j in graph_edges]
     edges += [PoseGraphEdge(i, j, s, robust=True) for i, j, s in new_edges]
-    return optimize_pose_graph_sim3(poses, edges, set(fixed))
+    return optimize_pose_graph_sim3(initial, edges, set(fixed))
 
 
 @dataclass

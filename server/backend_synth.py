@@ -38,11 +38,16 @@ def agent_stream(
     centres_x: np.ndarray,
     local_from_world: Sim3,
     pose_noise: tuple[float, float] = (0.0, 0.0),
+    id0: int = 0,
+    point_id0: int = 0,
+    drift: Sim3 | None = None,
 ) -> tuple[list[Message], np.ndarray, np.ndarray]:
     """Messages of one agent (points first, then keyframes) + true and sent poses in its local frame.
 
     ``pose_noise`` (metres in the world, degrees): perturbation of the sent keyframe poses (drift-like
-    error the server's global BA should remove); observations come from the true poses."""
+    error the server's global BA should remove); observations come from the true poses. ``id0`` /
+    ``point_id0``: first keyframe / point id (a second pass). ``drift``: the sent poses
+    and points are moved by it (accumulated odometry drift on a second pass); true poses are returned without it."""
     true = []
     for cx in centres_x:
         R = so3_exp(rng.normal(0, 0.05, 3))
@@ -55,11 +60,14 @@ def agent_stream(
         for i in np.flatnonzero(valid).tolist():
             seen.setdefault(i, []).append((k, uv[i], int(rng.integers(0, 4))))
     used = sorted(i for i, obs in seen.items() if len(obs) >= 2)
-    ids = {i: j for j, i in enumerate(used)}
-    xyz = local_from_world.apply(pts[used] + rng.normal(0, 0.02, (len(used), 3)))
+    ids = {i: point_id0 + j for j, i in enumerate(used)}
+    sent_from_local = drift if drift is not None else Sim3.identity()
+    xyz = (sent_from_local @ local_from_world).apply(pts[used] + rng.normal(0, 0.02, (len(used), 3)))
     msgs: list[Message] = [
         MapPoints(
-            ids=np.arange(len(used), dtype=np.int64), xyz=xyz, descriptors=flip_bits(desc[used], rng, 2)
+            ids=point_id0 + np.arange(len(used), dtype=np.int64),
+            xyz=xyz,
+            descriptors=flip_bits(desc[used], rng, 2),
         )
     ]
     sent = []
@@ -77,11 +85,11 @@ def agent_stream(
         pids = np.array([ids[i] for i, _, _ in rows] + [-1] * n_cl, dtype=np.int64)
         dT = se3(so3_exp(np.deg2rad(pose_noise[1]) * rng.normal(0, 1, 3) / np.sqrt(3)),
                  pose_noise[0] * rng.normal(0, 1, 3) / np.sqrt(3))  # fmt: skip
-        T_sent = local_from_world.transform_pose(T @ dT)  # perturbed in the camera frame
+        T_sent = (sent_from_local @ local_from_world).transform_pose(T @ dT)  # perturbed in the camera frame
         sent.append(T_sent)
         msgs.append(
-            Keyframe(kf_id=k, timestamp=float(k), world_from_cam=T_sent, keypoints=kps.astype(np.float32),
-                     octaves=octs, descriptors=d, point_ids=pids)
+            Keyframe(kf_id=id0 + k, timestamp=float(id0 + k), world_from_cam=T_sent,
+                     keypoints=kps.astype(np.float32), octaves=octs, descriptors=d, point_ids=pids)
         )  # fmt: skip
     true_local = np.array([local_from_world.transform_pose(T) for T in true])
     return msgs, true_local, np.array(sent)
