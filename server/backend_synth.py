@@ -47,7 +47,7 @@ def agent_stream(
     ``pose_noise`` (metres in the world, degrees): perturbation of the sent keyframe poses (drift-like
     error the server's global BA should remove); observations come from the true poses. ``id0`` /
     ``point_id0``: first keyframe / point id (a second pass). ``drift``: the sent poses
-    and points are moved by it (accumulated odometry drift on a second pass); true poses are returned without it."""
+    and points are moved by it (odometry drift on a second pass); true poses are returned without it."""
     true = []
     for cx in centres_x:
         R = so3_exp(rng.normal(0, 0.05, 3))
