@@ -41,13 +41,16 @@ def agent_stream(
     id0: int = 0,
     point_id0: int = 0,
     drift: Sim3 | None = None,
+    gnss_sigma: float | None = None,
 ) -> tuple[list[Message], np.ndarray, np.ndarray]:
     """Messages of one agent (points first, then keyframes) + true and sent poses in its local frame.
 
     ``pose_noise`` (metres in the world, degrees): perturbation of the sent keyframe poses (drift-like
     error the server's global BA should remove); observations come from the true poses. ``id0`` /
     ``point_id0``: first keyframe / point id (a second pass). ``drift``: the sent poses
-    and points are moved by it (odometry drift on a second pass); true poses are returned without it."""
+    and points are moved by it (odometry drift on a second pass); true poses are returned without it.
+    ``gnss_sigma``: each keyframe carries a GNSS fix (the true camera centre in the world frame, taken as
+    ENU, plus noise of this standard deviation)."""
     true = []
     for cx in centres_x:
         R = so3_exp(rng.normal(0, 0.05, 3))
@@ -89,7 +92,9 @@ def agent_stream(
         sent.append(T_sent)
         msgs.append(
             Keyframe(kf_id=id0 + k, timestamp=float(id0 + k), world_from_cam=T_sent,
-                     keypoints=kps.astype(np.float32), octaves=octs, descriptors=d, point_ids=pids)
+                     keypoints=kps.astype(np.float32), octaves=octs, descriptors=d, point_ids=pids,
+                     gnss_enu=None if gnss_sigma is None else T[:3, 3] + rng.normal(0, gnss_sigma, 3),
+                     gnss_cov=None if gnss_sigma is None else np.eye(3) * gnss_sigma**2)
         )  # fmt: skip
     true_local = np.array([local_from_world.transform_pose(T) for T in true])
     return msgs, true_local, np.array(sent)

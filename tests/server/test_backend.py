@@ -170,3 +170,20 @@ def test_disjoint_agents_stay_in_two_maps(srv: Server) -> None:
     assert n_maps == 2
     assert srv.call(lambda: srv.backend.queries) == 20  # every keyframe was queried
     assert srv.call(lambda: srv.hive.events.counts.get("merge", 0)) == 0
+
+
+def test_gnss_stage_moves_merged_map_into_enu(srv: Server) -> None:
+    rng = np.random.default_rng(4)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    # the world frame is taken as ENU; the UGV's fixes (sigma 5 cm) span 14 m, enough to fix yaw
+    ugv_msgs, ugv_true, _ = agent_stream(
+        rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, gnss_sigma=0.05
+    )
+    uav_msgs, uav_true, _ = agent_stream(rng, pts, desc, np.linspace(-2, 12, 10), UAV_FROM_WORLD)
+    with stream(srv, "ugv1", "ugv", ugv_msgs), stream(srv, "uav1", "uav", uav_msgs):
+        srv.wait_idle()
+    assert srv.call(lambda: len(srv.hive.stack.maps)) == 1
+    assert srv.call(lambda: srv.hive.events.counts.get("gnss_stage", 0)) >= 1
+    # both agents' frames now map into ENU (= world): 10 fixes of 5 cm -> a few cm, well inside 0.2 m / 1 deg
+    check_transform(agent_transform(srv, "ugv1"), UGV_FROM_WORLD.inverse(), ugv_true[:, :3, 3])
+    check_transform(agent_transform(srv, "uav1"), UAV_FROM_WORLD.inverse(), uav_true[:, :3, 3])
