@@ -251,6 +251,28 @@ class NumpyRenderer:
         xy = camera.undistort_to_normalized(np.stack([u.ravel(), v.ravel()], 1))
         self.rays_cam = np.concatenate([xy, np.ones((len(xy), 1))], 1)  # z = 1: t is the depth
         self.corners, self.uvs, self.layers, self.shades = box_quads(world)
+        grid = xy.reshape(camera.height, camera.width, 2)
+        # Normalised-coordinate extent of each pixel row / column, to cull rays per quad.
+        self._row_lo, self._row_hi = grid[..., 1].min(1), grid[..., 1].max(1)
+        self._col_lo, self._col_hi = grid[..., 0].min(0), grid[..., 0].max(0)
+
+    def _candidate_rays(self, corners_cam: F64) -> NDArray[np.intp] | None:
+        """Indices of the rays that may hit a planar quad (camera-frame corners); None = no ray."""
+        z = corners_cam[:, 2]
+        if (z <= 1e-6).all():
+            return None  # behind the camera
+        w = self.camera.width
+        if (z <= 1e-6).any():
+            return np.arange(self.camera.height * w)  # straddles the camera plane: test every ray
+        nxy = corners_cam[:, :2] / z[:, None]  # a convex quad projects inside its corners' hull
+        (x0, y0), (x1, y1) = nxy.min(0), nxy.max(0)
+        rows = np.flatnonzero((self._row_hi >= y0) & (self._row_lo <= y1))
+        cols = np.flatnonzero((self._col_hi >= x0) & (self._col_lo <= x1))
+        if len(rows) == 0 or len(cols) == 0:
+            return None
+        r = np.arange(rows[0], rows[-1] + 1)
+        c = np.arange(cols[0], cols[-1] + 1)
+        return (r[:, None] * w + c[None, :]).ravel()
 
     def render(self, world_from_cam: F64) -> tuple[U8, F32]:
         T = np.asarray(world_from_cam, dtype=np.float64)
@@ -282,21 +304,24 @@ class NumpyRenderer:
         val[ok] = self._sample(iy * w.tiles_n + ix, gx - ix, gy - iy) * GROUND_SHADE
         # Box faces (planar quads).
         for c, uv, lay, sh in zip(self.corners, self.uvs, self.layers, self.shades, strict=True):
+            rays = self._candidate_rays((c - o) @ T[:3, :3])
+            if rays is None:
+                continue
             e1, e2 = c[1] - c[0], c[3] - c[0]
             nrm = np.cross(e1, e2)
-            den = d @ nrm
+            den = d[rays] @ nrm
             with np.errstate(divide="ignore", invalid="ignore"):
-                t = ((c[0] - o) @ nrm) / den
-            cand = np.isfinite(t) & (t > 1e-6) & (t < best)
+                t_r = ((c[0] - o) @ nrm) / den
+            cand = np.isfinite(t_r) & (t_r > 1e-6) & (t_r < best[rays])
             if not cand.any():
                 continue
-            idx = np.flatnonzero(cand)
-            p = o + t[idx, None] * d[idx] - c[0]
+            idx, tc = rays[cand], t_r[cand]
+            p = o + tc[:, None] * d[idx] - c[0]
             a = (p @ e1) / (e1 @ e1)
             b = (p @ e2) / (e2 @ e2)
             inside = (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
             idx, a, b = idx[inside], a[inside], b[inside]
-            best[idx] = t[idx]
+            best[idx] = tc[inside]
             tu = uv[0, 0] + a * (uv[1, 0] - uv[0, 0])
             tv = uv[0, 1] + b * (uv[3, 1] - uv[0, 1])
             val[idx] = self._sample(np.full(len(idx), lay), tu, tv) * sh
