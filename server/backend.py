@@ -118,12 +118,11 @@ class Backend:
             self.recognizer = PlaceRecognizer(vocab, KeyframeDatabase(), self.options.placerec)
 
         await loop.run_in_executor(self._pr_exec, init)
-        # keyframes reloaded from the store: index them (no detection on old keyframes)
+        # keyframes reloaded from the store are indexed by the worker first (no detection on them); the
+        # server is ready meanwhile
         keys = [(m.id, k) for m in server.stack.maps.values() for k in m.keyframes]
-        if keys:
-            await loop.run_in_executor(self._pr_exec, self._index_many, keys)
-        self._worker = asyncio.create_task(self._run(), name="hive-backend")
-        server.events.add("info", f"back-end started ({len(keys)} keyframes indexed)")
+        self._worker = asyncio.create_task(self._run(keys), name="hive-backend")
+        server.events.add("info", f"back-end started ({len(keys)} reloaded keyframes to index)")
 
     async def stop(self, server: Any) -> None:
         if self._worker is not None:
@@ -150,11 +149,11 @@ class Backend:
     # -- place-recognition worker -------------------------------------------------------------------
     def _index_many(self, keys: list[tuple[int, KfKey]]) -> None:
         assert self.recognizer is not None
-        for map_id, key in keys:
-            m = self.server.stack.maps.get(map_id)
+        for _, key in keys:
+            m = self.server.stack.map_of_agent(key[0])
             kf = m.keyframes.get(key) if m is not None else None
-            if kf is not None:
-                self.recognizer.add_keyframe(map_id, kf)
+            if m is not None and kf is not None and key not in self.recognizer.kfdb:
+                self.recognizer.add_keyframe(m.id, kf)
 
     def _detect(self, key: KfKey, n_agents: int) -> RecognitionResult | None:
         """Place-recognition thread: index the keyframe, then look for its place."""
@@ -182,8 +181,17 @@ class Backend:
         self._last_refill = now
         return 0.0 if self._tokens >= 1.0 else (1.0 - self._tokens) / rate
 
-    async def _run(self) -> None:
+    async def _run(self, reloaded: list[tuple[int, KfKey]]) -> None:
         loop = asyncio.get_running_loop()
+        if reloaded:
+            self._busy += 1
+            try:
+                for i in range(0, len(reloaded), 200):  # chunks: merges may relabel maps meanwhile
+                    await loop.run_in_executor(self._pr_exec, self._index_many, reloaded[i : i + 200])
+            except Exception:
+                logger.exception("indexing the reloaded keyframes failed")
+            finally:
+                self._busy -= 1
         while True:
             if not self.queue:
                 self._wake.clear()

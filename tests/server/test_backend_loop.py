@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_backend import UGV_FROM_WORLD, Server, stream
+from test_backend import UAV_FROM_WORLD, UGV_FROM_WORLD, Server, stream
 
 from hivemap.maps.geometry import Sim3, so3_exp
 from hivemap.server.backend_synth import agent_stream, make_world
@@ -50,3 +50,24 @@ def test_second_pass_closes_a_loop_and_removes_the_drift(srv: Server) -> None:
     # 2 cm, pixel noise 0.5 px: the BA solution is good to a few cm)
     assert before.mean() > 0.4
     assert after.max() < 0.1, (before, after)
+
+
+def test_keyframes_reloaded_after_restart_are_indexed_and_merge(tmp_path: Path) -> None:
+    rng = np.random.default_rng(6)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    ugv_msgs, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD)
+    uav_msgs, _, _ = agent_stream(rng, pts, desc, np.linspace(-2, 12, 10), UAV_FROM_WORLD)
+    first = Server(tmp_path / "data")
+    try:
+        with stream(first, "ugv1", "ugv", ugv_msgs):
+            first.wait_idle()
+    finally:
+        first.stop()
+    second = Server(tmp_path / "data")  # the UGV's map comes back from SQLite; the UAV arrives now
+    try:
+        with stream(second, "uav1", "uav", uav_msgs):
+            second.wait_idle()
+        assert second.call(lambda: len(second.backend.merges)) == 1
+        assert second.call(lambda: len(second.hive.stack.maps)) == 1
+    finally:
+        second.stop()
