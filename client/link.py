@@ -32,6 +32,16 @@ class LinkRefused(RuntimeError):
     """The server refused this agent (token, agent id): retrying would not help."""
 
 
+# Error codes that say "not now" rather than "never": the message stays in the outbox and the link
+# reconnects, so the server's welcome decides what is resent. Any other error naming a seq is final
+# (the server will never accept that message) and the message is dropped from the outbox.
+TRANSIENT_ERROR_CODES = frozenset({"storage", "busy", "overloaded", "unavailable", "internal"})
+
+
+class _Reconnect(Exception):
+    """Internal: end this connection and resume on a new one."""
+
+
 @dataclass(frozen=True)
 class LinkOptions:
     backoff_initial_s: float = 0.2
@@ -80,7 +90,9 @@ class AgentLink:
         self._new = asyncio.Event()
         self._acked = asyncio.Event()
         self._stop = False
+        self._stopped = asyncio.Event()
         self._ws: websockets.ClientConnection | None = None
+        self._run_task: asyncio.Task[None] | None = None
         self.server_errors: list[ErrorMsg] = []
 
     # -- agent side ---------------------------------------------------------------------------------
@@ -108,17 +120,24 @@ class AgentLink:
     async def close(self, reason: str = "done") -> None:
         """Say bye and stop ``run``. Unacknowledged messages stay in the outbox for the next start."""
         self._stop = True
+        self._stopped.set()
         self._new.set()
         ws = self._ws
         if ws is not None:
             with contextlib.suppress(Exception):
                 await ws.send(encode(ByeMsg(reason), 0))
                 await ws.close()
+        task = self._run_task
+        if task is not None and task is not asyncio.current_task() and not task.done():
+            # Let run() leave (it may be between reconnect attempts) before the outbox goes away.
+            with contextlib.suppress(BaseException):
+                await asyncio.wait_for(asyncio.shield(task), 5.0)
         self.outbox.close()
 
     # -- connection loop ----------------------------------------------------------------------------
     async def run(self) -> None:
         """Connect, resume, stream; reconnect with backoff until ``close``. Raises LinkRefused."""
+        self._run_task = asyncio.current_task()  # type: ignore[assignment]
         delay = self.options.backoff_initial_s
         while not self._stop:
             try:
@@ -126,7 +145,14 @@ class AgentLink:
                 delay = self.options.backoff_initial_s
             except LinkRefused:
                 raise
-            except (OSError, ConnectionClosed, TimeoutError, ProtocolError, websockets.InvalidHandshake) as e:
+            except (
+                OSError,
+                ConnectionClosed,
+                TimeoutError,
+                ProtocolError,
+                websockets.InvalidHandshake,
+                _Reconnect,
+            ) as e:
                 if self._stop:
                     break
                 log.warning("link to %s lost (%s); reconnecting in %.1f s", self.url, e, delay)
@@ -135,7 +161,9 @@ class AgentLink:
                 self._ws = None
             if self._stop:
                 break
-            await asyncio.sleep(delay * (0.5 + random.random()))
+            # Jittered exponential backoff: agents cut off together do not reconnect in lockstep.
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stopped.wait(), delay * (0.5 + random.random()))
             delay = min(delay * 2, self.options.backoff_max_s)
 
     async def _session(self) -> None:
@@ -151,12 +179,21 @@ class AgentLink:
             )
             await ws.send(encode(hello, 0))
             first = await asyncio.wait_for(ws.recv(), self.options.open_timeout_s)
-            assert isinstance(first, bytes)
+            if not isinstance(first, bytes):
+                raise ProtocolError("text frame from the server", "frame")
             _, reply = decode(first)
             if isinstance(reply, ErrorMsg):
                 raise LinkRefused(f"server refused agent {self.agent_id!r}: {reply.message} ({reply.field})")
             if not isinstance(reply, Welcome):
                 raise ProtocolError(f"expected welcome, got {type(reply).__name__}", "type")
+            if reply.last_seq < self.outbox.last_acked:
+                log.warning(
+                    "server %s has seq <= %d but acknowledged up to %d before (lost its data?); "
+                    "those messages are gone from the outbox",
+                    self.url,
+                    reply.last_seq,
+                    self.outbox.last_acked,
+                )
             await asyncio.to_thread(self.outbox.ack_through, reply.last_seq)
             self._acked.set()
             self.stats.connects += 1
@@ -207,15 +244,22 @@ class AgentLink:
             elif isinstance(msg, Correction):
                 self.stats.corrections += 1
                 if self.on_correction is not None:
-                    self.on_correction(msg)
+                    try:
+                        self.on_correction(msg)
+                    except Exception:
+                        log.exception("on_correction callback failed (map %d)", msg.map_id)
             elif isinstance(msg, ErrorMsg):
                 self.stats.errors += 1
                 self.server_errors.append(msg)
+                log.error(
+                    "server error %s on seq %s, field %s: %s", msg.code, msg.seq, msg.field, msg.message
+                )
+                if msg.code in TRANSIENT_ERROR_CODES:
+                    raise _Reconnect(f"transient server error {msg.code} on seq {msg.seq}")
                 if msg.seq is not None and msg.seq > 0:
                     # The server will never accept this message: drop it so it is not resent forever.
                     await asyncio.to_thread(self.outbox.ack, msg.seq)
                     self._acked.set()
-                log.error("server error on seq %s: %s (field %s)", msg.seq, msg.message, msg.field)
             elif isinstance(msg, ByeMsg):
                 log.info("server said bye: %s", msg.reason)
                 return
