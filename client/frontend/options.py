@@ -16,6 +16,8 @@ class FrontendOptions:
     n_levels: int = 8
     fast_threshold: int = 20
     min_fast_threshold: int = 5
+    low_contrast_std: float = 20.0  # below this grey-level std: stretch + blur (dim/fog); 0 = off
+    max_contrast_gain: float = 4.0
     grid_cols: int = 8
     grid_rows: int = 6
     # stereo (LK refinement + row check on rectified coordinates)

@@ -297,7 +297,30 @@ class Frontend:
         return self._result(frame, n_tracked, new_kf, state)
 
     # ------------------------------------------------------------------ frames
+    def _enhance(
+        self, left: NDArray[np.uint8], right: NDArray[np.uint8]
+    ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        """Dim / foggy images: the same linear stretch on both images + a light blur (sensor noise).
+
+        The same mapping on left and right keeps LK stereo consistent; the blur keeps FAST at a low
+        threshold from firing on noise.
+        """
+        o = self.options
+        if o.low_contrast_std <= 0:
+            return left, right
+        sub = left[::4, ::4]
+        if float(sub.std()) >= o.low_contrast_std:
+            return left, right
+        lo, hi = np.percentile(sub, (1.0, 99.0))
+        gain = min(o.max_contrast_gain, 200.0 / max(float(hi - lo), 1.0))
+        out: list[NDArray[np.uint8]] = []
+        for img in (left, right):
+            f = cv2.convertScaleAbs(img, alpha=gain, beta=-gain * float(lo) + 20.0)
+            out.append(np.asarray(cv2.GaussianBlur(f, (5, 5), 1.0), dtype=np.uint8))
+        return out[0], out[1]
+
     def _make_frame(self, t: float, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> Frame:
+        left, right = self._enhance(left, right)
         uv, octv, desc, _ang = self.orb.extract(left)
         kpu = self.cam.undistort_pixels(uv.astype(np.float64)) if len(uv) else np.zeros((0, 2))
         init_d = np.full(len(uv), self._median_disp)
