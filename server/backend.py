@@ -132,8 +132,9 @@ class Backend:
         await asyncio.gather(
             *(t for t in [self._worker, *self._tasks] if t is not None), return_exceptions=True
         )
-        self._pr_exec.shutdown(wait=True, cancel_futures=True)
-        self._opt_exec.shutdown(wait=True, cancel_futures=True)
+        # a running global BA is not waited for: its task is cancelled, so its result is never applied
+        self._pr_exec.shutdown(wait=False, cancel_futures=True)
+        self._opt_exec.shutdown(wait=False, cancel_futures=True)
 
     def idle(self) -> bool:
         """Nothing queued and nothing in flight (tests and benches wait for this)."""
