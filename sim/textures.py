@@ -71,9 +71,15 @@ def wall_texture(rng: np.random.Generator, label: str) -> F32:
             base[:, x : x + 3] *= 0.55
         for y in range(0, s, s // 3):
             base[y : y + 3, :] *= 0.55
-    else:  # corrugated metal cladding
+        for y in range(s // 12, s, s // 6):  # formwork tie holes, 3 x 2 per panel
+            for x in range(s // 16, s, s // 8):
+                cv2.circle(base, (x, y), 3, 0.12, -1)
+                cv2.circle(base, (x, y), 5, 0.55, 1)
+        base *= np.where(fractal_noise(rng, s, 6, 12) > 0.7, 0.8, 1.0).astype(np.float32)  # water stains
+    else:  # corrugated metal cladding in riveted sheets, weathered in patches
         xr = np.arange(s, dtype=np.float32)
         base = 0.45 + 0.25 * np.sin(xr / 5.0)[None, :].repeat(s, 0) + 0.2 * fractal_noise(rng, s, 5, 6)
+        _riveted_sheets(rng, base)
     base = np.clip(base * (0.6 + 0.5 * rng.random()) + 0.15 * (fractal_noise(rng, s, 6, 16) - 0.5), 0, 1)
     img = base.astype(np.float32)
     # Windows: a grid of dark glass with frames and sills; some lit, some with blinds.
@@ -103,13 +109,13 @@ def wall_texture(rng: np.random.Generator, label: str) -> F32:
     # A door at ground level (texture bottom): a roller shutter or a steel man door with a frame.
     if rng.random() < 0.5:
         dw, dh = int(rng.integers(160, 260)), int(rng.integers(200, 260))  # 2.5-4 m wide, 3-4 m high
-        dx = int(rng.integers(0, s - dw))
+        dx = _free_x(rng, s, dw, px, ps)
         slats = 0.5 + 0.1 * np.sin(np.arange(dh, dtype=np.float32) * 1.3)[:, None]
         img[s - dh :, dx : dx + dw] = slats * (0.8 + 0.4 * rng.random())
         cv2.rectangle(img, (dx - 6, s - dh - 6), (dx + dw + 6, s), 0.1, 6)
     else:
         dw, dh = 64, 140  # 1 m x 2.2 m
-        dx = int(rng.integers(0, s - dw))
+        dx = _free_x(rng, s, dw, px, ps)
         img[s - dh :, dx : dx + dw] = 0.25 + 0.5 * rng.random()
         cv2.rectangle(img, (dx - 4, s - dh - 4), (dx + dw + 4, s), 0.9, 4)
         cv2.circle(img, (dx + dw - 12, s - dh // 2), 4, 0.95, -1)
@@ -177,13 +183,70 @@ def pillar_texture(rng: np.random.Generator, label: str) -> F32:
     return np.clip(img, 0, 1).astype(np.float32)
 
 
+def _free_x(rng: np.random.Generator, s: int, width: int, avoid_x: int, avoid_w: int) -> int:
+    """Random x for an item ``width`` wide clear of [avoid_x, avoid_x + avoid_w] (if one is found)."""
+    for _ in range(20):
+        x = int(rng.integers(0, s - width))
+        if x + width + 8 < avoid_x or x > avoid_x + avoid_w + 8:
+            return x
+    return x
+
+
+def _riveted_sheets(rng: np.random.Generator, img: F32) -> None:
+    """Horizontal sheet seams with rivet rows and weathered patches (corners for ORB), in place."""
+    s = img.shape[0]
+    pitch = int(rng.integers(96, 160))
+    for y in range(int(rng.integers(20, pitch)), s, pitch):
+        img[y : y + 3, :] *= 0.6
+        for x in range(int(rng.integers(0, 12)), s, 16):
+            cv2.circle(img, (x, y - 6), 2, 0.9, -1)
+            cv2.circle(img, (x, y + 9), 2, 0.15, -1)
+    patches = fractal_noise(rng, s, 6, 12)
+    img *= np.where(patches > 0.72, 0.75, 1.0).astype(np.float32)
+
+
 def container_texture(rng: np.random.Generator, label: str) -> F32:
+    """A shipping container side: corrugation, an owner code and numbers, rust streaks, stickers."""
     s = TEX
     x = np.arange(s, dtype=np.float32)
     tone = float(rng.uniform(0.25, 0.75))
     img = tone + 0.12 * np.sign(np.sin(x / 9.0))[None, :].repeat(s, 0)
     img += 0.15 * (fractal_noise(rng, s, 6, 12) - 0.5)
-    _put_text(img, label, (30, s // 3), 2.2, 1.0 - tone, 5)
+    ink = 1.0 - tone
+    _put_text(img, label, (30, s // 3), 2.2, ink, 5)
+    letters = "".join(chr(ord("A") + int(v)) for v in rng.integers(0, 26, 4))
+    digits = "".join(str(int(v)) for v in rng.integers(0, 10, 7))
+    _put_text(img, f"{letters} {digits[:6]} {digits[6]}", (30, s // 3 + 60), 1.0, ink, 2)
+    _put_text(
+        img,
+        f"MAX GROSS {int(rng.integers(24, 34))},{int(rng.integers(0, 999)):03d} KG",
+        (30, s // 3 + 100),
+        0.7,
+        ink,
+        1,
+    )
+    _put_text(
+        img,
+        f"TARE {int(rng.integers(2, 4))},{int(rng.integers(0, 999)):03d} KG",
+        (30, s // 3 + 130),
+        0.7,
+        ink,
+        1,
+    )
+    for _ in range(int(rng.integers(2, 5))):  # hazard / handling stickers
+        cx, cy, r = (
+            int(rng.integers(40, s - 40)),
+            int(rng.integers(s // 2, s - 40)),
+            int(rng.integers(14, 30)),
+        )
+        diamond = np.array([[cx, cy - r], [cx + r, cy], [cx, cy + r], [cx - r, cy]], np.int32)
+        cv2.fillConvexPoly(img, diamond, float(rng.uniform(0.7, 1.0)))
+        cv2.polylines(img, [diamond], True, 0.1, 2)
+        _put_text(img, str(int(rng.integers(1, 10))), (cx - 9, cy + 9), 0.7, 0.1, 2)
+    for x0 in rng.integers(0, s, int(rng.integers(6, 14))):  # rust streaks running down
+        y0 = int(rng.integers(0, s // 2))
+        length = int(rng.integers(40, 250))
+        cv2.line(img, (int(x0), y0), (int(x0) + int(rng.integers(-3, 4)), y0 + length), tone * 0.55, 2)
     rust = fractal_noise(rng, s, 6, 10) > 0.8
     img[rust] *= 0.5
     return np.clip(img, 0, 1).astype(np.float32)

@@ -49,22 +49,19 @@ def _road_poses(world) -> list[np.ndarray]:  # type: ignore[no-untyped-def]
     ]
 
 
-def test_world_is_deterministic_and_complete() -> None:
-    a = generate_world.__wrapped__(7, 80.0)
-    b = generate_world.__wrapped__(7, 80.0)
-    c = generate_world.__wrapped__(8, 80.0)
-    assert a.layers.tobytes() == b.layers.tobytes()
-    assert not np.array_equal(a.layers, c.layers)
-    full = generate_world(1)
-    assert len(full.buildings) >= 10
-    assert {"C", "P", "F"} <= {o.name[0] for o in full.obstacles}  # containers, pillars, fences
-
-
-def test_render_is_deterministic(world, gl) -> None:  # type: ignore[no-untyped-def]
-    T = _road_poses(world)[0]
-    a, _ = gl.render(T)
-    b, _ = gl.render(T)
-    assert cv2.imencode(".png", a)[1].tobytes() == cv2.imencode(".png", b)[1].tobytes()
+def test_same_seed_renders_identical_png_bytes() -> None:
+    """Two independent generations of the same seed, two renderers: byte-identical PNGs (tiny frames)."""
+    cam = PinholeCamera(160, 120, 110.0, 110.0, 79.5, 59.5, (-0.05, 0.01, 0.0002, -0.0001))
+    pngs = []
+    for _ in range(2):
+        w = generate_world.__wrapped__(3, 48.0)  # uncached
+        r = make_renderer(w, cam, "gl")
+        T = uav_pose(float(w.roads[0][0, 0]), float(w.roads[1][0, 0]) - 25.0, 8.0, 0.3)
+        gray, depth = r.render(T)
+        r.close()
+        assert np.isfinite(depth).mean() > 0.5  # the view shows the site, not only sky
+        pngs.append(cv2.imencode(".png", gray)[1].tobytes())
+    assert pngs[0] == pngs[1]
 
 
 def test_depth_lands_on_the_true_surfaces(world, gl) -> None:  # type: ignore[no-untyped-def]
@@ -134,7 +131,7 @@ def test_orb_tracks_consecutive_frames(world, gl, kind: str) -> None:  # type: i
         poses.append(
             uav_pose(x, y - 30 + s, 10.0, np.pi / 2) if kind == "uav" else ugv_pose(x, y - 30 + s, np.pi / 2)
         )
-    orb = cv2.ORB_create(1000)
+    orb = cv2.ORB_create(1000)  # type: ignore[attr-defined]
     inliers = []
     prev = None
     for T in poses:
