@@ -80,7 +80,8 @@ class _Server:
             s.bind(("127.0.0.1", 0))
             port = int(s.getsockname()[1])
         settings = ServerSettings(port=port, data_dir=data_dir, tokens=tokens, log_level="warning")
-        self.app = create_app(settings, extensions=[installer(BackendOptions(verifications_per_s=1000.0))])
+        opts = BackendOptions(verifications_per_s=1000.0, fix_scale=False)  # UAVs at scale 2.5: Sim(3)
+        self.app = create_app(settings, extensions=[installer(opts)])
         self.server = uvicorn.Server(uvicorn.Config(self.app, **uvicorn_config_kwargs(settings)))  # type: ignore[arg-type]
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
