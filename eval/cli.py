@@ -122,3 +122,44 @@ def team_command(
                 f"{e.agent_a}-{e.agent_b} [{e.frame_id}] n={e.trans.n} "
                 f"trans rmse {e.trans.rmse:.4f} m, rot rmse {e.rot_deg.rmse:.4f} deg"
             )
+
+
+@app.command("experiment")
+def experiment_command(
+    scenarios: Annotated[str, typer.Option("--scenarios", help="Comma-separated scenario names.")],
+    out: Annotated[Path, typer.Option("--out", help="Output dir (results/, report.md, report.html).")],
+    modes: Annotated[
+        str,
+        typer.Option("--modes", help="Comma-separated: single,single+gnss,denied,challenged1,challenged2."),
+    ] = "single,single+gnss,denied,challenged1,challenged2",
+    data: Annotated[
+        Path, typer.Option("--data", help="Rendered scenarios dir (rendered when missing).")
+    ] = Path("data"),
+    agents: Annotated[
+        str | None, typer.Option("--agents", help="Comma-separated agent ids (default all).")
+    ] = None,
+    max_frames: Annotated[int | None, typer.Option("--max-frames", help="Frames per agent (tests).")] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the random GNSS mode.")] = 0,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+) -> None:
+    """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
+    from hivemap.eval.experiment import ExperimentOptions, run_experiment
+
+    def split(s: str) -> list[str]:
+        return [x.strip() for x in s.split(",") if x.strip()]
+
+    opts = ExperimentOptions(
+        scenarios=split(scenarios),
+        modes=split(modes),
+        out=out,
+        data=data,
+        agents=split(agents) if agents else None,
+        max_frames=max_frames,
+        seed=seed,
+        progress=not no_progress,
+    )
+    try:
+        report = run_experiment(opts)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    typer.echo(f"report: {report} (and {report.with_suffix('.html')})")

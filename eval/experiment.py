@@ -1,0 +1,386 @@
+"""Experiment runner of the paper's Tables 5-8 (issue 7): scenarios x GNSS modes -> results JSON -> report.
+
+``run_experiment(options)`` renders (or reuses) each scenario, runs each mode and writes
+``<out>/results/<scenario>/<mode>.json`` (skipped when it already exists: the run is resumable), then
+``<out>/report.md`` and ``<out>/report.html`` (:mod:`hivemap.eval.report`).
+
+Modes (paper Table 8):
+
+- ``single``: each agent alone, offline (``hivemap agent --offline``), GNSS denied ("ORB-SLAM3");
+- ``single+gnss``: each agent alone, offline, every valid fix it has (``--gnss all``; "ORB-SLAM3 fusion
+  GPS" uses the GNSS the agent receives);
+- ``denied``: co-location, every agent streams to one server, no GNSS;
+- ``challenged1``: co-location, every agent one valid fix every 20 s (``--gnss every:20s``);
+- ``challenged2``: co-location, UAVs 4 random fixes each (``--gnss random:4``), the UGV none.
+
+Per agent the estimate (offline: the agent's ``local.tum``, body poses; co-location: the server's
+global-frame keyframe trajectory, camera poses, falling back to the agent's own ``local.tum``) and the
+ground truth it is compared with are copied next to the results JSON as TUM files, so the numbers can
+be recomputed from the raw trajectories. ATE uses an SE(3) alignment in every mode (comparable with
+the paper's evo figures); the alignment is recorded in the JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+HIVEMAP = [sys.executable, "-m", "hivemap.cli.main"]
+MODES = ("single", "single+gnss", "denied", "challenged1", "challenged2")
+COLOCATION = {"denied", "challenged1", "challenged2"}
+ALIGNMENT = "se3"
+MAX_DIFF = 0.02  # s; frames are at >= 10 Hz, ground truth at the IMU/ground-truth rate
+
+
+def gnss_mode(mode: str, kind: str) -> str:
+    """The ``--gnss`` argument of an agent of ``kind`` ("uav"/"ugv") in ``mode``."""
+    if mode in ("single", "denied"):
+        return "denied"
+    if mode == "single+gnss":
+        return "all"
+    if mode == "challenged1":
+        return "every:20s"
+    if mode == "challenged2":
+        return "random:4" if kind == "uav" else "denied"
+    raise ValueError(f"unknown mode {mode!r}; expected one of {', '.join(MODES)}")
+
+
+@dataclass(frozen=True)
+class ExperimentOptions:
+    scenarios: Sequence[str]
+    modes: Sequence[str] = MODES
+    out: Path = Path("experiment")
+    data: Path = Path("data")
+    agents: Sequence[str] | None = None
+    max_frames: int | None = None
+    seed: int = 0
+    progress: bool = True
+    settle_s: float = 3.0  # wait for the back-end's last optimisation after the agents finish
+    agent_timeout_s: float = 6 * 3600.0
+
+
+# ------------------------------------------------------------------------------------ process helpers
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def clean_env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
+
+
+def wait_health(url: str, proc: subprocess.Popen[bytes], timeout: float = 60.0) -> None:
+    import httpx
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"server exited with code {proc.returncode}")
+        try:
+            if httpx.get(url + "/health", timeout=1.0).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError("server did not become healthy in time")
+
+
+def stop(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def ensure_scenario(name: str, data: Path) -> Path:
+    """The rendered scenario directory (``hivemap sim render``, resumable; reused when complete)."""
+    scen = data / name
+    if not (scen / "manifest.yaml").exists():
+        log.info("rendering scenario %s into %s", name, scen)
+        subprocess.run([*HIVEMAP, "sim", "render", "--scenario", name, "--out", str(scen)], check=True)
+    return scen
+
+
+def git_revision() -> str:
+    try:
+        root = Path(__file__).resolve().parents[1]
+        rev = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+        return rev + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def versions() -> dict[str, str]:
+    from importlib import metadata
+
+    out = {"python": sys.version.split()[0]}
+    for pkg in ("hivemap", "numpy", "gtsam", "pycolmap", "evo", "opencv-python-headless"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+# ------------------------------------------------------------------------------------------ results
+@dataclass
+class AgentResult:
+    agent_id: str
+    kind: str
+    gnss: str
+    status: str = "ok"  # ok | failed | no trajectory | not available
+    est_tum: str | None = None  # relative to the results JSON's directory
+    gt_tum: str | None = None
+    source: str = ""  # local.tum (offline) | server global | agent local (fallback)
+    ate_rmse: float | None = None
+    ate_mean: float | None = None
+    n: int = 0
+    path_length: float | None = None
+    bandwidth: dict[str, float] = field(default_factory=dict)
+    run: dict[str, Any] = field(default_factory=dict)
+    start_wall: float | None = None
+    end_wall: float | None = None
+
+
+def _agent_cmd(ds: Path, out: Path, gnss: str, opts: ExperimentOptions) -> list[str]:
+    cmd = [*HIVEMAP, "agent", "--dataset", str(ds), "--out", str(out), "--gnss", gnss]
+    cmd += ["--seed", str(opts.seed), "--no-progress"]
+    if opts.max_frames is not None:
+        cmd += ["--max-frames", str(opts.max_frames)]
+    return cmd
+
+
+def _evaluate(res: AgentResult, est_path: Path, gt: Any, mode_dir: Path) -> None:
+    import numpy as np
+
+    from hivemap.eval.trajectory import ate, read_tum, write_tum
+
+    if not est_path.exists() or not est_path.read_text().strip():
+        res.status = "no trajectory"
+        return
+    mode_dir.mkdir(parents=True, exist_ok=True)
+    est_copy = mode_dir / f"{res.agent_id}.est.tum"
+    gt_copy = mode_dir / f"{res.agent_id}.gt.tum"
+    shutil.copyfile(est_path, est_copy)
+    write_tum(gt_copy, gt)
+    est = read_tum(est_copy)
+    gt_r = read_tum(gt_copy)
+    try:
+        a = ate(est, gt_r, ALIGNMENT, max_diff=MAX_DIFF)
+    except Exception as exc:  # evo raises on no associated poses
+        res.status = f"no trajectory ({exc})"
+        return
+    res.est_tum, res.gt_tum = est_copy.name, gt_copy.name
+    res.ate_rmse, res.ate_mean, res.n = float(a.stats.rmse), float(a.stats.mean), int(a.stats.n)
+    xyz = np.asarray(gt_r.positions_xyz)
+    res.path_length = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
+
+
+def _read_run(out: Path) -> dict[str, Any]:
+    p = out / "run.json"
+    if p.exists():
+        try:
+            return dict(json.loads(p.read_text()))
+        except json.JSONDecodeError:
+            return {}
+    return {}
+
+
+def run_single(scen: Path, agents: list[tuple[str, str]], mode: str, work: Path, mode_dir: Path,
+               opts: ExperimentOptions, bar: Any) -> dict[str, Any]:  # fmt: skip
+    """Each agent alone, offline, one after another."""
+    from hivemap.eval.trajectory import groundtruth_trajectory
+
+    results = []
+    for aid, kind in agents:
+        g = gnss_mode(mode, kind)
+        out = work / aid
+        shutil.rmtree(out, ignore_errors=True)
+        res = AgentResult(aid, kind, g, source="offline local.tum (body)")
+        res.start_wall = time.time()
+        with open(work / f"{aid}.log", "wb") as logf:
+            rc = subprocess.run([*_agent_cmd(scen / aid, out, g, opts), "--offline"], stdout=logf,
+                                stderr=subprocess.STDOUT, env=clean_env(), timeout=opts.agent_timeout_s).returncode  # fmt: skip
+        res.end_wall = time.time()
+        res.run = _read_run(out)
+        if rc != 0:
+            res.status = f"failed (exit {rc}, log {work / (aid + '.log')})"
+        else:
+            _evaluate(res, out / "local.tum", groundtruth_trajectory(scen / aid), mode_dir)
+        results.append(asdict(res))
+        bar.update(1)
+    return {"agents": results, "events": [], "maps": []}
+
+
+def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: Path, mode_dir: Path,
+                   opts: ExperimentOptions, bar: Any) -> dict[str, Any]:  # fmt: skip
+    """One server, every agent streaming to it at once."""
+    import httpx
+
+    from hivemap.eval.trajectory import groundtruth_trajectory
+
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    tokens = {aid: f"exp-{aid}-token" for aid, _ in agents}
+    sdir = work / "server"
+    shutil.rmtree(sdir, ignore_errors=True)
+    sdir.mkdir(parents=True)
+    cfg = sdir / "server.toml"
+    cfg.write_text("[tokens]\n" + "".join(f'{a} = "{t}"\n' for a, t in tokens.items()))
+    env = clean_env()
+    slog = open(sdir / "server.log", "wb")  # noqa: SIM115
+    server = subprocess.Popen(
+        [*HIVEMAP, "server", "--host", "127.0.0.1", "--port", str(port),
+         "--data-dir", str(sdir / "data"), "--config", str(cfg)],
+        stdout=slog, stderr=subprocess.STDOUT, env=env,
+    )  # fmt: skip
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    results: dict[str, AgentResult] = {}
+    logs = []
+    try:
+        wait_health(url, server)
+        t_server = time.time()
+        for aid, kind in agents:
+            g = gnss_mode(mode, kind)
+            out = work / aid
+            shutil.rmtree(out, ignore_errors=True)
+            res = AgentResult(aid, kind, g, source="server global keyframes (cam0)")
+            res.start_wall = time.time()
+            results[aid] = res
+            lf = open(work / f"{aid}.log", "wb")  # noqa: SIM115
+            logs.append(lf)
+            cmd = _agent_cmd(scen / aid, out, g, opts)
+            cmd += ["--server", f"ws://127.0.0.1:{port}/ws", "--agent-id", aid, "--token", tokens[aid]]
+            procs[aid] = subprocess.Popen(cmd, stdout=lf, stderr=subprocess.STDOUT, env=env)
+        deadline = time.monotonic() + opts.agent_timeout_s
+        pending = dict(procs)
+        while pending and time.monotonic() < deadline:
+            for aid, p in list(pending.items()):
+                if p.poll() is not None:
+                    results[aid].end_wall = time.time()
+                    del pending[aid]
+                    bar.update(1)
+            time.sleep(0.2)
+        for p in pending.values():
+            stop(p)
+        time.sleep(opts.settle_s)
+        agents_info = {a["agent_id"]: a for a in httpx.get(url + "/agents", timeout=30).json()["agents"]}
+        events = httpx.get(url + "/events", params={"limit": 100000}, timeout=30).json()["events"]
+        maps = httpx.get(url + "/maps", timeout=30).json()["maps"]
+        for aid, _kind in agents:
+            res = results[aid]
+            out = work / aid
+            res.run = _read_run(out)
+            info = agents_info.get(aid, {})
+            res.bandwidth = {k: float(v) for k, v in (info.get("bandwidth") or {}).items()}
+            res.run["map_id"] = info.get("map_id")
+            rc = procs[aid].returncode
+            if rc != 0:
+                text = (work / f"{aid}.log").read_text(errors="replace")
+                res.status = (
+                    "not available (streaming agent not implemented)"
+                    if "not implemented" in text.lower() or "not available" in text.lower()
+                    else f"failed (exit {rc}, log {work / (aid + '.log')})"
+                )
+                continue
+            r = httpx.get(url + f"/agents/{aid}/trajectory", params={"frame": "global", "format": "tum"},
+                          timeout=60)  # fmt: skip
+            if r.status_code == 200 and r.text.strip():
+                tum = out / "server_global.tum"
+                tum.write_text(r.text)
+                _evaluate(res, tum, groundtruth_trajectory(scen / aid, sensor="cam0"), mode_dir)
+            else:
+                res.source = "agent local.tum (body; server had no trajectory)"
+                _evaluate(res, out / "local.tum", groundtruth_trajectory(scen / aid), mode_dir)
+        return {
+            "agents": [asdict(r) for r in results.values()],
+            "events": events,
+            "maps": maps,
+            "server_start_wall": t_server,
+        }
+    finally:
+        for p in procs.values():
+            stop(p)
+        stop(server)
+        slog.close()
+        for lf in logs:
+            lf.close()
+
+
+def run_experiment(opts: ExperimentOptions) -> Path:
+    """Run every (scenario, mode) not done yet, then write the report; returns the report.md path."""
+    from tqdm import tqdm
+
+    from hivemap.client.dataset import load_scenario
+    from hivemap.eval.report import write_report
+
+    for m in opts.modes:
+        if m not in MODES:
+            raise ValueError(f"unknown mode {m!r}; expected one of {', '.join(MODES)}")
+    out = Path(opts.out)
+    out.mkdir(parents=True, exist_ok=True)
+    todo = []
+    for name in opts.scenarios:
+        for mode in opts.modes:
+            if not (out / "results" / name / f"{mode}.json").exists():
+                todo.append((name, mode))
+    scen_dirs = {name: ensure_scenario(name, Path(opts.data)) for name in {n for n, _ in todo}}
+    n_runs = 0
+    plan = []
+    for name, mode in todo:
+        man = load_scenario(scen_dirs[name])
+        agents = [(a.id, a.kind) for a in man.agents if not opts.agents or a.id in opts.agents]
+        plan.append((name, mode, agents, man.seed))
+        n_runs += len(agents)
+    with tqdm(total=n_runs, desc="experiment", unit="agent run", disable=not opts.progress) as bar:
+        for name, mode, agents, seed in plan:
+            bar.set_postfix_str(f"{name} {mode}")
+            mode_dir = out / "results" / name / mode
+            work = out / "work" / name / mode
+            shutil.rmtree(mode_dir, ignore_errors=True)
+            work.mkdir(parents=True, exist_ok=True)
+            t0 = time.time()
+            fn = run_colocation if mode in COLOCATION else run_single
+            data = fn(scen_dirs[name], agents, mode, work, mode_dir, opts, bar)
+            data.update(
+                scenario=name,
+                mode=mode,
+                scenario_dir=str(scen_dirs[name]),
+                scenario_seed=seed,
+                alignment=ALIGNMENT,
+                max_diff=MAX_DIFF,
+                agent_seed=opts.seed,
+                max_frames=opts.max_frames,
+                wall_s=time.time() - t0,
+                finished=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                git=git_revision(),
+                versions=versions(),
+            )
+            tmp = out / "results" / name / f"{mode}.json.tmp"
+            tmp.write_text(json.dumps(data, indent=1, default=str))
+            tmp.replace(out / "results" / name / f"{mode}.json")  # atomic: a crash leaves no half JSON
+    return write_report(out, list(opts.scenarios), list(opts.modes))
