@@ -82,7 +82,12 @@ def wall_texture(rng: np.random.Generator, label: str) -> F32:
         _riveted_sheets(rng, base)
     base = np.clip(base * (0.6 + 0.5 * rng.random()) + 0.15 * (fractal_noise(rng, s, 6, 16) - 0.5), 0, 1)
     img = base.astype(np.float32)
-    # Windows: a grid of dark glass with frames and sills; some lit, some with blinds.
+    # A door at ground level (texture bottom): a roller shutter (2.5-4 m wide, 3-4 m high) or a steel
+    # man door (1 m x 2.2 m); windows and the poster keep clear of it.
+    shutter = bool(rng.random() < 0.5)
+    dw, dh = (int(rng.integers(160, 260)), int(rng.integers(200, 260))) if shutter else (64, 140)
+    dx = int(rng.integers(0, s - dw))
+    # Windows: a grid of dark glass with frames; some with blinds.
     rows, cols = int(rng.integers(1, 3)), int(rng.integers(2, 4))
     for r in range(rows):
         for c in range(cols):
@@ -91,31 +96,31 @@ def wall_texture(rng: np.random.Generator, label: str) -> F32:
             w, h = s // (cols + 1), s // (rows + 2)
             x0 = int((c + 0.5) * s / cols - w / 2)
             y0 = int(s * 0.12 + r * s * 0.4)
+            if y0 + h > s - dh - 16 and x0 < dx + dw + 16 and x0 + w > dx - 16:
+                continue  # the door is here
             glass = 0.08 + 0.25 * fractal_noise(rng, max(w, h), 3, 2)[:h, :w]
             if rng.random() < 0.3:
                 glass[:: max(3, h // 12)] += 0.5  # blinds
             img[y0 : y0 + h, x0 : x0 + w] = np.clip(glass, 0, 1)
             cv2.rectangle(img, (x0, y0), (x0 + w, y0 + h), 0.85, 4)
             cv2.line(img, (x0 + w // 2, y0), (x0 + w // 2, y0 + h), 0.8, 3)
-    # A poster: a photograph with a frame, at a random place.
+    # A poster: a photograph with a frame, beside the door.
     name = str(
         rng.choice(["astronaut", "chelsea", "coffee", "rocket", "camera", "clock", "coins", "moon", "page"])
     )
     ps = int(rng.integers(s // 5, s // 3))
     poster = cv2.resize(photo(name), (ps, ps))
-    px, py = int(rng.integers(10, s - ps - 10)), int(rng.integers(s // 2, s - ps - 10))
+    px = min(max(_free_x(rng, s, ps, dx, dw), 10), s - ps - 10)
+    py = int(rng.integers(s // 2, s - ps - 10))
+    if px < dx + dw + 8 and px + ps > dx - 8:  # no room beside the door: hang it above
+        py = max(10, s - dh - ps - 24)
     img[py : py + ps, px : px + ps] = poster
     cv2.rectangle(img, (px - 4, py - 4), (px + ps + 4, py + ps + 4), 0.05, 5)
-    # A door at ground level (texture bottom): a roller shutter or a steel man door with a frame.
-    if rng.random() < 0.5:
-        dw, dh = int(rng.integers(160, 260)), int(rng.integers(200, 260))  # 2.5-4 m wide, 3-4 m high
-        dx = _free_x(rng, s, dw, px, ps)
+    if shutter:
         slats = 0.5 + 0.1 * np.sin(np.arange(dh, dtype=np.float32) * 1.3)[:, None]
         img[s - dh :, dx : dx + dw] = slats * (0.8 + 0.4 * rng.random())
         cv2.rectangle(img, (dx - 6, s - dh - 6), (dx + dw + 6, s), 0.1, 6)
     else:
-        dw, dh = 64, 140  # 1 m x 2.2 m
-        dx = _free_x(rng, s, dw, px, ps)
         img[s - dh :, dx : dx + dw] = 0.25 + 0.5 * rng.random()
         cv2.rectangle(img, (dx - 4, s - dh - 4), (dx + dw + 4, s), 0.9, 4)
         cv2.circle(img, (dx + dw - 12, s - dh // 2), 4, 0.95, -1)
