@@ -47,12 +47,16 @@ F64 = NDArray[np.float64]
 class BackendOptions:
     verifications_per_s: float = 40.0  # budget of geometric verifications (token bucket)
     queue_max: int = 5000  # queued query keyframes (oldest dropped beyond)
-    fix_scale: bool = False  # SE(3) instead of Sim(3) between maps (all agents metric)
+    # SE(3) between maps: hivemap's own agents are stereo(-inertial), so metric (DESIGN.md: merge metric
+    # agents in SE(3)); measured on the tiny demo, free-scale merges of stereo UAVs came out at scale 0.87
+    # and 1.96. Set False for monocular agents (scale is then a Sim(3) unknown).
+    fix_scale: bool = True
     pose_graph: bool = True
     global_ba: bool = True
     ba_max_keyframes: int = 4000
     ba_max_iterations: int = 30
     gnss: bool = True
+    gnss_every_kfs: int = 20  # BA + GNSS stage of a map after this many new keyframes with a fix
     correction_min_move_m: float = 0.01  # a keyframe is "changed" if it moved this much (local frame)
     correction_min_rot_deg: float = 0.1
     transform_window: int = 20  # recent keyframes whose corrections define an agent's new frame
@@ -92,6 +96,7 @@ class Backend:
         self._busy = 0  # queries or optimisations in flight
         self._generation: dict[int, int] = {}  # bumped when a map changes frame (merge / GNSS)
         self._opt_running: set[int] = set()
+        self._gnss_count: dict[int, int] = {}
         self._consist: dict[tuple[int, int, str], tuple[int, Sim3, int]] = {}
         self._opt_again: dict[int, list[tuple[KfKey, KfKey, Sim3]]] = {}
         self._tokens = self.options.verifications_per_s
@@ -146,6 +151,13 @@ class Backend:
             self.server.events.add("placerec", f"query queue full: {self.queue[0]} dropped")
         self.queue.append(key)
         self._wake.set()
+        # GNSS stage also without a merge or loop: every ``gnss_every_kfs`` keyframes with a fix in a map
+        m = self.server.stack.maps.get(map_id)
+        kf = m.keyframes.get(key) if m is not None else None
+        if self.options.gnss and kf is not None and kf.gnss_enu is not None:
+            n = self._gnss_count[map_id] = self._gnss_count.get(map_id, 0) + 1
+            if n % self.options.gnss_every_kfs == 0:
+                self._schedule_optimisation(map_id, [], time.monotonic())
 
     # -- place-recognition worker -------------------------------------------------------------------
     def _index_many(self, keys: list[tuple[int, KfKey]]) -> None:
@@ -311,7 +323,7 @@ class Backend:
         if mq is None or mc is None:
             return None
         pairs = list(zip(det.candidate_points, det.query_points, strict=True))
-        sim, src_xyz, n_in = _fit_pairs(mc, mq, pairs, o.min_pair_inlier_ratio)
+        sim, src_xyz, n_in = _fit_pairs(mc, mq, pairs, o.min_pair_inlier_ratio, with_scale=not o.fix_scale)
         key = (det.query_map, det.candidate_map, det.query_key[0])
         data: dict[str, Any] = {"query_key": list(det.query_key), "candidate_key": list(det.candidate_key),
                                 "n_pairs": len(pairs), "n_pair_inliers": n_in}  # fmt: skip
@@ -602,7 +614,7 @@ class Backend:
                 arm = max(1e-3, float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1))))
                 old = np.concatenate([np.vstack([T[:3, 3], T[:3, 3] + arm * T[:3, :3].T]) for T in old_poses])
                 new = np.concatenate([full[k].apply(old[4 * i : 4 * i + 4]) for i, k in enumerate(recent)])
-                c = _umeyama(old, new)
+                c = _umeyama(old, new, with_scale=not self.options.fix_scale)
             self.server.set_agent_transform(folded, c @ am.global_from_vio)
 
     async def _gnss_stage(self, m: Any) -> None:
@@ -699,7 +711,7 @@ class Backend:
 
 
 def _fit_pairs(
-    tgt: Any, src: Any, pairs: list[tuple[Any, Any]], min_inlier_ratio: float
+    tgt: Any, src: Any, pairs: list[tuple[Any, Any]], min_inlier_ratio: float, with_scale: bool = True
 ) -> tuple[Sim3 | None, F64, int]:
     """``target_from_source`` fitted to duplicate point pairs ``(target_point, source_point)`` by trimmed
     Umeyama; returns (Sim3 or None if most pairs do not fit, inlier source points, number of inliers)."""
@@ -713,24 +725,24 @@ def _fit_pairs(
         return None, np.zeros((0, 3)), 0
     A, B = np.array(a), np.array(b)
     keep = np.ones(len(A), dtype=bool)
-    est = _umeyama(A, B)
+    est = _umeyama(A, B, with_scale)
     for _ in range(4):
         r = np.linalg.norm(est.apply(A) - B, axis=1)
         keep = r <= max(2.5 * float(np.median(r[keep])), 1e-9)
         if keep.sum() < 20:
             return None, np.zeros((0, 3)), int(keep.sum())
-        est = _umeyama(A[keep], B[keep])
+        est = _umeyama(A[keep], B[keep], with_scale)
     n_in = int(keep.sum())
     if n_in < min_inlier_ratio * len(A):
         return None, A[keep], n_in
     return est, A[keep], n_in
 
 
-def _umeyama(src: F64, dst: F64) -> Sim3:
-    """The Sim(3) ``dst ~ s R src + t`` (least squares, evo's Umeyama)."""
+def _umeyama(src: F64, dst: F64, with_scale: bool = True) -> Sim3:
+    """The Sim(3) ``dst ~ s R src + t`` (least squares, evo's Umeyama); s = 1 without ``with_scale``."""
     from evo.core.geometry import umeyama_alignment
 
-    R, t, s = umeyama_alignment(src.T, dst.T, with_scale=True)
+    R, t, s = umeyama_alignment(src.T, dst.T, with_scale=with_scale)
     return Sim3(np.asarray(R), np.asarray(t).reshape(3), float(s))
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_backend import UAV_FROM_WORLD, UGV_FROM_WORLD, Server, stream
+from test_backend import UAV_FROM_WORLD, UGV_FROM_WORLD, Server, agent_transform, check_transform, stream
 
 from hivemap.maps.geometry import Sim3, so3_exp
 from hivemap.server.backend_synth import agent_stream, make_world
@@ -71,3 +71,14 @@ def test_keyframes_reloaded_after_restart_are_indexed_and_merge(tmp_path: Path) 
         assert second.call(lambda: len(second.hive.stack.maps)) == 1
     finally:
         second.stop()
+
+
+def test_single_agent_with_gnss_moves_into_enu_without_a_merge(srv: Server) -> None:
+    rng = np.random.default_rng(7)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    # 20 keyframes with fixes (sigma 5 cm, world frame taken as ENU): the GNSS stage runs after the 20th
+    msgs, true, _ = agent_stream(rng, pts, desc, np.linspace(-6, 12, 20), UGV_FROM_WORLD, gnss_sigma=0.05)
+    with stream(srv, "ugv1", "ugv", msgs):
+        srv.wait_idle()
+    assert srv.call(lambda: srv.hive.events.counts.get("gnss_stage", 0)) >= 1
+    check_transform(agent_transform(srv, "ugv1"), UGV_FROM_WORLD.inverse(), true[:, :3, 3])
