@@ -82,3 +82,33 @@ def test_single_agent_with_gnss_moves_into_enu_without_a_merge(srv: Server) -> N
         srv.wait_idle()
     assert srv.call(lambda: srv.hive.events.counts.get("gnss_stage", 0)) >= 1
     check_transform(agent_transform(srv, "ugv1"), UGV_FROM_WORLD.inverse(), true[:, :3, 3])
+
+
+def test_keyframes_missing_from_an_optimisation_follow_their_parent(srv: Server) -> None:
+    """ORB-SLAM's propagation: keyframes that arrived after the snapshot of a global BA (not in its result)
+    move with their spanning-tree ancestor's correction; so do the points and the agent's frame."""
+    rng = np.random.default_rng(8)
+    pts, desc = make_world(rng, 2000, (-20, 30))
+    msgs, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD)
+    with stream(srv, "ugv1", "ugv", msgs):
+        srv.wait_idle()
+    C = Sim3(so3_exp(np.array([0.01, -0.02, 0.03])), np.array([0.3, -0.1, 0.2]), 1.0)
+
+    def run() -> tuple[dict, dict, dict, dict, Sim3, Sim3]:
+        m = next(iter(srv.hive.stack.maps.values()))
+        keys = sorted(m.keyframes)
+        old = {k: m.keyframes[k].world_from_cam.copy() for k in keys}
+        old_pts = {k: p.xyz.copy() for k, p in m.points.items()}
+        g0 = srv.hive.agents["ugv1"].maps[0].global_from_vio
+        # "the optimisation saw only the first half": the second half was not in its snapshot
+        srv.backend._apply_corrections(m, {k: C for k in keys[:5]}, {})
+        new = {k: m.keyframes[k].world_from_cam.copy() for k in keys}
+        new_pts = {k: p.xyz.copy() for k, p in m.points.items()}
+        return old, new, old_pts, new_pts, g0, srv.hive.agents["ugv1"].maps[0].global_from_vio
+
+    old, new, old_pts, new_pts, g0, g1 = srv.call(run)
+    for k in old:  # every keyframe's ancestor chain reaches the corrected half (the root is keyframe 0)
+        np.testing.assert_allclose(new[k], C.transform_pose(old[k]), atol=1e-9)
+    for k in old_pts:
+        np.testing.assert_allclose(new_pts[k], C.apply(old_pts[k][None])[0], atol=1e-9)
+    np.testing.assert_allclose((C @ g0).matrix(), g1.matrix(), atol=1e-6)
