@@ -48,6 +48,17 @@ class Box:
         return (np.abs(lx) <= self.size[0] / 2 + margin) & (np.abs(ly) <= self.size[1] / 2 + margin)
 
 
+@dataclass(frozen=True)
+class Facade:
+    """A building wall: ``label`` as painted on it, ``centre`` (x, y, z), outward unit ``normal``."""
+
+    label: str
+    centre: F64
+    normal: F64
+    width: float
+    height: float
+
+
 @dataclass
 class World:
     """Everything the renderers and the trajectory planner need."""
@@ -70,6 +81,22 @@ class World:
     @property
     def boxes(self) -> list[Box]:
         return self.buildings + self.obstacles
+
+    @property
+    def facades_of_interest(self) -> list[Facade]:
+        """Every building wall (uniquely labelled, e.g. "B3N"): centre, outward normal, size."""
+        out = []
+        for b in self.buildings:
+            fp = b.corners_xy()
+            # CCW footprint edges 0->1, 1->2, 2->3, 3->0 face S, E, N, W for yaw 0 (see box_quads).
+            for e, letter in enumerate("SENW"):
+                a, c = fp[e], fp[(e + 1) % 4]
+                d = c - a
+                width = float(np.linalg.norm(d))
+                normal = np.array([d[1], -d[0], 0.0]) / width
+                centre = np.array([(a[0] + c[0]) / 2, (a[1] + c[1]) / 2, float(b.size[2]) / 2])
+                out.append(Facade(f"{b.name}{letter}", centre, normal, width, float(b.size[2])))
+        return out
 
     def tile_layer(self, ix: int, iy: int) -> int:
         return iy * self.tiles_n + ix

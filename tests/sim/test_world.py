@@ -74,3 +74,15 @@ def test_baked_shadow_geometry() -> None:
     assert at(-1.0 - 7.5 - 0.3, 0.0) > 0.95  # beyond the shadow's tip: sunlit
     assert at(3.0, 0.0) > 0.95  # sunny side, 2 m from the wall
     assert at(1.05, 0.0) < 0.8  # at the foot of the sunlit wall: ambient occlusion
+
+
+def test_facades_of_interest_face_outwards() -> None:
+    w = generate_world(1)
+    facades = w.facades_of_interest
+    assert len(facades) == 4 * len(w.buildings)
+    assert len({f.label for f in facades}) == len(facades)  # labels are unique
+    for f in facades:
+        b = next(b for b in w.buildings if f.label[:-1] == b.name)
+        # 0.5 m in front of the wall is outside the building, 0.5 m behind it inside
+        assert not b.contains_xy((f.centre[:2] + 0.5 * f.normal[:2])[None])[0], f.label
+        assert b.contains_xy((f.centre[:2] - 0.5 * f.normal[:2])[None])[0], f.label
