@@ -223,8 +223,10 @@ def run_single(scen: Path, agents: list[tuple[str, str]], mode: str, work: Path,
         res = AgentResult(aid, kind, g, source="offline local.tum (body)")
         res.start_wall = time.time()
         with open(work / f"{aid}.log", "wb") as logf:
-            rc = subprocess.run([*_agent_cmd(scen / aid, out, g, opts), "--offline"], stdout=logf,
-                                stderr=subprocess.STDOUT, env=clean_env(), timeout=opts.agent_timeout_s).returncode  # fmt: skip
+            cmd = [*_agent_cmd(scen / aid, out, g, opts), "--offline"]
+            rc = subprocess.run(
+                cmd, stdout=logf, stderr=subprocess.STDOUT, env=clean_env(), timeout=opts.agent_timeout_s
+            ).returncode
         res.end_wall = time.time()
         res.run = _read_run(out)
         if rc != 0:

@@ -52,6 +52,10 @@ def _f(x: float | None, nd: int = 3) -> str:
     return "-" if x is None else f"{x:.{nd}f}"
 
 
+def _row(cols: list[str]) -> str:
+    return "| " + " | ".join(cols) + " |"
+
+
 def _impr(base: float | None, x: float | None) -> str:
     if base is None or x is None or base <= 0:
         return "-"
@@ -128,9 +132,21 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
     # ---------------------------------------------------------------- Table 8
     md += ["## Table 8: ATE RMSE / mean per agent and mode [m]", ""]
     md.append(
-        "| scenario | agent | mode | ours RMSE/mean | poses | paper RMSE/mean | ours vs single | paper vs single |"
+        _row(
+            [
+                "scenario",
+                "agent",
+                "mode",
+                "ours RMSE/mean",
+                "poses",
+                "paper RMSE/mean",
+                "ours vs single",
+                "paper vs single",
+            ]
+        )
     )
     md.append("|---|---|---|---|---|---|---|---|")
+    table8: list[dict[str, Any]] = []
     for s in scenarios:
         agent_ids: list[str] = []
         for m in modes:
@@ -157,11 +173,35 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
                 ours_i = _impr(base, a.get("ate_rmse") if a else None) if m != "single" else ""
                 pap_i = _impr(pbase[0] if pbase else None, pap[0] if pap else None) if m != "single" else ""
                 md.append(f"| {s} | {aid} | {m} | {ours} | {n} | {paper} | {ours_i} | {pap_i} |")
+                table8.append(
+                    {
+                        "scenario": s,
+                        "agent": aid,
+                        "mode": m,
+                        "status": a["status"] if a else "not run",
+                        "ate_rmse": a.get("ate_rmse") if a else None,
+                        "ate_mean": a.get("ate_mean") if a else None,
+                        "n": a.get("n") if a else 0,
+                        "paper_rmse": pap[0] if pap else None,
+                        "paper_mean": pap[1] if pap else None,
+                    }
+                )
     md.append("")
     # ---------------------------------------------------------------- Table 5
     md += ["## Table 5: bandwidth per agent (server side, 1 s windows) [kB/s]", ""]
     md.append(
-        "| scenario | mode | agent | upload avg | upload peak | downlink avg | downlink peak | up total [MB] |"
+        _row(
+            [
+                "scenario",
+                "mode",
+                "agent",
+                "upload avg",
+                "upload peak",
+                "downlink avg",
+                "downlink peak",
+                "up total [MB]",
+            ]
+        )
     )
     md.append("|---|---|---|---|---|---|---|---|")
     any_bw = False
@@ -172,7 +212,8 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
                 continue
             any_bw = True
             md.append(
-                f"| {s} | {m} | {a['agent_id']} | {bw.get('up_avg', 0) / 1e3:.1f} | {bw.get('up_peak', 0) / 1e3:.1f}"
+                f"| {s} | {m} | {a['agent_id']} | {bw.get('up_avg', 0) / 1e3:.1f}"
+                f" | {bw.get('up_peak', 0) / 1e3:.1f}"
                 f" | {bw.get('down_avg', 0) / 1e3:.2f} | {bw.get('down_peak', 0) / 1e3:.2f}"
                 f" | {bw.get('up_total', 0) / 1e6:.2f} |"
             )
@@ -192,8 +233,8 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
         kinds: dict[str, int] = {}
         for e in evs:
             kinds[e.get("kind", "?")] = kinds.get(e.get("kind", "?"), 0) + 1
-        md.append(f"**{s} / {m}**: events {kinds}; {len(merges)} merges, {len(loops)} loops; final maps: "
-                  + ", ".join(f"#{mp.get('id')} {mp.get('agents')}" for mp in data.get("maps", [])))  # fmt: skip
+        maps = ", ".join(f"#{mp.get('id')} {mp.get('agents')}" for mp in data.get("maps", []))
+        md.append(f"**{s} / {m}**: events {kinds}; {len(merges)} merges, {len(loops)} loops; maps: {maps}")
         md.append("")
         for e in merges:
             dt = f"{e['time'] - t0:.1f} s after server start" if t0 else ""
@@ -206,10 +247,10 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
                 cond_found = True
     if not cond_found:
         md.append(
-            "Tables 6-7 (place recognitions and matched pairs per camera-angle pair, lighting and weather): the "
-            "back-end's /events do not carry camera angle / lighting / weather, and only scenarios with one "
-            "condition were run, so these tables are not reproduced here. Merge events above give the successful "
-            "inter-agent place recognitions of each run."
+            "Tables 6-7 (place recognitions and matched pairs per camera-angle pair, lighting and "
+            "weather): the back-end's /events do not carry camera angle / lighting / weather, and only "
+            "scenarios with one condition were run, so these tables are not reproduced here. Merge events "
+            "above give the successful inter-agent place recognitions of each run."
         )
         md.append("")
     # ---------------------------------------------------------------- plots
@@ -225,7 +266,19 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
     # ---------------------------------------------------------------- reproducibility
     md += ["## Reproducibility", ""]
     md.append(
-        "| scenario | mode | git | scenario seed | agent seed | max frames | alignment | wall [s] | finished |"
+        _row(
+            [
+                "scenario",
+                "mode",
+                "git",
+                "scenario seed",
+                "agent seed",
+                "max frames",
+                "alignment",
+                "wall [s]",
+                "finished",
+            ]
+        )
     )
     md.append("|---|---|---|---|---|---|---|---|---|")
     vers: dict[str, str] = {}
@@ -245,6 +298,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
     ))  # fmt: skip
     md.append("")
     report = out / "report.md"
+    (out / "report.json").write_text(json.dumps({"table8": table8}, indent=1))
     report.write_text("\n".join(md))
     (out / "report.html").write_text(_to_html("\n".join(md), out))
     return report
