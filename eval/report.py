@@ -52,6 +52,11 @@ def _f(x: float | None, nd: int = 3) -> str:
     return "-" if x is None else f"{x:.{nd}f}"
 
 
+def _real_merge(ev: dict[str, Any]) -> bool:
+    """A map merge (not a dropped stale detection)."""
+    return ev.get("kind") == "merge" and "target" in (ev.get("data") or {})
+
+
 def _row(cols: list[str]) -> str:
     return "| " + " | ".join(cols) + " |"
 
@@ -92,7 +97,10 @@ def _plot(out: Path, s: str, m: str, data: dict[str, Any]) -> str | None:
         for ev in data.get("events", []):
             if ev.get("kind") not in ("merge", "loop") or ev.get("agent_id") not in (None, a["agent_id"]):
                 continue
-            if ev.get("agent_id") is None and a["agent_id"] not in json.dumps(ev.get("data", {})):
+            if ev["kind"] == "merge" and not _real_merge(ev):
+                continue
+            # merges carry map ids only: marked on every agent's plot; loops name their query keyframe
+            if ev["kind"] == "loop" and a["agent_id"] not in json.dumps(ev.get("data", {})):
                 continue
             if not t0w or not t1w or t1w <= t0w or len(t_est) == 0:
                 continue
@@ -228,7 +236,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
             continue
         evs = data.get("events", [])
         t0 = data.get("server_start_wall")
-        merges = [e for e in evs if e.get("kind") == "merge"]
+        merges = [e for e in evs if _real_merge(e)]
         loops = [e for e in evs if e.get("kind") == "loop"]
         kinds: dict[str, int] = {}
         for e in evs:
