@@ -132,6 +132,8 @@ class StoreWriter(Generic[S]):
             t0 = time.monotonic()
             commit_exc: BaseException | None = None
             try:
+                if self.failed:  # an operation of this batch failed: none of the batch is kept
+                    raise next((e for _, e in batch if e is not None), RuntimeError("store failed"))
                 store.commit()  # type: ignore[attr-defined]
             except Exception as exc:  # disk full, I/O error: nothing in this batch is durable
                 logger.exception("commit failed")
@@ -158,11 +160,18 @@ class StoreWriter(Generic[S]):
     def _execute(self, store: S, item: tuple[Op[S] | None, Done | None], batch: list[Any]) -> None:
         op, done = item
         exc: BaseException | None = None
+        if self.failed:
+            # Fail-stop: after any failure nothing more is written, so the stored last seq of an agent can
+            # never move past a message that is not on disk. Agents keep their messages (the error is
+            # transient for them) and resend after the server restarts and reloads the consistent store.
+            batch.append((done, RuntimeError("the store failed earlier; restart the server")))
+            return
         if op is not None:
             try:
                 op(store)
             except Exception as e:
-                logger.exception("store operation failed")
+                logger.exception("store operation failed: the batch is rolled back and the store stops")
                 exc = e
+                self.failed = True
             self.ops += 1
         batch.append((done, exc))

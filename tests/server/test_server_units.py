@@ -140,3 +140,46 @@ def test_writer_acks_only_after_commit_and_batches(tmp_path: Path) -> None:
     assert acked == list(range(200)), "callbacks run in submission order"
     assert commits < 50, f"200 operations were group-committed, not one commit each ({commits})"
     assert ops == 202
+
+
+def test_writer_fails_stop_after_a_failed_operation(tmp_path: Path) -> None:
+    """A failed operation rolls back its whole batch and nothing later is written: an agent's stored last
+    seq can never move past a message that is not on disk (the agent resends after a restart)."""
+    db = tmp_path / "w.sqlite"
+
+    async def main() -> dict[int, BaseException | None]:
+        loop = asyncio.get_running_loop()
+        writer: StoreWriter[_Sqlite] = StoreWriter(lambda: _Sqlite(db), loop, min_commit_interval=0.05)
+        await writer.start()
+        results: dict[int, BaseException | None] = {}
+        finished = asyncio.Event()
+
+        def make_done(i: int):  # noqa: ANN202
+            def cb(exc: BaseException | None) -> None:
+                results[i] = exc
+                if len(results) == 20:
+                    finished.set()
+
+            return cb
+
+        def op(s: _Sqlite, i: int) -> None:
+            if i == 10:
+                raise OSError("disk error")
+            s.conn.execute("INSERT INTO t VALUES (?)", (i,))
+
+        for i in range(10):
+            writer.submit(lambda s, i=i: op(s, i), make_done(i))
+        await writer.flush()
+        for i in range(10, 20):
+            writer.submit(lambda s, i=i: op(s, i), make_done(i))
+        await asyncio.wait_for(finished.wait(), 10)
+        assert writer.failed
+        await writer.stop()
+        return results
+
+    results = asyncio.run(main())
+    assert all(results[i] is None for i in range(10))
+    assert all(results[i] is not None for i in range(10, 20))
+    with sqlite3.connect(db) as other:
+        stored = sorted(v for (v,) in other.execute("SELECT v FROM t"))
+    assert stored == list(range(10)), stored
