@@ -158,6 +158,9 @@ class AgentResult:
     source: str = ""  # local.tum (offline) | server global | agent local (fallback)
     ate_rmse: float | None = None
     ate_mean: float | None = None
+    # co-location: the agent's own final estimate (local.tum, body poses, every tracked frame)
+    local_ate_rmse: float | None = None
+    local_ate_mean: float | None = None
     n: int = 0
     path_length: float | None = None
     bandwidth: dict[str, float] = field(default_factory=dict)
@@ -311,6 +314,9 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
                 continue
             r = httpx.get(url + f"/agents/{aid}/trajectory", params={"frame": "global", "format": "tum"},
                           timeout=60)  # fmt: skip
+            local = AgentResult(aid, res.kind, res.gnss)
+            _evaluate(local, out / "local.tum", groundtruth_trajectory(scen / aid), mode_dir / "local")
+            res.local_ate_rmse, res.local_ate_mean = local.ate_rmse, local.ate_mean
             if r.status_code == 200 and r.text.strip():
                 tum = out / "server_global.tum"
                 tum.write_text(r.text)
