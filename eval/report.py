@@ -88,7 +88,7 @@ def _plot(out: Path, s: str, m: str, data: dict[str, Any]) -> str | None:
         p = np.asarray(est.positions_xyz)
         p_al = (r.scale * (r.rotation @ p.T)).T + r.translation
         t_gt, t_e = np.asarray(gt.timestamps), np.asarray(est.timestamps)
-        span = (t_gt >= t_e.min() - 1.0) & (t_gt <= t_e.max() + 1.0)  # the part of the run evaluated
+        span = (t_gt >= t_e.min() - 0.2) & (t_gt <= t_e.max() + 0.2)  # the part of the run evaluated
         g = np.asarray(gt.positions_xyz)[span]
         ax.plot(g[:, 0], g[:, 1], "k-", lw=1.2, label="ground truth")
         ax.plot(p_al[:, 0], p_al[:, 1], "-", color="tab:red", lw=1.0, label="estimate")
