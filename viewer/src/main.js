@@ -89,7 +89,7 @@ async function refreshPoints() {
     const xyz = parsePly(await r.arrayBuffer());
     const geom = new THREE.BufferGeometry();
     geom.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
-    const mat = new THREE.PointsMaterial({ size: 0.25, color: 0xd0d4da, sizeAttenuation: true });
+    const mat = new THREE.PointsMaterial({ size: 0.12, color: 0xd0d4da, sizeAttenuation: true });
     const pts = new THREE.Points(geom, mat);
     pts.userData.mapId = m.id;
     children.push(pts);
@@ -98,10 +98,18 @@ async function refreshPoints() {
   pointGroup.clear();
   for (const c of children) pointGroup.add(c);
   if (!state.fitted && total > 0) {
-    // First data: frame the whole map.
-    const box = new THREE.Box3().setFromObject(pointGroup);
-    const center = box.getCenter(new THREE.Vector3());
-    const size = Math.max(10, box.getSize(new THREE.Vector3()).length());
+    // First data: frame the map on robust bounds (5th-95th percentile per axis; far outliers ignored).
+    const all = children.map((c) => c.geometry.getAttribute("position").array);
+    const lo = [], hi = [];
+    for (let ax = 0; ax < 3; ax++) {
+      const v = [];
+      for (const a of all) for (let i = ax; i < a.length; i += 3 * Math.max(1, Math.floor(a.length / 30000))) if (Number.isFinite(a[i])) v.push(a[i]);
+      v.sort((x, y) => x - y);
+      lo.push(v[Math.floor(0.05 * (v.length - 1))] ?? 0);
+      hi.push(v[Math.floor(0.95 * (v.length - 1))] ?? 0);
+    }
+    const center = new THREE.Vector3((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2);
+    const size = Math.max(10, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
     controls.target.copy(center);
     camera.position.set(center.x - 0.5 * size, center.y - 0.7 * size, center.z + 0.8 * size);
     controls.update();
