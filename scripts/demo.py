@@ -65,7 +65,19 @@ def main() -> int:
     shutil.rmtree(server_dir, ignore_errors=True)
     server_dir.mkdir(parents=True)
     cfg = server_dir / "server.toml"
-    cfg.write_text("[tokens]\n" + "".join(f'{a} = "{t}"\n' for a, t in tokens.items()))
+    # The UAVs take off from the UGV's roof (paper 2.4): the start configuration is known, so the server
+    # joins the maps at the first keyframes. In the simulation the start poses come from ground truth.
+    starts = []
+    for a in agents:
+        ds = scenario.load_agent(a)
+        T = np.asarray(ds.groundtruth.world_from_body[0]) @ np.asarray(ds.T_BS["cam0"])
+        starts.append(f"{a} = {[[float(x) for x in row] for row in T]}\n")
+    cfg.write_text(
+        "[tokens]\n"
+        + "".join(f'{a} = "{t}"\n' for a, t in tokens.items())
+        + "[start_poses]\n"
+        + "".join(starts)
+    )
     url = f"http://127.0.0.1:{args.port}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
     server_log = open(server_dir / "server.log", "wb")  # noqa: SIM115

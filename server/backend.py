@@ -85,6 +85,13 @@ class Backend:
     def __init__(self, server: Any, options: BackendOptions | None = None, vocabulary: Any = None) -> None:
         self.server = server
         self.options = options or BackendOptions()
+        starts = getattr(getattr(server, "settings", None), "start_poses", {}) or {}
+        self._start_poses: dict[str, NDArray[np.float64]] = {
+            a: np.asarray(T, dtype=np.float64).reshape(4, 4) for a, T in starts.items()
+        }
+        self._anchors: dict[str, tuple[int, Sim3]] = {}
+        self._start_lock = asyncio.Lock()
+        self._start_tasks: set[asyncio.Task[None]] = set()
         self._vocabulary = vocabulary
         self.recognizer: PlaceRecognizer | None = None
         self.queue: deque[KfKey] = deque(maxlen=self.options.queue_max)
@@ -147,6 +154,8 @@ class Backend:
 
     # -- observer -----------------------------------------------------------------------------------
     async def on_keyframe(self, map_id: int, key: KfKey) -> None:
+        if key[0] in self._start_poses and key[0] not in self._anchors:
+            self._anchor_start(map_id, key)
         if len(self.queue) == self.queue.maxlen:
             self.server.events.add("placerec", f"query queue full: {self.queue[0]} dropped")
         self.queue.append(key)
@@ -158,6 +167,60 @@ class Backend:
             n = self._gnss_count[map_id] = self._gnss_count.get(map_id, 0) + 1
             if n % self.options.gnss_every_kfs == 0:
                 self._schedule_optimisation(map_id, [], time.monotonic())
+
+    # -- known start configuration (paper 2.4) -------------------------------------------------------
+    def _anchor_start(self, map_id: int, key: KfKey) -> None:
+        """Record ``common_from_map`` for an agent with a known start pose (its first keyframe is taken at
+        the start pose) and merge its map with the other anchored agents' maps."""
+        m = self.server.stack.maps.get(map_id)
+        kf = m.keyframes.get(key) if m is not None else None
+        if kf is None:
+            return
+        start = self._start_poses[key[0]]
+        common_from_map = Sim3.from_se3(start @ np.linalg.inv(kf.world_from_cam))
+        self._anchors[key[0]] = (map_id, common_from_map)
+        self.server.events.add(
+            "start_anchor", f"{key[0]}: map {map_id} anchored by its start pose", map_id=map_id
+        )
+        task = asyncio.get_running_loop().create_task(self._start_merges())
+        self._start_tasks.add(task)
+        task.add_done_callback(self._start_tasks.discard)
+
+    async def _start_merges(self) -> None:
+        """Merge every pair of maps whose agents' start poses are known (no visual match needed)."""
+        async with self._start_lock:
+            while True:
+                maps = self.server.stack.maps
+                valid = {a: (mid, c) for a, (mid, c) in self._anchors.items() if mid in maps}
+                by_map: dict[int, Sim3] = {mid: c for mid, c in valid.values()}
+                if len(by_map) < 2:
+                    return
+                a_id, b_id = sorted(by_map)[:2]
+                target = self._target_of(a_id, b_id)
+                source = b_id if target == a_id else a_id
+                target_from_source = by_map[target].inverse() @ by_map[source]
+                t0 = time.perf_counter()
+                await self.server.apply_merge(target, source, target_from_source, [])
+                self._generation[target] = self._generation.get(target, 0) + 1
+                self._generation.pop(source, None)
+                if self.recognizer is not None:
+                    await asyncio.get_running_loop().run_in_executor(
+                        self._pr_exec, self.recognizer.on_merge, target, source
+                    )
+                for a, (mid, _) in list(self._anchors.items()):
+                    if mid == source:
+                        self._anchors[a] = (target, by_map[target])
+                rec = {"target": target, "source": source, "scale": 1.0, "n_fused": 0,
+                       "merge_ms": (time.perf_counter() - t0) * 1e3, "by": "start_pose",
+                       "target_from_source": target_from_source.matrix().tolist()}  # fmt: skip
+                self.merges.append(rec)
+                self.server.events.add(
+                    "merge_detail",
+                    f"merge {source} -> {target} from the known start poses",
+                    map_id=target,
+                    data=rec,
+                )
+                await self._send_corrections(target, {}, time.monotonic(), only_agents=None)
 
     # -- place-recognition worker -------------------------------------------------------------------
     def _index_many(self, keys: list[tuple[int, KfKey]]) -> None:
@@ -455,12 +518,18 @@ class Backend:
     def _anchor(self, m: Any, keys: list[KfKey]) -> list[int]:
         """Indices of the two earliest keyframes of the map's reference agent (UGV, else first agent)."""
         agents = sorted(m.agents, key=lambda f: (self._agent_kind(f) != "ugv", f))
+        fixed: list[int] = []
         for a in agents:
             idx = [i for i, k in enumerate(keys) if k[0] == a]
             if idx:
                 idx.sort(key=lambda i: (m.keyframes[keys[i]].timestamp, keys[i][1]))
-                return idx[:2]
-        return [0]
+                if not fixed:
+                    fixed = idx[:2]
+                elif a in self._anchors and self._anchors[a][0] == m.id:
+                    # Joined by its known start pose (no shared points or edges with the others): hold its
+                    # two earliest keyframes too, else its part of the map has a free gauge (incl. scale).
+                    fixed += idx[:2]
+        return fixed or [0]
 
     async def _optimise_once(
         self,

@@ -19,7 +19,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -34,6 +34,31 @@ class ServerSettings(BaseSettings):
     tokens: dict[str, str] = Field(
         default_factory=dict, description="Per-agent tokens (agent id -> token); others are refused."
     )
+    start_poses: dict[str, list[list[float]]] = Field(
+        default_factory=dict,
+        description=(
+            "Known start configuration (paper 2.4: the UAVs take off from the UGV's roof): agent id -> 4x4 "
+            "pose of the agent's cam0 at its start, in any common frame. Agents listed here are merged at "
+            "their first keyframe (they must be at rest until then), before any visual match."
+        ),
+    )
+
+    @field_validator("start_poses")
+    @classmethod
+    def _rigid_4x4(cls, v: dict[str, list[list[float]]]) -> dict[str, list[list[float]]]:
+        import numpy as np
+
+        for agent, T in v.items():
+            M = np.asarray(T, dtype=np.float64)
+            if M.shape != (4, 4) or not np.isfinite(M).all():
+                raise ValueError(f"start_poses.{agent}: expected a finite 4x4 matrix, got shape {M.shape}")
+            R = M[:3, :3]
+            if not np.allclose(M[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+                raise ValueError(
+                    f"start_poses.{agent}: not a rigid transform (rotation and last row [0 0 0 1])"
+                )
+        return v
+
     # Ingest and back-pressure.
     max_frame_bytes: int = Field(
         default=4 * 1024 * 1024, ge=1024, description="Largest WebSocket frame accepted."
