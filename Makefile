@@ -1,6 +1,7 @@
 # hivemap: two commands set everything up on a fresh machine.
 #   make test   create .venv, install hivemap + dev tools + system packages, run ruff, mypy, pytest
 #   make demo   the same set-up, then render a small scenario, run server + agents, print the result
+#               (the server keeps running for the viewer until Ctrl-C; DEMO_ARGS=--exit stops after the table)
 SHELL := /bin/bash
 PY ?= python3.11
 VENV := .venv
@@ -36,7 +37,7 @@ pytest: setup
 test: lint typecheck pytest
 
 demo: setup
-	$(BIN)/python scripts/demo.py
+	$(BIN)/python scripts/demo.py $(DEMO_ARGS)
 
 bench: setup
 	@for b in bench/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
