@@ -7,7 +7,6 @@ Without --exit the server keeps running for the viewer until Ctrl-C.
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import signal
 import subprocess
@@ -26,20 +25,6 @@ def log(msg: str) -> None:
     print(f"[demo] {msg}", flush=True)
 
 
-def wait_health(url: str, proc: subprocess.Popen[bytes], timeout: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise SystemExit(f"server exited with code {proc.returncode}; see its log")
-        try:
-            if httpx.get(url + "/health", timeout=1.0).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    raise SystemExit("server did not become healthy in time")
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--scenario", default="tiny")
@@ -49,6 +34,7 @@ def main() -> int:
     args = ap.parse_args()
 
     from hivemap.client.dataset import load_scenario
+    from hivemap.eval.experiment import clean_env, stop, wait_health
     from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum
 
     work: Path = args.work
@@ -79,7 +65,7 @@ def main() -> int:
         + "".join(starts)
     )
     url = f"http://127.0.0.1:{args.port}"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
+    env = clean_env()
     server_log = open(server_dir / "server.log", "wb")  # noqa: SIM115
     log(f"starting the server on {url} (log: {server_dir / 'server.log'})")
     server = subprocess.Popen(
@@ -154,12 +140,7 @@ def main() -> int:
         for p in procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
-        if server.poll() is None:
-            server.send_signal(signal.SIGINT)
-            try:
-                server.wait(15)
-            except subprocess.TimeoutExpired:
-                server.kill()
+        stop(server)
         server_log.close()
 
 

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import Sim3, rotation_angle_deg
+from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
 from hivemap.protocol import Correction, encode
 from hivemap.server.convert import split_folded
 from hivemap.server.placerec import Detection, PlaceRecognizer, PlaceRecOptions, RecognitionResult
@@ -172,6 +172,22 @@ class Backend:
             if n % self.options.gnss_every_kfs == 0:
                 self._schedule_optimisation(map_id, [], time.monotonic())
 
+    async def _apply_merge(
+        self, target: int, source: int, target_from_source: Sim3, pairs: list[Any]
+    ) -> tuple[Any, float]:
+        """Merge through the server (one commit), then re-key the back-end's per-map state; returns the
+        merged map and the merge time in ms."""
+        t0 = time.perf_counter()
+        merged = await self.server.apply_merge(target, source, target_from_source, pairs)
+        merge_ms = (time.perf_counter() - t0) * 1e3
+        self._generation[target] = self._generation.get(target, 0) + 1
+        self._generation.pop(source, None)
+        if self.recognizer is not None:
+            await asyncio.get_running_loop().run_in_executor(
+                self._pr_exec, self.recognizer.on_merge, target, source
+            )
+        return merged, merge_ms
+
     # -- known start configuration (paper 2.4) -------------------------------------------------------
     def _anchor_start(self, map_id: int, key: KfKey) -> None:
         """Record ``common_from_map`` for an agent with a known start pose (its first keyframe is taken at
@@ -181,7 +197,7 @@ class Backend:
         if kf is None:
             return
         start = self._start_poses[key[0]]
-        common_from_map = Sim3.from_se3(start @ np.linalg.inv(kf.world_from_cam))
+        common_from_map = Sim3.from_se3(start @ se3_inverse(kf.world_from_cam))
         self._anchors[key[0]] = (map_id, common_from_map)
         self.server.events.add(
             "start_anchor", f"{key[0]}: map {map_id} anchored by its start pose", map_id=map_id
@@ -203,19 +219,12 @@ class Backend:
                 target = self._target_of(a_id, b_id)
                 source = b_id if target == a_id else a_id
                 target_from_source = by_map[target].inverse() @ by_map[source]
-                t0 = time.perf_counter()
-                await self.server.apply_merge(target, source, target_from_source, [])
-                self._generation[target] = self._generation.get(target, 0) + 1
-                self._generation.pop(source, None)
-                if self.recognizer is not None:
-                    await asyncio.get_running_loop().run_in_executor(
-                        self._pr_exec, self.recognizer.on_merge, target, source
-                    )
+                _, merge_ms = await self._apply_merge(target, source, target_from_source, [])
                 for a, (mid, _) in list(self._anchors.items()):
                     if mid == source:
                         self._anchors[a] = (target, by_map[target])
                 rec = {"target": target, "source": source, "scale": 1.0, "n_fused": 0,
-                       "merge_ms": (time.perf_counter() - t0) * 1e3, "by": "start_pose",
+                       "merge_ms": merge_ms, "by": "start_pose",
                        "target_from_source": target_from_source.matrix().tolist()}  # fmt: skip
                 self.merges.append(rec)
                 self.server.events.add(
@@ -347,15 +356,7 @@ class Backend:
         target_id, source_id, sim, pairs = det.merge_args(target)
         for k in [k for k in self._consist if source_id in k[:2] or target_id in k[:2]]:
             del self._consist[k]
-        t0 = time.perf_counter()
-        merged = await server.apply_merge(target_id, source_id, sim, pairs)
-        merge_ms = (time.perf_counter() - t0) * 1e3
-        self._generation[target_id] = self._generation.get(target_id, 0) + 1
-        self._generation.pop(source_id, None)
-        assert self.recognizer is not None
-        await asyncio.get_running_loop().run_in_executor(
-            self._pr_exec, self.recognizer.on_merge, target_id, source_id
-        )
+        merged, merge_ms = await self._apply_merge(target_id, source_id, sim, pairs)
         # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
         edge = (det.candidate_key, det.query_key, self._edge_measure(merged, det, target_id == det.query_map))
         if det.candidate_key in merged.keyframes and det.query_key in merged.keyframes:
