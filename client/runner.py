@@ -364,10 +364,12 @@ class OfflineAgent:
             if isinstance(ev, KeyframeEvent):
                 self._add_keyframe(ev)
             elif isinstance(ev, PoseUpdateEvent):
+                upd = {}
                 for kid, T_wc in zip(ev.kf_ids, ev.world_from_cam, strict=True):
                     node = self._node_of.get((ev.session, int(kid)))
                     if node is not None:
-                        self.stage.update_vio_pose(node, T_wc @ cam_from_body)
+                        upd[node] = T_wc @ cam_from_body
+                self.stage.update_vio_poses(upd)
             if self.on_event is not None:
                 self.on_event(ev)
 

@@ -154,6 +154,8 @@ class SecondStage:
         self._handle_to_index: dict[int, int] = {}  # handle -> iSAM2 factor index
         self._next_handle = 0
         self._colocation_handle: dict[int, int] = {}  # kf_id -> handle of its co-location prior
+        # kf_id -> (handle of its relative-pose factor, previous kf_id, 6x6 covariance)
+        self._between: dict[int, tuple[int, int, F64]] = {}
         self._segment_prior: dict[int, tuple[int, int, F64]] = {}  # segment -> (handle, kf_id, mean)
         self._estimate: dict[int, F64] = {}  # kf_id -> local_from_kf
         self._local_from_vio: dict[int, F64] = {}  # segment -> transform
@@ -293,15 +295,49 @@ class SecondStage:
         (h,) = self._commit([factor], {kf_id: init})
         if starts_segment:
             self._segment_prior[segment] = (h, kf_id, init)
+        else:
+            assert prev_id is not None and rel_cov is not None
+            self._between[kf_id] = (h, prev_id, np.asarray(rel_cov, dtype=np.float64).reshape(6, 6))
 
     def update_vio_pose(self, kf_id: int, vio_from_kf: F64) -> None:
-        """The front-end moved an already added keyframe (local BA): keep its VIO pose current.
+        """The front-end moved an already added keyframe (local BA): see ``update_vio_poses``."""
+        self.update_vio_poses({kf_id: vio_from_kf})
 
-        Only the per-keyframe correction used for frame interpolation and ``local_from_vio`` change;
-        factors already in the graph are not re-weighted.
-        """
-        if kf_id in self._kfs:
-            self._kfs[kf_id].vio_from_kf = np.asarray(vio_from_kf, dtype=np.float64).reshape(4, 4)
+    def update_vio_poses(self, updates: dict[int, F64], min_change_m: float = 1e-3) -> None:
+        """The front-end's local BA moved already added keyframes: keep their VIO poses current and
+        replace the relative-pose factors that touch them by the refined relative poses (same
+        covariance). Keyframes are emitted before the local BA window has settled; measured on
+        factory01's UGV at a sharp turn, the emission-time relative poses were off by up to 0.4 m
+        while the refined VIO keyframes were within a few centimetres, so without this the local
+        trajectory (GNSS denied) was worse than the VIO's."""
+        touched: set[int] = set()
+        for kf_id, T in updates.items():
+            if kf_id in self._kfs:
+                self._kfs[kf_id].vio_from_kf = np.asarray(T, dtype=np.float64).reshape(4, 4)
+                touched.add(kf_id)
+        if not touched:
+            return
+        gtsam = self._gtsam
+        factors, remove, owners = [], [], []
+        for kf_id, (h, prev_id, cov) in self._between.items():
+            if kf_id not in touched and prev_id not in touched:
+                continue
+            old = self._factors.get(h)
+            rel = se3_inverse(self._kfs[prev_id].vio_from_kf) @ self._kfs[kf_id].vio_from_kf
+            if old is not None:
+                d = se3_inverse(old.measured().matrix()) @ rel
+                if np.linalg.norm(d[:3, 3]) < min_change_m and abs(np.trace(d[:3, :3]) - 3.0) < 1e-6:
+                    continue
+            factors.append(
+                gtsam.BetweenFactorPose3(_key(prev_id), _key(kf_id), gtsam.Pose3(rel), _gaussian(cov))
+            )
+            remove.append(h)
+            owners.append((kf_id, prev_id, cov))
+        if not factors:
+            return
+        handles = self._commit(factors, {}, remove=remove)
+        for h, (kf_id, prev_id, cov) in zip(handles, owners, strict=True):
+            self._between[kf_id] = (h, prev_id, cov)
 
     def vio_pose(self, kf_id: int) -> F64:
         """The keyframe's current VIO-frame pose (4x4)."""
