@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import websockets
 from websockets.exceptions import ConnectionClosed
 
@@ -75,8 +76,10 @@ class AgentLink:
         on_correction: Callable[[Correction], None] | None = None,
         session: int = 0,
         options: LinkOptions | None = None,
+        cam_from_antenna: np.ndarray | None = None,
     ) -> None:
         self.url = url
+        self.cam_from_antenna = cam_from_antenna  # (3,) GNSS lever arm in cam0, sent in the hello
         self.agent_id = agent_id
         self.kind = kind
         self.camera = camera
@@ -175,8 +178,9 @@ class AgentLink:
         ) as ws:
             self._ws = ws
             hello = Hello(
-                self.agent_id, self.kind, self.camera, self.token, self.outbox.last_acked, self.session
-            )
+                self.agent_id, self.kind, self.camera, self.token, self.outbox.last_acked, self.session,
+                self.cam_from_antenna,
+            )  # fmt: skip
             await ws.send(encode(hello, 0))
             first = await asyncio.wait_for(ws.recv(), self.options.open_timeout_s)
             if not isinstance(first, bytes):

@@ -100,6 +100,7 @@ class RunnerOptions:
     max_frames: int | None = None  # stop after this many frames (tests, quick looks)
     gnss_max_dt_s: float = 0.03  # a fix is attached to the frame closest in time within this
     colocation_sigma: tuple[float, float] = (0.01, 0.05)  # rad, m: prior of a server-corrected pose
+    colocation_gate_m: float = 1.0  # corrected poses farther than this from the agent's own are refused
     flush_timeout_s: float = 60.0  # streaming: wait this long for the server's acks at the end
     corrections_grace_s: float = 2.0  # streaming: then wait this long for late corrections
     progress: bool = True
@@ -268,6 +269,7 @@ class OfflineAgent:
         self.on_event: Callable[[object], None] | None = None  # every front-end event, after fusion
         self.kf_fix: dict[tuple[int, int], int] = {}  # (session, kf_id) -> index of its accepted fix
         self.corrections_applied = 0
+        self.corrections_refused = 0
 
     def select(self, frame_times: F64) -> None:
         """Choose the fixes of the GNSS mode and attach each to the closest frame time."""
@@ -405,14 +407,21 @@ class OfflineAgent:
                 self.gnss_rejected += 1
 
     def apply_correction(
-        self, session: int, kf_ids: NDArray[np.int64], global_from_kf_cam: F64, global_from_sent: F64
+        self,
+        session: int,
+        kf_ids: NDArray[np.int64],
+        global_from_kf_cam: F64,
+        global_from_sent: F64,
+        enu: bool = False,
     ) -> int:
         """Co-location factors from a server correction (poses of the agent's keyframes in the global
         frame + ``global_from_local`` of the frame the keyframes were sent in, here the VIO frame).
 
         Each corrected pose is brought back into the sent (VIO) frame, then into the local frame with
         the segment's current ``local_from_vio``, and added as a prior with ``options.colocation_sigma``.
-        Returns the number of keyframes used.
+        With ``enu`` (the server's map is in the ENU frame of the GNSS fixes) and a local frame that is
+        ENU too (this agent fused a fix), the corrected poses are absolute local poses: the team's
+        GNSS fixes then place this agent in ENU, not only its own. Returns the number of keyframes used.
         """
         from hivemap.maps.geometry import Sim3
 
@@ -427,9 +436,17 @@ class OfflineAgent:
             node = self._node_of.get((int(session), int(kid)))
             if node is None:
                 continue
-            vio_from_body = sent_from_global.transform_pose(T_gc @ cam_from_body)
-            seg = self.stage.keyframe_segment(node)
-            self.stage.add_colocation(node, self.stage.local_from_vio(seg) @ vio_from_body, cov)
+            if enu and self.gnss_used > 0:
+                prior = T_gc @ cam_from_body
+            else:
+                vio_from_body = sent_from_global.transform_pose(T_gc @ cam_from_body)
+                prior = self.stage.local_from_vio(self.stage.keyframe_segment(node)) @ vio_from_body
+            gap = float(np.linalg.norm(prior[:3, 3] - self.stage.keyframe_pose(node)[:3, 3]))
+            if gap > self.options.colocation_gate_m:
+                # a server pose this far from ours is a server-side failure, not a correction
+                self.corrections_refused += 1
+                continue
+            self.stage.add_colocation(node, prior, cov)
             n += 1
         self.corrections_applied += n
         return n
@@ -628,9 +645,13 @@ async def _stream(
         with lock:
             pending.append(msg)
 
+    T_BS = getattr(ds, "T_BS", {}) or {}
+    cam_from_antenna = None
+    if "gnss0" in T_BS and "cam0" in T_BS:
+        cam_from_antenna = (np.linalg.inv(np.asarray(T_BS["cam0"])) @ np.asarray(T_BS["gnss0"]))[:3, 3].copy()
     link = AgentLink(
         server, aid, str(getattr(ds, "kind", "uav")), ds.camera.to_dict(), token, out / "outbox.sqlite",
-        on_correction=on_correction,
+        on_correction=on_correction, cam_from_antenna=cam_from_antenna,
     )  # fmt: skip
     outgoing: list[object] = []
 
@@ -665,8 +686,13 @@ async def _stream(
             todo = list(pending)
             pending.clear()
         for c in todo:
-            n = agent.apply_correction(c.session, c.kf_ids, c.world_from_cam, c.global_from_local)
-            log.info("correction from map %d: %d keyframes fused as co-location factors", c.map_id, n)
+            n = agent.apply_correction(
+                c.session, c.kf_ids, c.world_from_cam, c.global_from_local, enu=c.global_frame == "enu"
+            )
+            log.info(
+                "correction from map %d (%s frame): %d keyframes fused as co-location factors",
+                c.map_id, c.global_frame, n,
+            )  # fmt: skip
 
     def step(i: int, prev_t: float) -> None:
         apply_pending()
@@ -710,8 +736,9 @@ async def _stream(
     summary.outputs["outbox"] = str(out / "outbox.sqlite")
     (out / "run.json").write_text(summary.to_json())
     log.info(
-        "agent %s streamed: %d keyframes, %d corrections applied, up %d B, down %d B",
+        "agent %s streamed: %d keyframes, %d corrections applied, up %d B, down %d B, %d poses refused",
         aid, summary.keyframes, agent.corrections_applied, link.stats.bytes_up, link.stats.bytes_down,
+        agent.corrections_refused,
     )  # fmt: skip
     return summary
 

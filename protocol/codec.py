@@ -257,6 +257,11 @@ def _v_hello(b: dict[str, Any], lim: Limits) -> Hello:
         token=_str(b["token"], "body.token", lim.max_token_len),
         resume_from=_int(b.get("resume_from", 0), "body.resume_from", 0, lim.max_seq),
         session=_session(b),
+        cam_from_antenna=(
+            None
+            if b.get("cam_from_antenna") is None
+            else _arr(b["cam_from_antenna"], "body.cam_from_antenna", "<f8", (3,))
+        ),
     )
 
 
@@ -346,7 +351,15 @@ def _v_correction(b: dict[str, Any], lim: Limits) -> Correction:
         kf_ids=kf_ids,
         world_from_cam=poses,
         session=_session(b),
+        global_frame=_global_frame(b.get("global_frame", "map")),
     )
+
+
+def _global_frame(v: Any) -> str:
+    frame = _str(v, "body.global_frame", 8)
+    if frame not in ("map", "enu"):
+        raise FieldError(f"global_frame must be 'map' or 'enu', got {frame!r}", "body.global_frame")
+    return frame
 
 
 def _v_error(b: dict[str, Any], lim: Limits) -> Error:

@@ -26,6 +26,9 @@ class Hello:
     token: str
     resume_from: int = 0
     session: int = 0
+    # GNSS antenna position in the cam0 frame, f64 (3,) (None: no GNSS receiver, or at the camera). The
+    # server's GNSS stage needs it: a fix is the antenna's position, a keyframe pose the camera's.
+    cam_from_antenna: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)
@@ -98,6 +101,9 @@ class Correction:
     kf_ids: NDArray[np.int64]
     world_from_cam: NDArray[np.float64]
     session: int = 0
+    # "map": the global frame is the merged map's own frame; "enu": the server's GNSS stage has put the
+    # map into the ENU frame the agents' GNSS fixes are in, so the poses are absolute ENU poses.
+    global_frame: str = "map"
 
 
 @dataclass(frozen=True)

@@ -27,12 +27,13 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
+from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3, se3_inverse
 from hivemap.protocol import Correction, encode
 from hivemap.server.convert import split_folded
 from hivemap.server.placerec import Detection, PlaceRecognizer, PlaceRecOptions, RecognitionResult
@@ -60,7 +61,9 @@ class BackendOptions:
     ba_max_keyframes: int = 4000
     ba_max_iterations: int = 30
     gnss: bool = True
-    gnss_every_kfs: int = 20  # BA + GNSS stage of a map after this many new keyframes with a fix
+    # GNSS stage of a map after this many new keyframes with a fix (runs coalesce while one is busy)
+    gnss_every_kfs: int = 1
+    enu_correction_stride: int = 8  # ENU corrections carry every 8th keyframe of the agent (+ moved ones)
     correction_min_move_m: float = 0.01  # a keyframe is "changed" if it moved this much (local frame)
     correction_min_rot_deg: float = 0.1
     transform_window: int = 20  # recent keyframes whose corrections define an agent's new frame
@@ -75,6 +78,13 @@ class BackendOptions:
     consistency_max_log_scale: float = 0.03
     consistency_max_rel_shift: float = 0.05  # query points moved / their spread
     min_pair_inlier_ratio: float = 0.5
+    # metric maps: loop closures asking for a larger correction of the query are refused as false
+    loop_max_correction_m: float = 1.0
+    loop_max_correction_deg: float = 5.0
+    # GNSS stage results are applied only when most fixes agree with the map (else a wrong loop or merge
+    # is the likelier cause than bad fixes)
+    gnss_max_rejected_ratio: float = 0.34
+    gnss_max_median_residual_m: float = 0.5
 
 
 @dataclass
@@ -108,6 +118,7 @@ class Backend:
         self._generation: dict[int, int] = {}  # bumped when a map changes frame (merge / GNSS)
         self._opt_running: set[int] = set()
         self._gnss_count: dict[int, int] = {}
+        self._enu_maps: set[int] = set()  # maps the GNSS stage has put into ENU
         self._consist: dict[tuple[int, int, str], tuple[int, Sim3, int]] = {}
         self._opt_again: dict[int, list[tuple[KfKey, KfKey, Sim3]]] = {}
         self._tokens = self.options.verifications_per_s
@@ -182,6 +193,7 @@ class Backend:
         merge_ms = (time.perf_counter() - t0) * 1e3
         self._generation[target] = self._generation.get(target, 0) + 1
         self._generation.pop(source, None)
+        self._enu_maps.discard(source)  # the merged map keeps the target's frame
         if self.recognizer is not None:
             await asyncio.get_running_loop().run_in_executor(
                 self._pr_exec, self.recognizer.on_merge, target, source
@@ -442,6 +454,24 @@ class Backend:
         Tq = Sim3.from_se3(m.keyframes[det.query_key].world_from_cam)
         # the detection maps the query's (drifted) frame onto the candidate's: corrected query pose
         measured = Tc.inverse() @ det.target_from_source @ Tq
+        o = self.options
+        if o.fix_scale:
+            # Metric (stereo-inertial) maps drift by decimetres, not metres: a loop that would move the
+            # query farther or turn it more is a false match (factory01: one 57-inlier loop asking for
+            # metres bent the map until the GNSS stage rejected every fix).
+            q_new = det.target_from_source.transform_pose(m.keyframes[det.query_key].world_from_cam)
+            move = float(np.linalg.norm(q_new[:3, 3] - Tq.t))
+            turn = rotation_angle_deg(det.target_from_source.R)
+            if move > o.loop_max_correction_m or turn > o.loop_max_correction_deg:
+                self.server.events.add(
+                    "loop",
+                    f"loop {det.query_key} -> {det.candidate_key} refused: it would move the query "
+                    f"{move:.2f} m / {turn:.1f} deg (limits {o.loop_max_correction_m} m, "
+                    f"{o.loop_max_correction_deg} deg)",
+                    map_id=m.id,
+                    data={"refused": True, "move_m": move, "turn_deg": turn, "n_inliers": det.n_inliers},
+                )
+                return
         m.add_loop_edge(det.candidate_key, det.query_key)
         pairs = list(zip(det.candidate_points, det.query_points, strict=True))
         rec = {
@@ -570,7 +600,7 @@ class Backend:
                         initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
             t0 = time.perf_counter()
             sims = await loop.run_in_executor(
-                self._opt_exec, _pose_graph, initial, snap.poses, graph_edges, new_edges, fixed
+                self._opt_exec, _pose_graph, initial, snap.poses, graph_edges, new_edges, fixed, o.fix_scale
             )
             pg_ms = (time.perf_counter() - t0) * 1e3
             cur = self._current(snap)
@@ -649,6 +679,15 @@ class Backend:
         """On the loop: move keyframes by their correction; keyframes that are not in ``corr`` (arrived
         after the snapshot) by their nearest corrected ancestor's; points by ``new_xyz`` or by the correction
         of a keyframe observing them; agents' ``global_from_vio`` by their latest keyframe's correction."""
+        bad = [k for k, c in corr.items() if not (np.isfinite(c.matrix()).all() and abs(np.log(c.s)) < 1.0)]
+        if bad:
+            logger.error(
+                "map %d: %d non-finite or wild corrections (e.g. %s) not applied", m.id, len(bad), bad[0]
+            )
+            self.server.events.add(
+                "error", f"map {m.id}: {len(bad)} wild corrections not applied", map_id=m.id
+            )
+            return
         full: dict[KfKey, Sim3] = dict(corr)
 
         def correction_of(k: KfKey) -> Sim3:
@@ -692,7 +731,33 @@ class Backend:
                 c = _umeyama(old, new, with_scale=not self.options.fix_scale)
             self.server.set_agent_transform(folded, c @ am.global_from_vio)
 
+    def _cam_from_antenna(self, folded: str) -> F64:
+        am = self.server._agent_map_by_folded(folded)
+        agent = self.server.agents.get(am.agent_id) if am is not None else None
+        lever = getattr(agent, "cam_from_antenna", None)
+        return np.zeros(3) if lever is None else np.asarray(lever, dtype=np.float64).reshape(3)
+
+    def _gnss_links(self, m: Any, keys: list[KfKey]) -> list[tuple[int, int]]:
+        """Keyframe pairs that tie the agents of a map together in the GNSS stage: essential-graph edges
+        between different agents (shared points, loop and merge edges) and, for agents joined by their
+        known start pose, their first keyframe to the reference agent's first keyframe."""
+        index = {k: i for i, k in enumerate(keys)}
+        links = [
+            (index[a], index[b]) for a, b in m.essential_edges() if a[0] != b[0] and a in index and b in index
+        ]
+        firsts: dict[str, int] = {}
+        for i, k in enumerate(keys):
+            if k[0] not in firsts:
+                firsts[k[0]] = i
+        anchored = [a for a in firsts if a in self._anchors and self._anchors[a][0] == m.id]
+        if len(anchored) >= 2:
+            ref = sorted(anchored, key=lambda f: (self._agent_kind(f) != "ugv", f))[0]
+            links += [(firsts[ref], firsts[a]) for a in anchored if a != ref]
+        return links
+
     async def _gnss_stage(self, m: Any) -> None:
+        """Paper 2.5.3: bend the whole map onto every agent's GNSS fixes (antenna positions, through each
+        agent's lever arm) with the agents tied together, and move it into ENU."""
         from hivemap.server.gnss_stage import GnssFix, NotEnoughFixes, fuse_gnss
 
         keys = sorted(m.keyframes, key=lambda k: (k[0], m.keyframes[k].timestamp))
@@ -708,29 +773,46 @@ class Backend:
         for i, k in enumerate(keys):
             chains.setdefault(k[0], []).append(i)
         poses = np.array([m.keyframes[k].world_from_cam for k in keys])
+        levers = {a: self._cam_from_antenna(a) for a in chains}
+        cam_from_ant = np.array([se3(np.eye(3), levers[k[0]]) for k in keys])
+        world_from_ant = poses @ cam_from_ant
+        links = self._gnss_links(m, keys)
         snap = _Snapshot(m.id, self._generation.get(m.id, 0), keys, poses)
         try:
             res = await asyncio.get_running_loop().run_in_executor(
-                self._opt_exec, fuse_gnss, poses, list(chains.values()), fixes
+                self._opt_exec, partial(fuse_gnss, links=links), world_from_ant, list(chains.values()), fixes
             )
         except NotEnoughFixes as exc:
             self.server.events.add("gnss_stage", f"map {m.id}: {exc}", map_id=m.id)
             return
+        used = int(np.sum(res.used))
+        med = float(np.median(res.residuals_m))
+        o = self.options
+        if used < (1.0 - o.gnss_max_rejected_ratio) * len(fixes) or med > o.gnss_max_median_residual_m:
+            self.server.events.add(
+                "gnss_stage",
+                f"map {m.id}: GNSS stage result refused ({used}/{len(fixes)} fixes agree, median residual "
+                f"{med:.2f} m): the map and the fixes disagree",
+                map_id=m.id,
+                data={"refused": True, "used": used, "n_fixes": len(fixes), "median_residual_m": med},
+            )
+            return
         cur = self._current(snap)
         if cur is None:
             return
-        E = Sim3.from_se3(res.enu_from_map)
-        corr = {k: E for k in cur.keyframes}
-        self._apply_corrections(cur, corr, {pk: E.apply(p.xyz[None])[0] for pk, p in cur.points.items()})
+        new_cam = np.asarray(res.world_from_body) @ np.array([se3_inverse(T) for T in cam_from_ant])
+        corr = {k: Sim3.from_se3(new_cam[i]) @ Sim3.from_se3(poses[i]).inverse() for i, k in enumerate(keys)}
+        self._apply_corrections(cur, corr, {})
         self._generation[m.id] = self._generation.get(m.id, 0) + 1
-        used = int(np.sum(res.used))
+        self._enu_maps.add(m.id)
         self.server.events.add(
             "gnss_stage",
-            f"map {m.id} moved into ENU with {used}/{len(fixes)} fixes "
-            f"(median residual {float(np.median(res.residuals_m)):.2f} m)",
+            f"map {m.id} bent onto {used}/{len(fixes)} fixes in ENU ({len(links)} inter-agent links, "
+            f"median residual {float(np.median(res.residuals_m)):.2f} m)",
             map_id=m.id,
-            data={"used": used, "n_fixes": len(fixes), "enu_from_map": res.enu_from_map.tolist()},
-        )
+            data={"used": used, "n_fixes": len(fixes), "n_links": len(links),
+                  "enu_from_map": res.enu_from_map.tolist()},
+        )  # fmt: skip
 
     # -- corrections -----------------------------------------------------------------------------------
     async def _send_corrections(
@@ -759,12 +841,20 @@ class Backend:
                     moves.append((dt + 0.05 * dr, k))
             moves.sort(reverse=True)
             chosen = sorted(k for _, k in moves[: o.correction_max_kfs])
+            enu = map_id in self._enu_maps
+            if enu:
+                # absolute ENU poses: every ``enu_correction_stride``-th keyframe of the agent (the same
+                # keyframes each time, so each new correction replaces the agent's previous priors)
+                own = sorted(k for k in m.keyframes if k[0] == folded)
+                sample = own[:: o.enu_correction_stride][-o.correction_max_kfs :]
+                chosen = sorted(set(chosen) | set(sample))[-2 * o.correction_max_kfs :]
             ids = np.array([k[1] for k in chosen], dtype=np.int64)
             poses = np.array([m.keyframes[k].world_from_cam for k in chosen], dtype=np.float64).reshape(
                 -1, 4, 4
             )
             corr = Correction(map_id=map_id, global_from_local=am.global_from_vio.matrix(), kf_ids=ids,
-                              world_from_cam=poses, session=am.session)  # fmt: skip
+                              world_from_cam=poses, session=am.session,
+                              global_frame="enu" if enu else "map")  # fmt: skip
             nbytes = len(encode(corr, 0))
             self.correction_bytes[am.agent_id] = self.correction_bytes.get(am.agent_id, 0) + nbytes
             try:
@@ -828,13 +918,25 @@ def _pose_graph(
     graph_edges: list[tuple[int, int]],
     new_edges: list[tuple[int, int, Sim3]],
     fixed: list[int],
+    metric: bool = False,
 ) -> list[Sim3]:
-    """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected)."""
+    """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected).
+
+    ``metric``: the map has metric scale (stereo agents), so the graph is SE(3) in effect: every edge holds
+    the scale (log-scale sigma 1e-5) and the results are projected to scale 1. A free Sim(3) graph let
+    scale creep in at each of the dozens of loop closures of a factory run, until poses overflowed."""
     from hivemap.server.optim import PoseGraphEdge, optimize_pose_graph_sim3, relative_sim3
 
-    edges = [PoseGraphEdge(i, j, relative_sim3(poses[i], poses[j])) for i, j in graph_edges]
-    edges += [PoseGraphEdge(i, j, s, robust=True) for i, j, s in new_edges]
-    return optimize_pose_graph_sim3(initial, edges, set(fixed))
+    ls = 1e-5 if metric else 0.01
+    edges = [
+        PoseGraphEdge(i, j, relative_sim3(poses[i], poses[j]), sigma_logscale=ls) for i, j in graph_edges
+    ]
+    edges += [
+        PoseGraphEdge(i, j, Sim3(s.R, s.t, 1.0) if metric else s, sigma_logscale=ls, robust=True)
+        for i, j, s in new_edges
+    ]
+    out = optimize_pose_graph_sim3(initial, edges, set(fixed))
+    return [Sim3(r.R, r.t, 1.0) for r in out] if metric else out
 
 
 @dataclass

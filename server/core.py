@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from hivemap import __version__
 from hivemap.maps import MapStack
@@ -137,6 +138,7 @@ class AgentState:
     duplicates: int = 0
     errors: int = 0
     undelivered: deque[Correction] = field(default_factory=lambda: deque(maxlen=16))
+    cam_from_antenna: NDArray[np.float64] | None = None  # GNSS lever arm from the hello (not persisted)
 
     @property
     def state(self) -> str:
@@ -292,6 +294,8 @@ class HiveServer:
             )
         agent.kind = hello.kind
         agent.camera = camera.to_dict()
+        if hello.cam_from_antenna is not None:
+            agent.cam_from_antenna = np.array(hello.cam_from_antenna, dtype=np.float64)
         agent.session = max(agent.session, hello.session)
         if hello.session not in agent.maps:
             self._new_agent_map(agent, hello.session)

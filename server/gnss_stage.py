@@ -30,6 +30,10 @@ class GnssStageOptions:
     sigma_floor_rot: float = 0.001
     sigma_floor_trans: float = 0.005
     huber_k: float = 1.345
+    # links between agents (shared views, loop edges, known start configuration): held at their current
+    # relative pose with these sigmas, so that one agent's fixes also place the others
+    sigma_link_rot: float = 0.003  # rad
+    sigma_link_trans: float = 0.02  # m
     # The map is gravity-aligned (IMU): estimate only yaw + translation into ENU and hold each
     # keyframe's roll/pitch with an attitude factor, as GNSS barely observes tilt.
     gravity_aligned: bool = True
@@ -64,11 +68,13 @@ def fuse_gnss(
     chains: list[list[int]],
     fixes: list[GnssFix],
     options: GnssStageOptions = GnssStageOptions(),
+    links: list[tuple[int, int]] | None = None,
 ) -> GnssStageResult:
     """Move a map into ENU and bend it onto the GNSS fixes.
 
     world_from_body: (N, 4, 4) keyframe poses in the map frame (after BA).
     chains: per agent, keyframe indices in time order; consecutive ones get relative-pose factors.
+    links: other keyframe pairs (e.g. between agents) whose current relative pose is kept (sigma_link_*).
     fixes: GNSS fixes attached to keyframes. Raises :class:`NotEnoughFixes` when they cannot fix
     the map in ENU (fewer than ``min_fixes``, or spread less than ``min_spread_m``).
     """
@@ -116,6 +122,12 @@ def fuse_gnss(
                 graph.add(
                     gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(rel), gtsam.noiseModel.Diagonal.Sigmas(sig))
                 )
+        link_noise = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([options.sigma_link_rot] * 3 + [options.sigma_link_trans] * 3)
+        )
+        for a, b in links or []:
+            rel = se3_inverse(poses[a]) @ poses[b]
+            graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(rel), link_noise))
         for f, ok in zip(fixes, mask, strict=True):
             if ok:
                 model = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(f.cov))

@@ -43,11 +43,6 @@ class FrontendOptions:
     ba_window: int = 10
     ba_fixed_max: int = 10
     ba_iterations: int = 6
-    # A local BA that moves a free keyframe farther than this is discarded (poses and points kept):
-    # measured on factory01's UGV at a sharp turn, a window of freshly relocalised keyframes with few
-    # shared points slid by 1-3 m while tracking stayed consistent; normal local BA moves keyframes by
-    # millimetres to a few centimetres.
-    ba_max_keyframe_step_m: float = 0.25
     triangulation_neighbours: int = 3
     min_parallax_cos: float = 0.9998
     culling_min_found_ratio: float = 0.25

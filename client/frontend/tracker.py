@@ -111,7 +111,6 @@ class FrontendStats:
     lost_frames: int = 0
     relocalizations: int = 0
     sessions: int = 1
-    ba_rejected: int = 0
     timing: dict[str, float] = field(default_factory=dict)
 
 
@@ -824,16 +823,6 @@ class Frontend:
         poses2, X2, inl = bundle_adjust(self.k, prob, n1)
         prob2 = BAProblem(poses2, is_fixed, X2, cam_idx, pt_idx, meas, inv_s2)
         poses2, X2, inl2 = bundle_adjust(self.k, prob2, o.ba_iterations - n1, active=inl)
-        free = ~is_fixed
-        if free.any():
-            # camera centres: -R^T t of cam_from_world
-            c0 = -np.einsum("nji,nj->ni", poses[free, :3, :3], poses[free, :3, 3])
-            c1 = -np.einsum("nji,nj->ni", poses2[free, :3, :3], poses2[free, :3, 3])
-            step = float(np.max(np.linalg.norm(c1 - c0, axis=1)))
-            if not np.isfinite(step) or step > o.ba_max_keyframe_step_m:
-                self.stats.ba_rejected += 1
-                log.warning("local BA at keyframe %d discarded: a keyframe moved %.2f m", kf.id, step)
-                return
         # drop outlier observations
         for n in np.flatnonzero(~inl2):
             k_id = int(cam_ids[n])

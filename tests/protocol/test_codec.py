@@ -280,3 +280,22 @@ def test_huge_finite_values_are_not_mistaken_for_inf() -> None:
     xyz = np.full((10, 3), 1e308)
     _, got = decode(encode(MapPoints(np.arange(10), xyz, np.zeros((10, 32), np.uint8)), 1))
     assert isinstance(got, MapPoints) and np.array_equal(got.xyz, xyz)
+
+
+def test_gnss_lever_arm_and_enu_corrections_round_trip_and_are_validated() -> None:
+    cam = {"width": 640, "height": 480, "fx": 430.0, "fy": 430.0, "cx": 319.5, "cy": 239.5, "dist": [0.0] * 4}
+    hello = Hello("uav1", "uav", cam, "t", cam_from_antenna=np.array([0.1, -0.05, 0.06]))
+    _, back = decode(encode(hello, 1))
+    assert isinstance(back, Hello) and back.cam_from_antenna is not None
+    np.testing.assert_array_equal(back.cam_from_antenna, hello.cam_from_antenna)
+    _, plain = decode(encode(Hello("uav1", "uav", cam, "t"), 1))
+    assert isinstance(plain, Hello) and plain.cam_from_antenna is None
+    corr = Correction(1, np.eye(4), np.arange(1), np.eye(4)[None], global_frame="enu")
+    _, c2 = decode(encode(corr, 2))
+    assert isinstance(c2, Correction) and c2.global_frame == "enu"
+    with pytest.raises(FieldError) as e:
+        decode(encode(replace(corr, global_frame="ecef"), 3))
+    assert e.value.field == "body.global_frame"
+    with pytest.raises(FieldError) as e:
+        decode(encode(replace(hello, cam_from_antenna=np.array([np.nan, 0.0, 0.0])), 4))
+    assert e.value.field == "body.cam_from_antenna"
