@@ -81,6 +81,7 @@ class BackendOptions:
     # metric maps: loop closures asking for a larger correction of the query are refused as false
     loop_max_correction_m: float = 1.0
     loop_max_correction_deg: float = 5.0
+    pose_graph_max_move_m: float = 3.0  # a pose graph moving any keyframe farther is refused
     # GNSS stage results are applied only when most fixes agree with the map (else a wrong loop or merge
     # is the likelier cause than bad fixes)
     gnss_max_rejected_ratio: float = 0.34
@@ -550,8 +551,9 @@ class Backend:
             return None
         return m
 
-    def _anchor(self, m: Any, keys: list[KfKey]) -> list[int]:
-        """Indices of the two earliest keyframes of the map's reference agent (UGV, else first agent)."""
+    def _anchor(self, m: Any, keys: list[KfKey], per_agent: int = 2) -> list[int]:
+        """Indices of the ``per_agent`` earliest keyframes of the map's reference agent (UGV, else first
+        agent) and of every agent joined by its known start pose."""
         agents = sorted(m.agents, key=lambda f: (self._agent_kind(f) != "ugv", f))
         fixed: list[int] = []
         for a in agents:
@@ -559,11 +561,11 @@ class Backend:
             if idx:
                 idx.sort(key=lambda i: (m.keyframes[keys[i]].timestamp, keys[i][1]))
                 if not fixed:
-                    fixed = idx[:2]
+                    fixed = idx[:per_agent]
                 elif a in self._anchors and self._anchors[a][0] == m.id:
                     # Joined by its known start pose (no shared points or edges with the others): hold its
-                    # two earliest keyframes too, else its part of the map has a free gauge (incl. scale).
-                    fixed += idx[:2]
+                    # earliest keyframes too, else its part of the map has a free gauge (incl. scale).
+                    fixed += idx[:per_agent]
         return fixed or [0]
 
     async def _optimise_once(
@@ -592,7 +594,10 @@ class Backend:
                 if a in index and b in index and frozenset((a, b)) not in new_pairs
             ]
             new_edges = [(index[a], index[b], s) for a, b, s in edges if a in index and b in index]
-            fixed = self._anchor(m, snap.keys)[:1]
+            # one keyframe per connected start: the reference agent's first and every start-posed agent's
+            # (with only the first, agents joined by their start pose floated in the graph's gauge until
+            # a loop tied them; factory01 then diverged)
+            fixed = self._anchor(m, snap.keys, per_agent=1)
             initial = snap.poses.copy()
             if pre is not None:
                 for k in pre[1]:
@@ -607,6 +612,15 @@ class Backend:
             if cur is None:
                 return
             corr = {k: sims[i] @ Sim3.from_se3(snap.poses[i]).inverse() for i, k in enumerate(snap.keys)}
+            moved = max(
+                (float(np.linalg.norm(sims[i].t - snap.poses[i][:3, 3])) for i in range(len(snap.keys))),
+                default=0.0,
+            )
+            if moved > o.pose_graph_max_move_m:
+                server.events.add("pose_graph", f"map {map_id}: pose graph refused (a keyframe would move "
+                                  f"{moved:.1f} m > {o.pose_graph_max_move_m} m)", map_id=map_id,
+                                  data={"refused": True, "max_move_m": moved})  # fmt: skip
+                return
             self._apply_corrections(cur, corr, {})
             server.events.add("pose_graph", f"map {map_id}: pose graph over {len(snap.keys)} keyframes, "
                               f"{len(graph_edges) + len(new_edges)} edges ({pg_ms:.0f} ms)", map_id=map_id,
@@ -922,21 +936,22 @@ def _pose_graph(
 ) -> list[Sim3]:
     """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected).
 
-    ``metric``: the map has metric scale (stereo agents), so the graph is SE(3) in effect: every edge holds
-    the scale (log-scale sigma 1e-5) and the results are projected to scale 1. A free Sim(3) graph let
-    scale creep in at each of the dozens of loop closures of a factory run, until poses overflowed."""
-    from hivemap.server.optim import PoseGraphEdge, optimize_pose_graph_sim3, relative_sim3
+    ``metric``: the map has metric scale (stereo agents), so the graph is SE(3) (gtsam Pose3). A Sim(3)
+    graph let scale creep in at each of the dozens of loop closures of a factory run until poses
+    overflowed, and holding its scale with a tiny log-scale sigma made it ill-conditioned (rotations
+    came out scaled by ~100)."""
+    from hivemap.server.optim import (
+        PoseGraphEdge,
+        optimize_pose_graph_se3,
+        optimize_pose_graph_sim3,
+        relative_sim3,
+    )
 
-    ls = 1e-5 if metric else 0.01
-    edges = [
-        PoseGraphEdge(i, j, relative_sim3(poses[i], poses[j]), sigma_logscale=ls) for i, j in graph_edges
-    ]
-    edges += [
-        PoseGraphEdge(i, j, Sim3(s.R, s.t, 1.0) if metric else s, sigma_logscale=ls, robust=True)
-        for i, j, s in new_edges
-    ]
-    out = optimize_pose_graph_sim3(initial, edges, set(fixed))
-    return [Sim3(r.R, r.t, 1.0) for r in out] if metric else out
+    edges = [PoseGraphEdge(i, j, relative_sim3(poses[i], poses[j])) for i, j in graph_edges]
+    edges += [PoseGraphEdge(i, j, s, robust=True) for i, j, s in new_edges]
+    if metric:
+        return optimize_pose_graph_se3(initial, edges, set(fixed))
+    return optimize_pose_graph_sim3(initial, edges, set(fixed))
 
 
 @dataclass

@@ -99,6 +99,49 @@ def optimize_pose_graph_sim3(
     return out
 
 
+def optimize_pose_graph_se3(
+    world_from_cam: F64,
+    edges: list[PoseGraphEdge],
+    fixed: set[int] | frozenset[int],
+    options: PoseGraphOptions = PoseGraphOptions(),
+) -> list[Sim3]:
+    """The metric-map variant of :func:`optimize_pose_graph_sim3`: SE(3) poses and edges (gtsam Pose3;
+    the edges' scale and ``sigma_logscale`` are ignored). Returns Sim3 with scale 1."""
+    import gtsam
+
+    poses = np.asarray(world_from_cam, dtype=np.float64)
+    n = len(poses)
+    if n == 0:
+        return []
+    if not fixed:
+        raise ValueError("optimize_pose_graph_se3 needs at least one fixed keyframe (gauge)")
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    for k in range(n):
+        initial.insert(k, gtsam.Pose3(poses[k]))
+    for k in sorted(fixed):
+        if not 0 <= k < n:
+            raise IndexError(f"fixed keyframe index {k} out of range 0..{n - 1}")
+        graph.add(gtsam.NonlinearEqualityPose3(k, gtsam.Pose3(poses[k])))
+    for e in edges:
+        if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
+            raise IndexError(f"pose-graph edge ({e.i}, {e.j}) invalid for {n} keyframes")
+        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([e.sigma_rot] * 3 + [e.sigma_trans] * 3)
+        )
+        if e.robust:
+            noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k), noise
+            )
+        rel = se3(e.i_from_j.R, e.i_from_j.t)
+        graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(rel), noise))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(options.max_iterations)
+    params.setRelativeErrorTol(options.relative_error_tol)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    return [Sim3.from_se3(result.atPose3(k).matrix()) for k in range(n)]
+
+
 def relative_sim3(world_from_i: F64, world_from_j: F64) -> Sim3:
     """``i_from_j`` between two SE(3) poses, as a Sim3 with scale 1."""
     return Sim3.from_se3(se3_inverse(world_from_i) @ world_from_j)
