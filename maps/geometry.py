@@ -64,6 +64,21 @@ def so3_log(R: F64) -> F64:
     return Rotation.from_matrix(R).as_rotvec()
 
 
+def nearest_rotation(R: F64, tol: float = 1e-9) -> F64:
+    """``R`` itself when it is a rotation to ``tol``, else the nearest rotation (SVD projection).
+
+    Poses are composed thousands of times on the server (merges, pose graphs, GNSS stages): without this
+    the rounding error of each composition is carried and, once a 3x3 block is off SO(3), gtsam's
+    factors amplify it (factory01: x3 per GNSS stage, rotations scaled by 1e4 after 15 stages).
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if np.abs(R @ R.T - np.eye(3)).max() <= tol:
+        return R
+    U, _, Vt = np.linalg.svd(R)
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
+    return np.asarray(U @ D @ Vt, dtype=np.float64)
+
+
 def rotation_angle_deg(R: F64) -> float:
     """Angle of a rotation matrix in degrees (0..180)."""
     c = (np.trace(R) - 1.0) / 2.0
@@ -82,7 +97,7 @@ class Sim3:
     s: float = 1.0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64).reshape(3, 3))
+        object.__setattr__(self, "R", nearest_rotation(np.asarray(self.R, dtype=np.float64).reshape(3, 3)))
         object.__setattr__(self, "t", np.asarray(self.t, dtype=np.float64).reshape(3))
         object.__setattr__(self, "s", float(self.s))
         if not self.s > 0 or not np.isfinite(self.s):
@@ -130,7 +145,7 @@ class Sim3:
         The camera centre is mapped by the similarity and the orientation rotated by ``R``.
         """
         out = np.eye(4)
-        out[:3, :3] = self.R @ world_from_cam[:3, :3]
+        out[:3, :3] = nearest_rotation(self.R @ world_from_cam[:3, :3])
         out[:3, 3] = self.apply(world_from_cam[:3, 3])
         return out
 

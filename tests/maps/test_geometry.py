@@ -147,3 +147,21 @@ def test_stereo_rig_baseline() -> None:
     rig = StereoRig(EUROC, EUROC, np.eye(4), se3(np.eye(3), [b, 0, 0]))
     assert rig.baseline == pytest.approx(b)
     np.testing.assert_allclose(rig.right_from_left[:3, 3], [-b, 0, 0], atol=1e-15)
+
+
+def test_sim3_keeps_rotations_on_so3() -> None:
+    """A rotation block with accumulated rounding error is projected back onto SO(3), so repeated
+    compositions cannot amplify it (the server composes poses thousands of times)."""
+    from hivemap.maps.geometry import Sim3, nearest_rotation, so3_exp
+
+    R = so3_exp(np.array([0.3, -0.2, 1.0]))
+    noisy = R + 1e-4 * np.arange(9.0).reshape(3, 3)
+    s = Sim3(noisy, np.zeros(3))
+    np.testing.assert_allclose(s.R @ s.R.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(s.R, R, atol=1e-3)
+    assert nearest_rotation(R) is not None and np.array_equal(nearest_rotation(R), R)  # exact ones untouched
+    T = np.eye(4)
+    T[:3, :3] = noisy
+    for _ in range(50):
+        T = Sim3(R, np.ones(3)).transform_pose(T)
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
