@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -63,7 +64,10 @@ class BackendOptions:
     gnss: bool = True
     # GNSS stage of a map after this many new keyframes with a fix (runs coalesce while one is busy)
     gnss_every_kfs: int = 1
-    enu_correction_stride: int = 8  # ENU corrections carry every 8th keyframe of the agent (+ moved ones)
+    # ENU corrections carry every 12th keyframe of the agent (~6 s apart; the bent map is smooth between
+    # them) plus the moved ones, at most ``correction_max_kfs`` in all: the downlink was 2.2 kB/s per
+    # agent on factory01 with every 8th and twice the cap
+    enu_correction_stride: int = 12
     correction_min_move_m: float = 0.01  # a keyframe is "changed" if it moved this much (local frame)
     correction_min_rot_deg: float = 0.1
     transform_window: int = 20  # recent keyframes whose corrections define an agent's new frame
@@ -82,6 +86,11 @@ class BackendOptions:
     loop_max_correction_m: float = 1.0
     loop_max_correction_deg: float = 5.0
     pose_graph_max_move_m: float = 3.0  # a pose graph moving any keyframe farther is refused
+    # GNSS-guided retry (paper 2.5.3) between maps that are both in ENU: an agent's latest keyframe against
+    # the other map's keyframes within this radius (0 = off), at most once per map pair per interval
+    gnss_retry_radius_m: float = 10.0
+    gnss_retry_candidates: int = 6
+    gnss_retry_interval_s: float = 5.0
     # GNSS stage results are applied only when most fixes agree with the map (else a wrong loop or merge
     # is the likelier cause than bad fixes)
     gnss_max_rejected_ratio: float = 0.34
@@ -120,6 +129,7 @@ class Backend:
         self._opt_running: set[int] = set()
         self._gnss_count: dict[int, int] = {}
         self._enu_maps: set[int] = set()  # maps the GNSS stage has put into ENU
+        self._retry_at: dict[tuple[int, int], float] = {}  # map pair -> last GNSS-guided retry
         self._consist: dict[tuple[int, int, str], tuple[int, Sim3, int]] = {}
         self._opt_again: dict[int, list[tuple[KfKey, KfKey, Sim3]]] = {}
         self._tokens = self.options.verifications_per_s
@@ -676,6 +686,57 @@ class Backend:
         kfs, pts = list(m.keyframes.values()), list(m.points.values())
         await server.persist_exclusive(lambda store: store.maps.update_poses(map_id, kfs, pts))
         await self._send_corrections(map_id, before, t_det, only_agents=None)
+        if map_id in self._enu_maps:
+            await self._gnss_retry(map_id)
+
+    async def _gnss_retry(self, map_id: int) -> None:
+        """Paper 2.5.3: when GNSS has put two maps into ENU and brings an agent of one next to keyframes of
+        the other without a visual merge, verify that place with lowered thresholds
+        (``PlaceRecOptions.gnss_retry_thresholds``) and merge on success."""
+        o = self.options
+        maps = self.server.stack.maps
+        m = maps.get(map_id)
+        if m is None or self.recognizer is None or o.gnss_retry_radius_m <= 0:
+            return
+        now = time.monotonic()
+        for other_id in sorted(x for x in self._enu_maps if x != map_id and x in maps):
+            pair = (min(map_id, other_id), max(map_id, other_id))
+            if now - self._retry_at.get(pair, -math.inf) < o.gnss_retry_interval_s:
+                continue
+            self._retry_at[pair] = now
+            other = maps[other_id]
+            okeys = list(other.keyframes)
+            if not okeys:
+                continue
+            opos = np.array([other.keyframes[k].world_from_cam[:3, 3] for k in okeys])
+            for folded in sorted(m.agents):
+                own = [k for k in m.keyframes if k[0] == folded]
+                if not own:
+                    continue
+                q = max(own, key=lambda k: (m.keyframes[k].timestamp, k[1]))
+                d = np.linalg.norm(opos - m.keyframes[q].world_from_cam[:3, 3], axis=1)
+                order = np.argsort(d)[: o.gnss_retry_candidates]
+                near = [okeys[i] for i in order if d[i] <= o.gnss_retry_radius_m]
+                if not near:
+                    continue
+                recognizer = self.recognizer
+                res = await asyncio.get_running_loop().run_in_executor(
+                    self._pr_exec,
+                    partial(recognizer.verify_pair, maps, map_id, q, other_id, near, fix_scale=o.fix_scale),
+                )
+                self._publish(res)
+                det = res.confirmed
+                if det is not None:
+                    self.server.events.add(
+                        "gnss_retry",
+                        f"GNSS-guided retry: {q} (map {map_id}) matched {det.candidate_key} (map {other_id}),"
+                        f" {det.n_inliers} inliers: merging",
+                        map_id=map_id,
+                        data={"query_key": list(q), "candidate_key": list(det.candidate_key),
+                              "n_inliers": det.n_inliers},
+                    )  # fmt: skip
+                    await self._merge(det, time.monotonic())
+                    return
 
     def _local_poses(self, m: Any) -> dict[KfKey, F64]:
         """Each keyframe's pose in its agent's local (VIO) frame, as the agent sees it now."""
@@ -861,7 +922,8 @@ class Backend:
                 # keyframes each time, so each new correction replaces the agent's previous priors)
                 own = sorted(k for k in m.keyframes if k[0] == folded)
                 sample = own[:: o.enu_correction_stride][-o.correction_max_kfs :]
-                chosen = sorted(set(chosen) | set(sample))[-2 * o.correction_max_kfs :]
+                extra = [k for k in chosen if k not in set(sample)]
+                chosen = sorted(set(sample) | set(extra[: max(0, o.correction_max_kfs - len(sample))]))
             ids = np.array([k[1] for k in chosen], dtype=np.int64)
             poses = np.array([m.keyframes[k].world_from_cam for k in chosen], dtype=np.float64).reshape(
                 -1, 4, 4

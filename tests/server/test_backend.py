@@ -35,11 +35,11 @@ UAV_FROM_WORLD = Sim3(so3_exp(np.array([0.3, -0.5, 1.2])), np.array([12.0, -7.0,
 
 
 class Server:
-    def __init__(self, data_dir: Path) -> None:
+    def __init__(self, data_dir: Path, opts: BackendOptions | None = None) -> None:
         self.port = free_port()
         settings = ServerSettings(port=self.port, data_dir=data_dir, tokens=TOKENS, log_level="warning")
         # Sim(3) merges: these tests include a monocular-like agent whose map has scale 2.5
-        opts = BackendOptions(verifications_per_s=1000.0, fix_scale=False)
+        opts = opts or BackendOptions(verifications_per_s=1000.0, fix_scale=False)
         self.app = create_app(settings, extensions=[installer(opts)])
         self.server = uvicorn.Server(uvicorn.Config(self.app, **uvicorn_config_kwargs(settings)))  # type: ignore[arg-type]
         self.thread = threading.Thread(target=self.server.run, daemon=True)
@@ -194,3 +194,36 @@ def test_gnss_stage_moves_merged_map_into_enu(srv: Server) -> None:
     # both agents' frames now map into ENU (= world): 10 fixes of 5 cm -> a few cm, well inside 0.2 m / 1 deg
     check_transform(agent_transform(srv, "ugv1"), UGV_FROM_WORLD.inverse(), ugv_true[:, :3, 3])
     check_transform(agent_transform(srv, "uav1"), UAV_FROM_WORLD.inverse(), uav_true[:, :3, 3])
+
+
+def test_gnss_guided_retry_merges_two_enu_maps(tmp_path: Path) -> None:
+    """Paper 2.5.3: visual place recognition is made to fail (it needs 10^6 inliers), both agents have
+    GNSS, so the GNSS stage puts each map into ENU; the GNSS-guided retry then verifies the place where
+    GNSS brings them together with the lowered thresholds and merges: one map, both agents' frames
+    within 0.2 m / 1 deg of truth (issue 6 merge tolerance)."""
+    from hivemap.server.placerec import PlaceRecOptions, Thresholds
+
+    blind = PlaceRecOptions(
+        consistency_required=1,
+        thresholds=Thresholds(min_matches=10**6, min_inliers=10**6, min_projected=10**6),
+    )
+    srv = Server(tmp_path / "data", BackendOptions(verifications_per_s=1000.0, placerec=blind))
+    try:
+        rng = np.random.default_rng(7)
+        pts, desc = make_world(rng, 2500, (-20, 30))
+        ugv_msgs, ugv_true, _ = agent_stream(
+            rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, gnss_sigma=0.05
+        )
+        # stereo-inertial agents: gravity-aligned frames (yaw + translation away from ENU)
+        uav_from_world = Sim3(so3_exp(np.array([0.0, 0.0, 1.2])), np.array([12.0, -7.0, 4.0]), 1.0)
+        uav_msgs, uav_true, _ = agent_stream(
+            rng, pts, desc, np.linspace(-2, 12, 10), uav_from_world, point_id0=100000, gnss_sigma=0.05
+        )
+        with stream(srv, "ugv1", "ugv", ugv_msgs), stream(srv, "uav1", "uav", uav_msgs):
+            srv.wait_idle()
+        assert srv.call(lambda: srv.hive.events.counts.get("gnss_retry", 0)) >= 1
+        assert srv.call(lambda: len(srv.hive.stack.maps)) == 1
+        check_transform(agent_transform(srv, "ugv1"), UGV_FROM_WORLD.inverse(), ugv_true[:, :3, 3])
+        check_transform(agent_transform(srv, "uav1"), uav_from_world.inverse(), uav_true[:, :3, 3])
+    finally:
+        srv.stop()
