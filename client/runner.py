@@ -425,11 +425,13 @@ class OfflineAgent:
         """
         from hivemap.maps.geometry import Sim3
 
+        if len(kf_ids) == 0:
+            return 0  # a new frame only (e.g. after a merge): the current priors stay valid
         sent_from_global = Sim3.from_matrix(np.asarray(global_from_sent, dtype=np.float64)).inverse()
         cam_from_body = np.linalg.inv(self.frontend.body_from_cam)
         rot, trans = self.options.colocation_sigma
         cov = np.diag([rot**2] * 3 + [trans**2] * 3)
-        n = 0
+        priors: dict[int, tuple[F64, F64]] = {}
         for kid, T_gc in zip(
             np.asarray(kf_ids), np.asarray(global_from_kf_cam).reshape(-1, 4, 4), strict=True
         ):
@@ -446,8 +448,10 @@ class OfflineAgent:
                 # a server pose this far from ours is a server-side failure, not a correction
                 self.corrections_refused += 1
                 continue
-            self.stage.add_colocation(node, prior, cov)
-            n += 1
+            priors[node] = (prior, cov)
+        # each correction is a whole snapshot of the server's estimate: it replaces the previous priors
+        self.stage.set_colocations(priors)
+        n = len(priors)
         self.corrections_applied += n
         return n
 

@@ -425,6 +425,30 @@ class SecondStage:
         (h,) = self._commit([factor], {}, remove=[old] if old is not None else None)
         self._colocation_handle[kf_id] = h
 
+    def set_colocations(self, priors: dict[int, tuple[F64, F64]]) -> None:
+        """Replace every co-location factor by ``priors`` (kf_id -> (local_from_kf, 6x6 cov)) in one update.
+
+        A server correction is one consistent snapshot of the server's estimate expressed through one
+        ``global_from_local``; priors kept from older corrections were expressed through older transforms
+        and pulled against the new ones (factory01, GNSS denied: the agents' local trajectories ended
+        worse than both their VIO and the server's map)."""
+        gtsam = self._gtsam
+        factors, owners = [], []
+        for kf_id, (pose, cov) in priors.items():
+            if kf_id not in self._kfs:
+                continue
+            T = np.asarray(pose, dtype=np.float64).reshape(4, 4)
+            factors.append(
+                gtsam.PriorFactorPose3(_key(kf_id), gtsam.Pose3(T), _gaussian(np.asarray(cov).reshape(6, 6)))
+            )
+            owners.append(kf_id)
+        old = list(self._colocation_handle.values())
+        self._colocation_handle.clear()
+        if not factors and not old:
+            return
+        handles = self._commit(factors, {}, remove=old)
+        self._colocation_handle.update(zip(owners, handles, strict=True))
+
     def add_correction(self, kf_id: int, global_from_kf: F64, global_from_local: F64, cov: F64) -> None:
         """A server correction: keyframe pose in the global frame + ``global_from_local`` (Sim(3)
         matrix ``[[sR, t], [0, 1]]``) -> co-location prior on ``local_from_kf``.

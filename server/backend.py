@@ -64,10 +64,10 @@ class BackendOptions:
     gnss: bool = True
     # GNSS stage of a map after this many new keyframes with a fix (runs coalesce while one is busy)
     gnss_every_kfs: int = 1
-    # ENU corrections carry every 12th keyframe of the agent (~6 s apart; the bent map is smooth between
+    # corrections carry every 12th keyframe of the agent (~6 s apart; the corrected map is smooth between
     # them) plus the moved ones, at most ``correction_max_kfs`` in all: the downlink was 2.2 kB/s per
     # agent on factory01 with every 8th and twice the cap
-    enu_correction_stride: int = 12
+    correction_stride: int = 12
     correction_min_move_m: float = 0.01  # a keyframe is "changed" if it moved this much (local frame)
     correction_min_rot_deg: float = 0.1
     transform_window: int = 20  # recent keyframes whose corrections define an agent's new frame
@@ -917,11 +917,11 @@ class Backend:
             moves.sort(reverse=True)
             chosen = sorted(k for _, k in moves[: o.correction_max_kfs])
             enu = map_id in self._enu_maps
-            if enu:
-                # absolute ENU poses: every ``enu_correction_stride``-th keyframe of the agent (the same
-                # keyframes each time, so each new correction replaces the agent's previous priors)
+            if chosen or enu:
+                # a whole snapshot of the server's estimate for this agent: every ``correction_stride``-th
+                # keyframe plus the moved ones (the agent replaces all its co-location priors with it)
                 own = sorted(k for k in m.keyframes if k[0] == folded)
-                sample = own[:: o.enu_correction_stride][-o.correction_max_kfs :]
+                sample = own[:: o.correction_stride][-o.correction_max_kfs :]
                 extra = [k for k in chosen if k not in set(sample)]
                 chosen = sorted(set(sample) | set(extra[: max(0, o.correction_max_kfs - len(sample))]))
             ids = np.array([k[1] for k in chosen], dtype=np.int64)
