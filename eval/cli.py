@@ -141,6 +141,13 @@ def experiment_command(
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Frames per agent (tests).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the random GNSS mode.")] = 0,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    start_poses: Annotated[
+        bool,
+        typer.Option(
+            "--start-poses/--no-start-poses",
+            help="Co-location: give the server the agents' known start configuration (paper 2.4).",
+        ),
+    ] = True,
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment
@@ -157,6 +164,7 @@ def experiment_command(
         max_frames=max_frames,
         seed=seed,
         progress=not no_progress,
+        start_poses=start_poses,
     )
     try:
         report = run_experiment(opts)
