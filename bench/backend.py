@@ -216,18 +216,40 @@ def bench_ba(sizes: list[int]) -> None:
             obs_uv.append(uv[sel] + rng.normal(0, 0.7, (len(sel), 2)))
         noisy = np.array([T @ se3(so3_exp(rng.normal(0, 0.003, 3)), rng.normal(0, 0.03, 3)) for T in true])
         noisy[:2] = np.array(true[:2])
-        t0 = time.perf_counter()
-        res = global_bundle_adjustment(
-            [CAMERA], np.zeros(n, np.int64), noisy, pts + rng.normal(0, 0.03, pts.shape),
-            np.array(obs_kf), np.array(obs_pt), np.concatenate(obs_uv), {0, 1},
-            BundleAdjustmentOptions(max_iterations=30, num_threads=1),
-        )  # fmt: skip
-        dt = time.perf_counter() - t0
-        err0 = np.linalg.norm(noisy[:, :3, 3] - np.array(true)[:, :3, 3], axis=1).mean()
-        err1 = np.linalg.norm(res.world_from_cam[:, :3, 3] - np.array(true)[:, :3, 3], axis=1).mean()
-        print(f"global BA {n} keyframes, {len(obs_kf)} observations: {dt:.1f} s (1 thread), rmse "
-              f"{res.initial_rmse_px:.2f} -> {res.final_rmse_px:.2f} px, position error {err0 * 100:.1f} -> "
-              f"{err1 * 100:.1f} cm")  # fmt: skip
+        true_arr = np.array(true)
+        noisy_pts = pts + rng.normal(0, 0.03, pts.shape)
+        for prior in (None, 0.1):
+            t0 = time.perf_counter()
+            res = global_bundle_adjustment(
+                [CAMERA], np.zeros(n, np.int64), noisy, noisy_pts,
+                np.array(obs_kf), np.array(obs_pt), np.concatenate(obs_uv), {0, 1},
+                BundleAdjustmentOptions(max_iterations=30, num_threads=1, position_prior_m=prior),
+            )  # fmt: skip
+            dt = time.perf_counter() - t0
+            err0 = np.linalg.norm(noisy[:, :3, 3] - true_arr[:, :3, 3], axis=1).mean()
+            err1 = np.linalg.norm(res.world_from_cam[:, :3, 3] - true_arr[:, :3, 3], axis=1).mean()
+            s0 = _scale_error(noisy[:, :3, 3], true_arr[:, :3, 3])
+            s1 = _scale_error(res.world_from_cam[:, :3, 3], true_arr[:, :3, 3])
+            mode = "monocular" if prior is None else f"metric prior {prior} m"
+            print(f"global BA {n} keyframes ({mode}), {len(obs_kf)} observations: {dt:.1f} s (1 thread), "
+                  f"rmse {res.initial_rmse_px:.2f} -> {res.final_rmse_px:.2f} px, position error "
+                  f"{err0 * 100:.1f} -> {err1 * 100:.1f} cm, scale error {s0 * 100:.2f} -> {s1 * 100:.2f} %, "
+                  f"accepted {res.accepted}")  # fmt: skip
+
+
+def _scale_error(est: np.ndarray, ref: np.ndarray, window: int = 50) -> float:
+    """Worst local scale error: max over windows of ``window`` consecutive keyframes of |s - 1|, s the scale
+    of the least-squares similarity taking ``est`` onto ``ref`` (Umeyama)."""
+    starts = range(0, len(est), window)
+    return max(_umeyama_scale_error(est[i : i + window], ref[i : i + window]) for i in starts)
+
+
+def _umeyama_scale_error(est: np.ndarray, ref: np.ndarray) -> float:
+    a, b = est - est.mean(0), ref - ref.mean(0)
+    u, d, vt = np.linalg.svd(b.T @ a / len(a))
+    sign = np.ones(3)
+    sign[2] = np.sign(np.linalg.det(u @ vt))
+    return float(abs((d * sign).sum() / (a**2).sum(1).mean() - 1.0))
 
 
 def main(argv: list[str] | None = None) -> int:
