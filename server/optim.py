@@ -207,6 +207,18 @@ def reprojection_errors(
     return err, depth
 
 
+def _similarity_scale(src: F64, dst: F64) -> float:
+    """Scale of the least-squares similarity taking points ``src`` onto ``dst`` (Umeyama); 1 if degenerate."""
+    a, b = src - src.mean(0), dst - dst.mean(0)
+    var = float((a**2).sum(1).mean())
+    if var < 1e-12:
+        return 1.0
+    u, d, vt = np.linalg.svd(b.T @ a / len(a))
+    sign = np.ones(3)
+    sign[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return float((d * sign).sum() / var)
+
+
 def global_bundle_adjustment(
     cameras: list[PinholeCamera],
     camera_index: NDArray[np.int64],
@@ -293,11 +305,14 @@ def global_bundle_adjustment(
         config.add_image(k + 1)
         if k in fixed_kfs:
             config.set_constant_rig_from_world_pose(k + 1)
-    if len(fixed_kfs) < 2 and options.position_prior_m is None:  # position priors fix the gauge
+    # pycolmap's pose-prior BA needs >= 3 priors (DESIGN.md); the priors then fix the gauge
+    use_priors = options.position_prior_m is not None and n >= 3
+    if len(fixed_kfs) < 2 and not use_priors:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     for ci in range(len(cameras)):
         config.set_constant_cam_intrinsics(ci + 1)
-    if options.position_prior_m is not None:
+    if use_priors:
+        assert options.position_prior_m is not None
         sigma2 = float(options.position_prior_m) ** 2
         priors = []
         for k in range(n):
@@ -336,6 +351,13 @@ def global_bundle_adjustment(
     obs_inlier[keep[good_obs]] = True
     ok = bool(np.isfinite(final) and np.isfinite(out_poses).all() and final <= max(initial, 0.0) + 0.5)
     ok = ok and good_obs.sum() >= 0.5 * len(obs_kf_all)  # most of the problem survived
+    if ok and use_priors:
+        # pycolmap drops the priors with only a log line when it cannot align them: then nothing held the
+        # metric scale; refuse a result whose overall scale moved by more than 1%
+        s = _similarity_scale(out_poses[:, :3, 3], poses[:, :3, 3])
+        if not abs(s - 1.0) < 0.01:
+            log.warning("global BA rejected: metric scale moved %.2f%% despite the priors", (s - 1) * 100)
+            ok = False
     if not ok:
         log.warning(
             "global BA rejected: rmse %.3g -> %.3g px, %d of %d observations kept", initial, final,
