@@ -450,7 +450,7 @@ class OfflineAgent:
                 continue
             priors[node] = (prior, cov)
         # each correction is a whole snapshot of the server's estimate: it replaces the previous priors
-        self.stage.set_colocations(priors)
+        self.stage.set_colocations(priors, enu=enu and self.gnss_used > 0)
         n = len(priors)
         self.corrections_applied += n
         return n

@@ -154,6 +154,7 @@ class SecondStage:
         self._handle_to_index: dict[int, int] = {}  # handle -> iSAM2 factor index
         self._next_handle = 0
         self._colocation_handle: dict[int, int] = {}  # kf_id -> handle of its co-location prior
+        self._colocation_enu = False  # the current co-location priors are absolute ENU poses
         # kf_id -> (handle of its relative-pose factor, previous kf_id, 6x6 covariance)
         self._between: dict[int, tuple[int, int, F64]] = {}
         self._segment_prior: dict[int, tuple[int, int, F64]] = {}  # segment -> (handle, kf_id, mean)
@@ -231,6 +232,13 @@ class SecondStage:
                 _key(kf_id), gtsam.Pose3(new_mean), self._first_prior_noise(new_mean)
             )
             self._segment_prior[seg] = (h, kf_id, new_mean)
+        if not self._colocation_enu:
+            # map-frame co-location priors were expressed in the old local frame: they move along
+            for kf_id, h in self._colocation_handle.items():
+                f = self._factors[h]
+                self._factors[h] = gtsam.PriorFactorPose3(
+                    _key(kf_id), gtsam.Pose3(T @ f.prior().matrix()), f.noiseModel()
+                )
         self._isam = self._new_isam()
         graph = gtsam.NonlinearFactorGraph()
         handles = sorted(self._factors)
@@ -379,7 +387,10 @@ class SecondStage:
         forced = False
         # Before the yaw is anchored (by GNSS spread or a co-location) the linearised prediction is
         # meaningless (a 30 degree yaw error is far from linear), so the gate only runs afterwards.
-        anchored = self._gnss_stage >= 2 or bool(self._colocation_handle)
+        # Map-frame co-location priors tie the local frame to the VIO frame, not to ENU: only absolute
+        # (ENU) ones anchor it (factory01 challenged2: the UAVs' four random fixes, the first at 23.6 s
+        # after map-frame corrections, were all rejected as 14 m outliers).
+        anchored = self._gnss_stage >= 2 or (self._colocation_enu and bool(self._colocation_handle))
         if anchored and d > o.gnss_gate_sigma:
             if 0 < o.gnss_max_consecutive_rejections <= self._consecutive_rejections:
                 forced = True
@@ -425,7 +436,7 @@ class SecondStage:
         (h,) = self._commit([factor], {}, remove=[old] if old is not None else None)
         self._colocation_handle[kf_id] = h
 
-    def set_colocations(self, priors: dict[int, tuple[F64, F64]]) -> None:
+    def set_colocations(self, priors: dict[int, tuple[F64, F64]], enu: bool = False) -> None:
         """Replace every co-location factor by ``priors`` (kf_id -> (local_from_kf, 6x6 cov)) in one update.
 
         A server correction is one consistent snapshot of the server's estimate expressed through one
@@ -444,6 +455,7 @@ class SecondStage:
             owners.append(kf_id)
         old = list(self._colocation_handle.values())
         self._colocation_handle.clear()
+        self._colocation_enu = enu
         if not factors and not old:
             return
         handles = self._commit(factors, {}, remove=old)

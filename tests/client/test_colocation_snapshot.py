@@ -29,3 +29,21 @@ def test_new_snapshot_replaces_older_priors() -> None:
     stage.set_colocations({k: (T, cov) for k, T in enumerate(poses) if k % 2 == 0})
     _, second = stage.keyframe_poses()
     assert float(np.max(np.abs(second[:, 1, 3]))) < 0.01, second[:, 1, 3]
+
+
+def test_first_fix_after_map_frame_priors_is_not_an_outlier() -> None:
+    """Map-frame co-location priors tie the local frame to the VIO frame, not to ENU: the first GNSS fix,
+    14 m away in ENU, must be accepted (factory01 challenged2 rejected all four random fixes before)."""
+    poses = [se3(np.eye(3), np.array([float(k), 0.0, 0.0])) for k in range(10)]
+    stage = SecondStage(SecondStageOptions(gravity_aligned=True))
+    odo = np.diag([1e-4] * 3 + [1e-4] * 3)
+    for k, T in enumerate(poses):
+        if k == 0:
+            stage.add_keyframe(k, 0.5 * k, T)
+        else:
+            stage.add_keyframe(k, 0.5 * k, T, odo, prev_id=k - 1, prev_from_kf=se3_inverse(poses[k - 1]) @ T)
+    cov = np.diag([0.01**2] * 3 + [0.05**2] * 3)
+    stage.set_colocations({k: (T, cov) for k, T in enumerate(poses)})  # map frame (enu=False)
+    fix = poses[9][:3, 3] + np.array([13.0, 6.0, 0.5])
+    d = stage.add_gnss(9, fix, np.diag([0.05**2, 0.05**2, 0.15**2]))
+    assert d.accepted, d
