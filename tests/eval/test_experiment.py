@@ -126,3 +126,25 @@ def test_resume_skips_done_runs(experiment):
     assert res.exit_code == 0, res.output
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # nothing re-run
     assert (out / "report.md").exists()
+
+
+def test_tables_6_7_count_the_saved_events(experiment):
+    """Tables 6-7: inter-agent verified recognitions of the denied run, recomputed here from the saved
+    events (not through the report code), appear with the tiny scenario's angle pair and conditions."""
+    _, out, _ = experiment
+    denied = json.loads((out / "results" / "tiny" / "denied.json").read_text())
+    acc = [
+        e["data"]
+        for e in denied["events"]
+        if e["kind"] == "placerec_candidate"
+        and e["data"].get("accepted")
+        and e["data"]["query_key"][0].split("#")[0] != e["data"]["candidate_key"][0].split("#")[0]
+    ]
+    md = (out / "report.md").read_text()
+    assert "### Table 6" in md and "### Table 7" in md
+    if acc:  # uav1 (45 deg) with the ugv (0 deg), bright and clear (the tiny preset is Factory 01's start)
+        avg = sum(int(d["n_inliers"]) for d in acc) / len(acc)
+        assert f"| 0-45 deg | bright | 1 | {len(acc):.1f} | {avg:.1f} |" in md
+        assert f"| bright | clear | 1 | {len(acc):.1f} | {avg:.1f} |" in md
+    else:
+        assert "| 0-45 deg |" not in md
