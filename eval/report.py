@@ -196,23 +196,23 @@ def table67(results: dict[tuple[str, str], dict[str, Any]]) -> list[str]:
         for key in {(r["angles"], r["lighting"]) for r in run}:
             groups6.setdefault(key, []).append([r for r in run if (r["angles"], r["lighting"]) == key])
         groups7.setdefault((run[0]["lighting"], run[0]["weather"]), []).append(run)
-    for (ang, light), runs in sorted(groups6.items()):
-        n = [len(r) for r in runs]
-        inl = [x["n_inliers"] for r in runs for x in r]
-        p = PAPER_TABLE6.get((ang, light))
-        avg = sum(inl) / max(1, len(inl))
-        md.append(f"| {ang} deg | {light} | {len(runs)} | {sum(n) / len(n):.1f} | {avg:.1f} | "
-                  f"{p[0] if p else '-'} | {p[1] if p else '-'} |")  # fmt: skip
+
+    def rows(
+        groups: dict[tuple[str, str], list[list[dict[str, Any]]]], paper: dict[Any, Any], unit: str
+    ) -> None:
+        for (a, b), runs in sorted(groups.items()):
+            n = [len(r) for r in runs]
+            inl = [x["n_inliers"] for r in runs for x in r]
+            p = paper.get((a, b))
+            avg = sum(inl) / max(1, len(inl))
+            md.append(f"| {a}{unit} | {b} | {len(runs)} | {sum(n) / len(n):.1f} | {avg:.1f} | "
+                      f"{p[0] if p else '-'} | {p[1] if p else '-'} |")  # fmt: skip
+
+    rows(groups6, PAPER_TABLE6, " deg")
     md += ["", "### Table 7: the same per lighting and weather", ""]
     md.append(_row(["lighting", "weather", *head]))
     md.append("|---|---|---|---|---|---|---|")
-    for (light, weather), runs in sorted(groups7.items()):
-        n = [len(r) for r in runs]
-        inl = [x["n_inliers"] for r in runs for x in r]
-        p = PAPER_TABLE7.get((light, weather))
-        avg = sum(inl) / max(1, len(inl))
-        md.append(f"| {light} | {weather} | {len(runs)} | {sum(n) / len(n):.1f} | {avg:.1f} | "
-                  f"{p[0] if p else '-'} | {p[1] if p else '-'} |")  # fmt: skip
+    rows(groups7, PAPER_TABLE7, "")
     md += ["", "Recognitions are geometrically verified candidates between different agents (before the "
            "3-detection consistency check); the paper counts successful relocations. Only the scenarios run "
            "in GNSS-denied mode appear.", ""]  # fmt: skip

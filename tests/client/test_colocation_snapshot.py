@@ -8,12 +8,9 @@ from hivemap.client.second_stage import SecondStage, SecondStageOptions
 from hivemap.maps.geometry import se3, se3_inverse
 
 
-def test_new_snapshot_replaces_older_priors() -> None:
-    """20 keyframes along x; a first correction says the whole trajectory is 0.5 m further north, a
-    second (newer) one says it is where the VIO put it. With replacement the estimate follows the
-    second one (within 1 cm: 5 cm priors on every keyframe against 1 cm odometry); if the first
-    snapshot's priors were kept the estimate would sit ~0.25 m north (halfway)."""
-    poses = [se3(np.eye(3), np.array([float(k), 0.0, 0.0])) for k in range(20)]
+def _straight(n: int) -> tuple[list[np.ndarray], SecondStage]:
+    """``n`` keyframes 1 m apart along x, chained by 1 cm relative-pose factors."""
+    poses = [se3(np.eye(3), np.array([float(k), 0.0, 0.0])) for k in range(n)]
     stage = SecondStage(SecondStageOptions(gravity_aligned=True))
     odo = np.diag([1e-4] * 3 + [1e-4] * 3)
     for k, T in enumerate(poses):
@@ -21,6 +18,15 @@ def test_new_snapshot_replaces_older_priors() -> None:
             stage.add_keyframe(k, 0.5 * k, T)
         else:
             stage.add_keyframe(k, 0.5 * k, T, odo, prev_id=k - 1, prev_from_kf=se3_inverse(poses[k - 1]) @ T)
+    return poses, stage
+
+
+def test_new_snapshot_replaces_older_priors() -> None:
+    """20 keyframes along x; a first correction says the whole trajectory is 0.5 m further north, a
+    second (newer) one says it is where the VIO put it. With replacement the estimate follows the
+    second one (within 1 cm: 5 cm priors on every keyframe against 1 cm odometry); if the first
+    snapshot's priors were kept the estimate would sit ~0.25 m north (halfway)."""
+    poses, stage = _straight(20)
     cov = np.diag([0.01**2] * 3 + [0.05**2] * 3)
     north = se3(np.eye(3), np.array([0.0, 0.5, 0.0]))
     stage.set_colocations({k: (north @ T, cov) for k, T in enumerate(poses)})
@@ -34,14 +40,7 @@ def test_new_snapshot_replaces_older_priors() -> None:
 def test_first_fix_after_map_frame_priors_is_not_an_outlier() -> None:
     """Map-frame co-location priors tie the local frame to the VIO frame, not to ENU: the first GNSS fix,
     14 m away in ENU, must be accepted (factory01 challenged2 rejected all four random fixes before)."""
-    poses = [se3(np.eye(3), np.array([float(k), 0.0, 0.0])) for k in range(10)]
-    stage = SecondStage(SecondStageOptions(gravity_aligned=True))
-    odo = np.diag([1e-4] * 3 + [1e-4] * 3)
-    for k, T in enumerate(poses):
-        if k == 0:
-            stage.add_keyframe(k, 0.5 * k, T)
-        else:
-            stage.add_keyframe(k, 0.5 * k, T, odo, prev_id=k - 1, prev_from_kf=se3_inverse(poses[k - 1]) @ T)
+    poses, stage = _straight(10)
     cov = np.diag([0.01**2] * 3 + [0.05**2] * 3)
     stage.set_colocations({k: (T, cov) for k, T in enumerate(poses)})  # map frame (enu=False)
     fix = poses[9][:3, 3] + np.array([13.0, 6.0, 0.5])
