@@ -102,7 +102,12 @@ class RunnerOptions:
     colocation_sigma: tuple[float, float] = (0.01, 0.05)  # rad, m: prior of a server-corrected pose
     colocation_gate_m: float = 1.0  # corrected poses farther than this from the agent's own are refused
     flush_timeout_s: float = 60.0  # streaming: wait this long for the server's acks at the end
-    corrections_grace_s: float = 2.0  # streaming: then wait this long for late corrections
+    corrections_grace_s: float = 2.0  # streaming: then wait at least this long for late corrections,
+    # and on until no correction has come for ``corrections_quiet_s`` (at most ``corrections_max_wait_s``):
+    # the server's loop closures can come seconds after the last keyframe (factory06: 8.5 s after uav1
+    # finished, so with a fixed 2 s grace no correction ever reached the agents)
+    corrections_quiet_s: float = 10.0
+    corrections_max_wait_s: float = 60.0
     progress: bool = True
 
 
@@ -645,9 +650,12 @@ async def _stream(
     pending: list[Correction] = []
     lock = threading.Lock()
 
+    last_correction = [time.monotonic()]
+
     def on_correction(msg: Correction) -> None:  # called in the event loop; applied between frames
         with lock:
             pending.append(msg)
+            last_correction[0] = time.monotonic()
 
     T_BS = getattr(ds, "T_BS", {}) or {}
     cam_from_antenna = None
@@ -728,8 +736,15 @@ async def _stream(
             await link.flush(timeout=options.flush_timeout_s)
         except TimeoutError:
             log.warning("server did not acknowledge everything within %.0f s", options.flush_timeout_s)
+        t_end = time.monotonic()
         await asyncio.sleep(options.corrections_grace_s)  # late corrections
         apply_pending()
+        while (
+            time.monotonic() - max(last_correction[0], t_end) < options.corrections_quiet_s
+            and time.monotonic() - t_end < options.corrections_max_wait_s
+        ):
+            await asyncio.sleep(0.5)
+            apply_pending()
     finally:
         await link.close()
         link_task.cancel()
