@@ -141,6 +141,15 @@ def start_poses_toml(scen: Path, agent_ids: Sequence[str]) -> str:
     return "".join(lines)
 
 
+def write_server_config(path: Path, scen: Path, tokens: dict[str, str], start_poses: bool = True) -> None:
+    """A server TOML config: one token per agent and, with ``start_poses``, the known start configuration."""
+    path.write_text(
+        "[tokens]\n"
+        + "".join(f'{a} = "{t}"\n' for a, t in tokens.items())
+        + (start_poses_toml(scen, list(tokens)) if start_poses else "")
+    )
+
+
 def git_revision() -> str:
     try:
         root = Path(__file__).resolve().parents[1]
@@ -282,11 +291,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
     shutil.rmtree(sdir, ignore_errors=True)
     sdir.mkdir(parents=True)
     cfg = sdir / "server.toml"
-    cfg.write_text(
-        "[tokens]\n"
-        + "".join(f'{a} = "{t}"\n' for a, t in tokens.items())
-        + (start_poses_toml(scen, [a for a, _ in agents]) if opts.start_poses else "")
-    )
+    write_server_config(cfg, scen, tokens, opts.start_poses)
     env = clean_env()
     slog = open(sdir / "server.log", "wb")  # noqa: SIM115
     server = subprocess.Popen(

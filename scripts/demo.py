@@ -34,7 +34,7 @@ def main() -> int:
     args = ap.parse_args()
 
     from hivemap.client.dataset import load_scenario
-    from hivemap.eval.experiment import clean_env, start_poses_toml, stop, wait_health
+    from hivemap.eval.experiment import clean_env, stop, wait_health, write_server_config
     from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum
 
     work: Path = args.work
@@ -53,11 +53,7 @@ def main() -> int:
     cfg = server_dir / "server.toml"
     # The UAVs take off from the UGV's roof (paper 2.4): the start configuration is known, so the server
     # joins the maps at the first keyframes. In the simulation the start poses come from ground truth.
-    cfg.write_text(
-        "[tokens]\n"
-        + "".join(f'{a} = "{t}"\n' for a, t in tokens.items())
-        + start_poses_toml(scen_dir, agents)
-    )
+    write_server_config(cfg, scen_dir, tokens)
     url = f"http://127.0.0.1:{args.port}"
     env = clean_env()
     server_log = open(server_dir / "server.log", "wb")  # noqa: SIM115

@@ -922,7 +922,8 @@ class Backend:
                 # keyframe plus the moved ones (the agent replaces all its co-location priors with it)
                 own = sorted(k for k in m.keyframes if k[0] == folded)
                 sample = own[:: o.correction_stride][-o.correction_max_kfs :]
-                extra = [k for k in chosen if k not in set(sample)]
+                in_sample = set(sample)
+                extra = [k for k in chosen if k not in in_sample]
                 chosen = sorted(set(sample) | set(extra[: max(0, o.correction_max_kfs - len(sample))]))
             ids = np.array([k[1] for k in chosen], dtype=np.int64)
             poses = np.array([m.keyframes[k].world_from_cam for k in chosen], dtype=np.float64).reshape(

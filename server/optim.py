@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,6 +47,27 @@ class PoseGraphOptions:
     relative_error_tol: float = 1e-7
 
 
+def _check_graph(name: str, n: int, edges: list[PoseGraphEdge], fixed: set[int] | frozenset[int]) -> None:
+    """Gauge and index checks shared by the pose graphs."""
+    if not fixed:
+        raise ValueError(f"{name} needs at least one fixed keyframe (gauge)")
+    for k in fixed:
+        if not 0 <= k < n:
+            raise IndexError(f"fixed keyframe index {k} out of range 0..{n - 1}")
+    for e in edges:
+        if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
+            raise IndexError(f"pose-graph edge ({e.i}, {e.j}) invalid for {n} keyframes")
+
+
+def _solve_lm(graph: Any, initial: Any, options: PoseGraphOptions) -> Any:
+    import gtsam
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(options.max_iterations)
+    params.setRelativeErrorTol(options.relative_error_tol)
+    return gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+
+
 def optimize_pose_graph_sim3(
     world_from_cam: F64,
     edges: list[PoseGraphEdge],
@@ -64,19 +86,14 @@ def optimize_pose_graph_sim3(
     n = len(poses)
     if n == 0:
         return []
-    if not fixed:
-        raise ValueError("optimize_pose_graph_sim3 needs at least one fixed keyframe (gauge)")
+    _check_graph("optimize_pose_graph_sim3", n, edges, fixed)
     graph = gtsam.NonlinearFactorGraph()
     initial = gtsam.Values()
     for k in range(n):
         initial.insert(k, Sim3.from_se3(poses[k]).to_gtsam())
     for k in sorted(fixed):
-        if not 0 <= k < n:
-            raise IndexError(f"fixed keyframe index {k} out of range 0..{n - 1}")
         graph.add(gtsam.NonlinearEqualitySimilarity3(k, Sim3.from_se3(poses[k]).to_gtsam()))
     for e in edges:
-        if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
-            raise IndexError(f"pose-graph edge ({e.i}, {e.j}) invalid for {n} keyframes")
         sig = np.array([e.sigma_rot] * 3 + [e.sigma_trans] * 3 + [e.sigma_logscale])
         noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(sig)
         if e.robust:
@@ -84,10 +101,7 @@ def optimize_pose_graph_sim3(
                 gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k), noise
             )
         graph.add(gtsam.BetweenFactorSimilarity3(e.i, e.j, e.i_from_j.to_gtsam(), noise))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(options.max_iterations)
-    params.setRelativeErrorTol(options.relative_error_tol)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    result = _solve_lm(graph, initial, options)
     out = [Sim3.from_gtsam(result.atSimilarity3(k)) for k in range(n)]
     log.debug(
         "pose graph: %d keyframes, %d edges, error %.3g -> %.3g",
@@ -113,19 +127,14 @@ def optimize_pose_graph_se3(
     n = len(poses)
     if n == 0:
         return []
-    if not fixed:
-        raise ValueError("optimize_pose_graph_se3 needs at least one fixed keyframe (gauge)")
+    _check_graph("optimize_pose_graph_se3", n, edges, fixed)
     graph = gtsam.NonlinearFactorGraph()
     initial = gtsam.Values()
     for k in range(n):
         initial.insert(k, gtsam.Pose3(poses[k]))
     for k in sorted(fixed):
-        if not 0 <= k < n:
-            raise IndexError(f"fixed keyframe index {k} out of range 0..{n - 1}")
         graph.add(gtsam.NonlinearEqualityPose3(k, gtsam.Pose3(poses[k])))
     for e in edges:
-        if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
-            raise IndexError(f"pose-graph edge ({e.i}, {e.j}) invalid for {n} keyframes")
         noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(
             np.array([e.sigma_rot] * 3 + [e.sigma_trans] * 3)
         )
@@ -135,10 +144,7 @@ def optimize_pose_graph_se3(
             )
         rel = se3(e.i_from_j.R, e.i_from_j.t)
         graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(rel), noise))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(options.max_iterations)
-    params.setRelativeErrorTol(options.relative_error_tol)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    result = _solve_lm(graph, initial, options)
     return [Sim3.from_se3(result.atPose3(k).matrix()) for k in range(n)]
 
 
