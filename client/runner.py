@@ -102,12 +102,15 @@ class RunnerOptions:
     colocation_sigma: tuple[float, float] = (0.01, 0.05)  # rad, m: prior of a server-corrected pose
     colocation_gate_m: float = 1.0  # corrected poses farther than this from the agent's own are refused
     flush_timeout_s: float = 60.0  # streaming: wait this long for the server's acks at the end
-    corrections_grace_s: float = 2.0  # streaming: then wait at least this long for late corrections,
-    # and on until no correction has come for ``corrections_quiet_s`` (at most ``corrections_max_wait_s``):
-    # the server's loop closures can come seconds after the last keyframe (factory06: 8.5 s after uav1
-    # finished, so with a fixed 2 s grace no correction ever reached the agents)
+    # streaming, after the last frame: the server's loop closures can come long after the last keyframe
+    # (factory06: 8.5 s after uav1 finished; a ugv loop 1 s after a 10 s quiet timer had run out). So the
+    # agent waits until the server's ``/health`` says its back-end is idle (nothing queued, nothing in
+    # flight) and then ``corrections_grace_s`` more for corrections on the wire; at most
+    # ``corrections_max_wait_s``. A server without that field: until no correction came for
+    # ``corrections_quiet_s``.
+    corrections_grace_s: float = 2.0
     corrections_quiet_s: float = 10.0
-    corrections_max_wait_s: float = 60.0
+    corrections_max_wait_s: float = 120.0
     progress: bool = True
 
 
@@ -613,6 +616,63 @@ def run_streaming(
     )
 
 
+def health_url(server: str) -> str:
+    """The server's ``/health`` address from its WebSocket address (``ws://HOST:PORT/ws``)."""
+    from urllib.parse import urlsplit, urlunsplit
+
+    u = urlsplit(server)
+    scheme = {"ws": "http", "wss": "https", "http": "http", "https": "https"}.get(u.scheme)
+    if scheme is None or not u.netloc:
+        raise ValueError(f"server address {server!r} is not ws://HOST:PORT/ws")
+    path = u.path[: -len("/ws")] if u.path.endswith("/ws") else u.path.rstrip("/")
+    return urlunsplit((scheme, u.netloc, path + "/health", "", ""))
+
+
+def _backend_idle(url: str) -> bool | None:
+    """The server's ``backend_idle`` (None: no back-end, an older server, or no answer)."""
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(url, timeout=5.0) as r:  # noqa: S310 (http(s) only, see health_url)
+            value = json.loads(r.read()).get("backend_idle")
+    except (OSError, ValueError) as exc:
+        log.warning("server health %s unreadable: %s", url, exc)
+        return None
+    return value if isinstance(value, bool) else None
+
+
+async def _wait_for_server(
+    server: str, options: RunnerOptions, last_correction: list[float], apply_pending: Callable[[], None]
+) -> None:
+    """After the last frame: wait for the corrections the server still owes (see RunnerOptions)."""
+    import asyncio
+    import time
+
+    t_end = time.monotonic()
+    url = health_url(server)
+    idle_polls, use_health = 0, True
+    while time.monotonic() - t_end < options.corrections_max_wait_s:
+        await asyncio.sleep(0.5)
+        apply_pending()
+        quiet = time.monotonic() - max(last_correction[0], t_end)
+        if use_health:
+            idle = await asyncio.to_thread(_backend_idle, url)
+            if idle is None:
+                log.warning("server reports no back-end state: waiting until %.0f s without corrections",
+                            options.corrections_quiet_s)  # fmt: skip
+                use_health = False
+                continue
+            idle_polls = idle_polls + 1 if idle else 0
+            # idle twice in a row, and the last correction has had time to arrive
+            if idle_polls >= 2 and quiet >= options.corrections_grace_s:
+                break
+        elif quiet >= options.corrections_quiet_s:
+            break
+    else:
+        log.warning("server still busy %.0f s after the last frame: stopping", options.corrections_max_wait_s)
+    apply_pending()
+
+
 async def _stream(
     agent_dir: str | Path,
     out_dir: str | Path,
@@ -736,15 +796,7 @@ async def _stream(
             await link.flush(timeout=options.flush_timeout_s)
         except TimeoutError:
             log.warning("server did not acknowledge everything within %.0f s", options.flush_timeout_s)
-        t_end = time.monotonic()
-        await asyncio.sleep(options.corrections_grace_s)  # late corrections
-        apply_pending()
-        while (
-            time.monotonic() - max(last_correction[0], t_end) < options.corrections_quiet_s
-            and time.monotonic() - t_end < options.corrections_max_wait_s
-        ):
-            await asyncio.sleep(0.5)
-            apply_pending()
+        await _wait_for_server(server, options, last_correction, apply_pending)
     finally:
         await link.close()
         link_task.cancel()

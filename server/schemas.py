@@ -37,6 +37,12 @@ class Health(BaseModel):
     agents_connected: int
     maps: int
     store: StoreStats
+    backend_idle: bool | None = Field(
+        default=None,
+        description="the collaboration back-end has no keyframe queued and no recognition or optimisation "
+        "in flight (streaming agents wait for this before they stop); null when the back-end is off",
+    )
+    backend_queue: int = Field(default=0, description="keyframes waiting for place recognition")
 
 
 class BandwidthInfo(BaseModel):

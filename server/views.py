@@ -23,6 +23,7 @@ class NotFound(LookupError):
 
 def health(server: HiveServer) -> schemas.Health:
     w = server.writer
+    backend = getattr(server, "backend", None)  # set by hivemap.server.backend.install when it is on
     return schemas.Health(
         status="degraded" if w.failed else "ok",
         version=__version__,
@@ -32,6 +33,8 @@ def health(server: HiveServer) -> schemas.Health:
         store=schemas.StoreStats(
             commits=w.commits, operations=w.ops, commit_seconds=w.commit_seconds, failed=w.failed
         ),
+        backend_idle=None if backend is None else backend.idle(),
+        backend_queue=0 if backend is None else len(backend.queue),
     )
 
 

@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from hivemap.client.frontend.synthetic import make_sequence
-from hivemap.client.runner import OfflineAgent, RunnerOptions, _Gnss, parse_gnss_mode, write_tum_poses
+from hivemap.client.runner import (
+    OfflineAgent,
+    RunnerOptions,
+    _Gnss,
+    health_url,
+    parse_gnss_mode,
+    write_tum_poses,
+)
 from hivemap.eval.trajectory import ate, read_tum, trajectory_from_poses
 
 SIGMA_H, SIGMA_V = 0.05, 0.15  # paper Table 3
@@ -56,3 +63,11 @@ def test_tum_output_round_trip(run_all, tmp_path):
     back = read_tum(tmp_path / "local.tum")
     assert np.allclose(back.timestamps, tl)
     assert np.abs(np.asarray(back.positions_xyz) - local[:, :3, 3]).max() < 1e-5  # 6 decimals written
+
+
+def test_health_url_from_the_websocket_address() -> None:
+    assert health_url("ws://10.0.0.2:8765/ws") == "http://10.0.0.2:8765/health"
+    assert health_url("wss://hive.example.org/hivemap/ws") == "https://hive.example.org/hivemap/health"
+    assert health_url("ws://host:1/") == "http://host:1/health"
+    with pytest.raises(ValueError, match="ftp://x/ws"):
+        health_url("ftp://x/ws")

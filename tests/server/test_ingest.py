@@ -197,6 +197,7 @@ def test_rest_404_and_422_have_clear_bodies(server: ServerProcess) -> None:
     assert "/maps/{map_id}/points" in spec["paths"]
     h = server.json("/health")
     assert h["status"] == "ok" and h["store"]["commits"] > 0
+    assert h["backend_idle"] is None and h["backend_queue"] == 0  # this server runs without a back-end
 
 
 def test_reconnect_of_the_same_agent_replaces_the_old_connection(server: ServerProcess) -> None:
