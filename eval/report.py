@@ -57,6 +57,46 @@ def _real_merge(ev: dict[str, Any]) -> bool:
     return ev.get("kind") == "merge" and "target" in (ev.get("data") or {})
 
 
+def _event_marks(data: dict[str, Any], a: dict[str, Any], t_est: Any) -> list[tuple[str, int]]:
+    """(kind, index into the agent's estimate) of the merges and loops to mark on its plot.
+
+    Loops and visual merges carry their query keyframe's data time (``query_t``): the mark is the pose
+    closest in time. A merge from the known start poses is at the first pose. Loops are marked on the
+    plot of the agent whose keyframe was the query or the candidate, merges on every agent's plot.
+    Results written before ``query_t`` existed: the server's wall time mapped onto the agent's replay
+    span (approximate)."""
+    import numpy as np
+
+    if len(t_est) == 0:
+        return []
+    aid = a["agent_id"]
+    t0w, t1w = a.get("start_wall"), a.get("end_wall")
+    have_t = any("query_t" in (e.get("data") or {}) for e in data.get("events", []))
+    marks = []
+    for ev in data.get("events", []):
+        d = ev.get("data") or {}
+        if ev.get("kind") == "loop" and not d.get("refused"):
+            kind = "loop"
+            if aid not in (d.get("query") or [None])[:1] + (d.get("candidate") or [None])[:1]:
+                continue
+        elif ev.get("kind") == ("merge_detail" if have_t else "merge"):
+            kind = "merge"
+            if not have_t and not _real_merge(ev):
+                continue
+        else:
+            continue
+        if have_t:
+            qt = d.get("query_t")  # None: from the known start poses, one map from the first pose
+            i = 0 if qt is None else int(np.argmin(np.abs(np.asarray(t_est) - float(qt))))
+        elif t0w and t1w and t1w > t0w:
+            f = min(max((ev["time"] - t0w) / (t1w - t0w), 0.0), 1.0)
+            i = int(round(f * (len(t_est) - 1)))
+        else:
+            continue
+        marks.append((kind, i))
+    return marks
+
+
 def _row(cols: list[str]) -> str:
     return "| " + " | ".join(cols) + " |"
 
@@ -96,24 +136,11 @@ def _plot(out: Path, s: str, m: str, data: dict[str, Any]) -> str | None:
         ax.plot(g[:, 0], g[:, 1], "k-", lw=1.2, label="ground truth")
         ax.plot(p_al[:, 0], p_al[:, 1], "-", color="tab:red", lw=1.0, label="estimate")
         t_est = np.asarray(est.timestamps)
-        # events carry server wall time: map it onto the agent's data time by its replay span
-        t0w, t1w = a.get("start_wall"), a.get("end_wall")
         marked = set()
-        for ev in data.get("events", []):
-            if ev.get("kind") not in ("merge", "loop") or ev.get("agent_id") not in (None, a["agent_id"]):
-                continue
-            if ev["kind"] == "merge" and not _real_merge(ev):
-                continue
-            # merges carry map ids only: marked on every agent's plot; loops name their query keyframe
-            if ev["kind"] == "loop" and a["agent_id"] not in json.dumps(ev.get("data", {})):
-                continue
-            if not t0w or not t1w or t1w <= t0w or len(t_est) == 0:
-                continue
-            f = min(max((ev["time"] - t0w) / (t1w - t0w), 0.0), 1.0)
-            i = int(round(f * (len(t_est) - 1)))
-            mk = "*" if ev["kind"] == "merge" else "o"
-            lab = ev["kind"] if ev["kind"] not in marked else None
-            marked.add(ev["kind"])
+        for kind, i in _event_marks(data, a, t_est):
+            mk = "*" if kind == "merge" else "o"
+            lab = kind if kind not in marked else None
+            marked.add(kind)
             ax.plot(p_al[i, 0], p_al[i, 1], mk, ms=11, mfc="none", color="tab:blue", label=lab)
         ax.set_title(f"{a['agent_id']}: ATE {_f(a.get('ate_rmse'))} m")
         ax.set_xlabel("x east [m]")
@@ -367,7 +394,9 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
     # ---------------------------------------------------------------- plots
     md += ["## Trajectories (top view, estimate SE(3)-aligned vs ground truth; * merge, o loop)", ""]
     md.append(
-        "Event markers are placed by wall-clock time mapped onto the agent's replay span (approximate)."
+        "Event markers sit at the data time of the keyframe that triggered them (a merge from the known "
+        "start poses at the first pose); results written before events carried that time fall back to "
+        "the server's wall clock mapped onto the agent's replay span (approximate)."
     )
     md.append("")
     for (s, m), data in results.items():

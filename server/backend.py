@@ -384,9 +384,11 @@ class Backend:
         edge = (det.candidate_key, det.query_key, self._edge_measure(merged, det, target_id == det.query_map))
         if det.candidate_key in merged.keyframes and det.query_key in merged.keyframes:
             merged.add_loop_edge(det.candidate_key, det.query_key)
+        qkf = merged.keyframes.get(det.query_key)
         rec = {
             "target": target_id,
             "source": source_id,
+            "query_t": None if qkf is None else float(qkf.timestamp),  # data time (plots mark it)
             "scale": sim.s,
             "n_fused": len(pairs),
             "merge_ms": merge_ms,
@@ -488,6 +490,7 @@ class Backend:
         rec = {
             "map": m.id,
             "query": list(det.query_key),
+            "query_t": float(m.keyframes[det.query_key].timestamp),  # data time (plots mark it)
             "candidate": list(det.candidate_key),
             "scale": det.target_from_source.s,
             "n_inliers": det.n_inliers,

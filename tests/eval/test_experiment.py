@@ -148,3 +148,22 @@ def test_tables_6_7_count_the_saved_events(experiment):
         assert f"| bright | clear | 1 | {len(acc):.1f} | {avg:.1f} |" in md
     else:
         assert "| 0-45 deg |" not in md
+
+
+def test_event_marks_sit_at_the_data_time_of_their_keyframe() -> None:
+    from hivemap.eval.report import _event_marks
+
+    t_est = 100.0 + 0.05 * np.arange(200)  # the agent's estimate, 20 Hz
+    uav_loop = {"query": ["uav1", 40], "candidate": ["uav1", 3], "query_t": 107.5}
+    ugv_loop = {"query": ["ugv", 9], "candidate": ["ugv", 1], "query_t": 101.0}
+    events = [
+        {"kind": "merge_detail", "time": 5e9, "data": {"by": "start_pose", "query_t": None}},
+        {"kind": "merge_detail", "time": 5e9, "data": {"query_t": 104.02}},
+        {"kind": "loop", "time": 5e9, "data": uav_loop},
+        {"kind": "loop", "time": 5e9, "data": ugv_loop},
+        {"kind": "loop", "time": 5e9, "data": {"refused": True, "move_m": 8.0}},
+    ]
+    marks = _event_marks({"events": events}, {"agent_id": "uav1"}, t_est)
+    # start-pose merge at the first pose, the visual merge at 104.0 s, uav1's loop at 107.5 s; the ugv's
+    # loop belongs to the ugv's plot and the refused one to nobody's; the wall time (5e9) is not used
+    assert marks == [("merge", 0), ("merge", 80), ("loop", 150)]
