@@ -148,6 +148,14 @@ def experiment_command(
             help="Co-location: give the server the agents' known start configuration (paper 2.4).",
         ),
     ] = True,
+    report_only: Annotated[
+        bool,
+        typer.Option(
+            "--report-only",
+            help="Run nothing: write the report from the results already in --out (runs not done are "
+            "left out of Table 8).",
+        ),
+    ] = False,
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment
@@ -165,9 +173,10 @@ def experiment_command(
         seed=seed,
         progress=not no_progress,
         start_poses=start_poses,
+        report_only=report_only,
     )
     try:
         report = run_experiment(opts)
-    except ValueError as exc:
+    except (ValueError, FileNotFoundError) as exc:
         raise typer.BadParameter(str(exc)) from exc
     typer.echo(f"report: {report} (and {report.with_suffix('.html')})")

@@ -77,6 +77,7 @@ class ExperimentOptions:
     settle_s: float = 3.0  # wait for the back-end's last optimisation after the agents finish
     start_poses: bool = True  # co-location: the server knows the agents' start configuration
     agent_timeout_s: float = 6 * 3600.0
+    report_only: bool = False  # run nothing: write the report from the results already in ``out``
 
 
 # ------------------------------------------------------------------------------------ process helpers
@@ -386,12 +387,16 @@ def run_experiment(opts: ExperimentOptions) -> Path:
         if m not in MODES:
             raise ValueError(f"unknown mode {m!r}; expected one of {', '.join(MODES)}")
     out = Path(opts.out)
-    out.mkdir(parents=True, exist_ok=True)
     todo = []
     for name in opts.scenarios:
         for mode in opts.modes:
             if not (out / "results" / name / f"{mode}.json").exists():
                 todo.append((name, mode))
+    if opts.report_only:
+        if not any((out / "results" / n / f"{m}.json").exists() for n in opts.scenarios for m in opts.modes):
+            raise FileNotFoundError(f"no results of {', '.join(opts.scenarios)} in {out / 'results'}")
+        return write_report(out, list(opts.scenarios), list(opts.modes))
+    out.mkdir(parents=True, exist_ok=True)
     scen_dirs = {name: ensure_scenario(name, Path(opts.data)) for name in {n for n, _ in todo}}
     n_runs = 0
     plan = []

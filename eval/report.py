@@ -301,7 +301,9 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
                 bmode = "single+gnss" if m in ("challenged1", "challenged2") else "single"
                 base = rmse_of(bmode)
                 data = results.get((s, m))
-                a = next((x for x in data["agents"] if x["agent_id"] == aid), None) if data else None
+                if data is None:
+                    continue  # not run (e.g. only the GNSS-denied run of a Tables 6-7 condition)
+                a = next((x for x in data["agents"] if x["agent_id"] == aid), None)
                 pap = PAPER_TABLE8.get(aid, {}).get(m)
                 pbase = PAPER_TABLE8.get(aid, {}).get(bmode)
                 if a is None:

@@ -128,6 +128,24 @@ def test_resume_skips_done_runs(experiment):
     assert (out / "report.md").exists()
 
 
+def test_report_only_runs_nothing_and_leaves_out_runs_not_done(experiment, tmp_path):
+    _, out, args = experiment
+    stamps = {p: p.stat().st_mtime_ns for p in (out / "results" / "tiny").glob("*.json")}
+    # ask for a mode that was never run: with --report-only it is not run, and Table 8 leaves it out
+    i = args.index("--modes")
+    only = [*args[: i + 1], "single,denied,challenged1", *args[i + 2 :], "--report-only"]
+    res = CliRunner().invoke(app, only)
+    assert res.exit_code == 0, res.output
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
+    assert not (out / "results" / "tiny" / "challenged1.json").exists()
+    rows = json.loads((out / "report.json").read_text())["table8"]
+    assert {r["mode"] for r in rows} == set(MODES) and len(rows) == len(MODES) * len(AGENTS)
+    # nothing to report from: a clear error naming the directory
+    empty = [*args[: args.index("--out") + 1], str(tmp_path / "none"), *args[args.index("--out") + 2 :]]
+    res = CliRunner().invoke(app, [*empty, "--report-only"])
+    assert res.exit_code == 2 and "none" in res.output
+
+
 def test_tables_6_7_count_the_saved_events(experiment):
     """Tables 6-7: inter-agent verified recognitions of the denied run, recomputed here from the saved
     events (not through the report code), appear with the tiny scenario's angle pair and conditions."""
