@@ -97,6 +97,77 @@ def _event_marks(data: dict[str, Any], a: dict[str, Any], t_est: Any) -> list[tu
     return marks
 
 
+def _same_merge(detail: dict[str, Any], merge: dict[str, Any]) -> bool:
+    """The ``merge_detail`` event of a ``merge`` event (same source and target map)."""
+    d, m = detail.get("data") or {}, merge.get("data") or {}
+    return d.get("source") == m.get("source") and d.get("target") == m.get("target")
+
+
+def _mission_start(out: Path, s: str, m: str, data: dict[str, Any]) -> float | None:
+    """Data time of the mission start: the earliest ground-truth timestamp of the run's agents."""
+    from hivemap.eval.trajectory import read_tum
+
+    firsts = []
+    for a in data.get("agents", []):
+        p = out / "results" / s / m / str(a.get("gt_tum") or "")
+        if a.get("gt_tum") and p.exists():
+            firsts.append(float(read_tum(p).timestamps[0]))
+    return min(firsts) if firsts else None
+
+
+def team_section(out: Path, results: dict[tuple[str, str], dict[str, Any]]) -> list[str]:
+    """Co-location runs, on the server's global keyframes: team ATE (one SE(3) alignment per map for
+    all its agents, so misplaced agents count) and the relative pose error between agents at
+    simultaneous keyframes (evo association, 30 ms), through :func:`hivemap.eval.trajectory.evaluate_team`."""
+    from hivemap.eval.trajectory import AgentRun, evaluate_team, read_tum
+
+    md = [
+        "## Team in the server's global frame",
+        "",
+        "The server's final keyframe poses of every agent (camera frame), one SE(3) alignment per map for "
+        "all of its agents; relative pose error between two agents at keyframes within 30 ms of each other.",
+        "",
+        _row(["scenario", "mode", "map", "agents", "team ATE RMSE [m]", "pair", "n", "rel. trans RMSE [m]",
+              "rel. rot RMSE [deg]"]),
+        "|---|---|---|---|---|---|---|---|---|",
+    ]  # fmt: skip
+    n_rows = 0
+    for (s, m), data in results.items():
+        srv = out / "results" / s / m / "server"
+        runs = []
+        for a in data.get("agents", []):
+            est, gt = srv / f"{a['agent_id']}.est.tum", srv / f"{a['agent_id']}.gt.tum"
+            if not (est.exists() and gt.exists()):
+                continue
+            map_id = (a.get("run") or {}).get("map_id")
+            runs.append(AgentRun(a["agent_id"], read_tum(est), read_tum(gt), [(-1e18, f"map {map_id}")]))
+        if not runs:
+            continue
+        try:
+            rep = evaluate_team(runs, "se3", max_diff=0.03, rpe_delta=None)
+        except Exception as exc:  # evo raises on trajectories it cannot associate
+            log.warning("team evaluation of %s/%s failed: %s", s, m, exc)
+            md.append(f"| {s} | {m} | - | - | failed: {html.escape(str(exc))} | | | | |")
+            continue
+        for fid, fr in rep.frames.items():
+            agents = list(fr.agents)
+            errs = [rep.agents[a].ate for a in agents]
+            n = sum(e.n for e in errs)
+            team = (sum(e.rmse**2 * e.n for e in errs) / n) ** 0.5 if n else float("nan")
+            pairs = [p for p in rep.inter_agent if p.frame_id == fid]
+            first = True
+            for p in pairs or [None]:
+                pair = f"{p.agent_a}-{p.agent_b}" if p else "-"
+                cells = [str(p.trans.n), _f(p.trans.rmse), _f(p.rot_deg.rmse, 2)] if p else ["-", "-", "-"]
+                head = [s, m, fid, ", ".join(agents), _f(team)] if first else ["", "", "", "", ""]
+                md.append(_row([*head, pair, *cells]))
+                first = False
+                n_rows += 1
+    if not n_rows:
+        md.append("| (no co-location run with server trajectories) |||||||||")
+    return [*md, ""]
+
+
 def _row(cols: list[str]) -> str:
     return "| " + " | ".join(cols) + " |"
 
@@ -386,12 +457,20 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
         maps = ", ".join(f"#{mp.get('id')} {mp.get('agents')}" for mp in data.get("maps", []))
         md.append(f"**{s} / {m}**: events {kinds}; {len(merges)} merges, {len(loops)} loops; maps: {maps}")
         md.append("")
+        details = [e for e in evs if e.get("kind") == "merge_detail"]
+        t_mission = _mission_start(out, s, m, data)
         for e in merges:
-            dt = f"{e['time'] - t0:.1f} s after server start" if t0 else ""
-            md.append(f"- merge at {dt}: {html.escape(e.get('message', ''))}")
+            d = next((x.get("data") or {} for x in details if _same_merge(x, e)), {})
+            when = f"{e['time'] - t0:.1f} s after server start" if t0 else ""
+            if d.get("by") == "start_pose":
+                when += ", mission time 0 s (the agents' first keyframes, known start poses)"
+            elif d.get("query_t") is not None and t_mission is not None:
+                when += f", mission time {float(d['query_t']) - t_mission:.1f} s (query keyframe)"
+            md.append(f"- merge at {when}: {html.escape(e.get('message', ''))}")
         if merges:
             md.append("")
     md.append("")
+    md += team_section(out, results)
     md += table67(results)
     # ---------------------------------------------------------------- plots
     md += ["## Trajectories (top view, estimate SE(3)-aligned vs ground truth; * merge, o loop)", ""]

@@ -185,3 +185,29 @@ def test_event_marks_sit_at_the_data_time_of_their_keyframe() -> None:
     # start-pose merge at the first pose, the visual merge at 104.0 s, uav1's loop at 107.5 s; the ugv's
     # loop belongs to the ugv's plot and the refused one to nobody's; the wall time (5e9) is not used
     assert marks == [("merge", 0), ("merge", 80), ("loop", 150)]
+
+
+def test_team_section_matches_an_independent_joint_alignment(experiment):
+    """The team ATE of the denied run: every agent's server keyframes under one SE(3) alignment,
+    recomputed here with evo directly (association, Umeyama, APE) from the saved TUM files."""
+    from evo.core import sync
+    from evo.core.geometry import umeyama_alignment
+    from evo.tools import file_interface
+
+    _, out, _ = experiment
+    srv = out / "results" / "tiny" / "denied" / "server"
+    est_all, gt_all = [], []
+    for a in AGENTS:
+        gt = file_interface.read_tum_trajectory_file(str(srv / f"{a}.gt.tum"))
+        est = file_interface.read_tum_trajectory_file(str(srv / f"{a}.est.tum"))
+        ref, est = sync.associate_trajectories(gt, est, max_diff=0.03)
+        est_all.append(est.positions_xyz)
+        gt_all.append(ref.positions_xyz)
+    E, G = np.concatenate(est_all), np.concatenate(gt_all)
+    R, t, _ = umeyama_alignment(E.T, G.T, with_scale=False)
+    want = float(np.sqrt(np.mean(np.sum(((R @ E.T).T + t - G) ** 2, axis=1))))
+    md = (out / "report.md").read_text()
+    row = next(ln for ln in md.splitlines() if ln.startswith("| tiny | denied | map"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert set(cells[3].split(", ")) == set(AGENTS)
+    assert float(cells[4]) == pytest.approx(want, abs=1e-3)
