@@ -79,7 +79,6 @@ def fuse_gnss(
     the map in ENU (fewer than ``min_fixes``, or spread less than ``min_spread_m``).
     """
     import gtsam
-    from evo.core.geometry import umeyama_alignment
 
     poses = np.asarray(world_from_body, dtype=np.float64)
     n = len(poses)
@@ -94,13 +93,7 @@ def fuse_gnss(
         raise NotEnoughFixes(f"GNSS fixes span {spread:.1f} m, need {options.min_spread_m} m to fix yaw")
     # Initial alignment: rigid Umeyama (evo) between keyframe positions and fixes; in the
     # horizontal plane only (yaw + translation) when the map is gravity-aligned.
-    if options.gravity_aligned:
-        R2d, t2d, _ = umeyama_alignment(poses[idx, :2, 3].T, enu[:, :2].T, with_scale=False)
-        R = np.eye(3)
-        R[:2, :2] = R2d
-        t = np.array([t2d[0], t2d[1], float(np.mean(enu[:, 2] - poses[idx, 2, 3]))])
-    else:
-        R, t, _ = umeyama_alignment(poses[idx, :3, 3].T, enu.T, with_scale=False)
+    R, t = _rigid_fit(poses[idx, :3, 3], enu, options.gravity_aligned)
     enu_from_map0 = se3(R, t)
     init = np.array([enu_from_map0 @ p for p in poses])
     used = np.ones(len(fixes), dtype=bool)
@@ -169,8 +162,22 @@ def fuse_gnss(
         used &= ~bad
         out = solve(used)
     residuals = np.linalg.norm(out[idx, :3, 3] - enu, axis=1)
-    # The map-level transform: rigid alignment of the original poses onto the corrected ones.
-    R2, t2, _ = (
-        umeyama_alignment(poses[:, :3, 3].T, out[:, :3, 3].T, with_scale=False) if n >= 3 else (R, t, 1.0)
-    )
+    # The map-level transform: rigid alignment of the original poses onto the corrected ones; yaw and
+    # translation only for a gravity-aligned map, so that a map moved by it stays gravity-aligned (with a
+    # 6-DoF fit, the tilt each stage fitted to the fixes' vertical noise was held by the next stage's
+    # attitude factors and compounded).
+    R2, t2 = _rigid_fit(poses[:, :3, 3], out[:, :3, 3], options.gravity_aligned) if n >= 3 else (R, t)
     return GnssStageResult(se3(R2, t2), out, used, residuals)
+
+
+def _rigid_fit(src: F64, dst: F64, yaw_only: bool) -> tuple[F64, F64]:
+    """``R, t`` with ``dst ~ R src + t`` (evo's Umeyama); yaw + translation only if ``yaw_only``."""
+    from evo.core.geometry import umeyama_alignment
+
+    if not yaw_only:
+        R, t, _ = umeyama_alignment(src.T, dst.T, with_scale=False)
+        return np.asarray(R), np.asarray(t).reshape(3)
+    R2d, t2d, _ = umeyama_alignment(src[:, :2].T, dst[:, :2].T, with_scale=False)
+    R = np.eye(3)
+    R[:2, :2] = R2d
+    return R, np.array([t2d[0], t2d[1], float(np.mean(dst[:, 2] - src[:, 2]))])

@@ -100,3 +100,24 @@ def test_links_carry_one_agents_fixes_to_another() -> None:
     without, with_links = rmse_b(None), rmse_b([(0, n), (n // 2, n + n // 2), (n - 1, 2 * n - 1)])
     assert without > 0.25
     assert with_links < 0.15
+
+
+def test_map_transform_of_a_gravity_aligned_map_keeps_it_level() -> None:
+    """A short stretch with few fixes of 15 cm vertical noise: a 6-DoF fit would tilt the map by the
+    noise; the gravity-aligned stage's ``enu_from_map`` is yaw + translation and recovers the true yaw."""
+    rng = np.random.default_rng(8)
+    truth = _truth()[:40]  # 40 m of one leg
+    poses, map_from_enu = _map_frame(truth, 0.0)
+    cov = np.diag([0.05**2, 0.05**2, 0.15**2])
+    fixes = [GnssFix(k, truth[k, :3, 3] + rng.normal(0, [0.05, 0.05, 0.15]), cov) for k in range(0, 40, 8)]
+    res = fuse_gnss(poses, [list(range(len(truth)))], fixes)
+    R = res.enu_from_map[:3, :3]
+    assert np.allclose(R[2], [0.0, 0.0, 1.0], atol=1e-9) and np.allclose(R[:, 2], [0.0, 0.0, 1.0], atol=1e-9)
+    true_R = np.linalg.inv(map_from_enu)[:3, :3]
+    yaw_err = np.degrees(np.arccos(np.clip((np.trace(R @ true_R.T) - 1) / 2, -1, 1)))
+    assert yaw_err < 0.5, yaw_err
+    # the same fit without the gravity assumption tilts by the fixes' vertical noise
+    from hivemap.server.gnss_stage import GnssStageOptions
+
+    free = fuse_gnss(poses, [list(range(len(truth)))], fixes, GnssStageOptions(gravity_aligned=False))
+    assert not np.allclose(free.enu_from_map[2, :3], [0.0, 0.0, 1.0], atol=1e-3)
