@@ -142,10 +142,19 @@ def start_poses_toml(scen: Path, agent_ids: Sequence[str]) -> str:
     return "".join(lines)
 
 
-def write_server_config(path: Path, scen: Path, tokens: dict[str, str], start_poses: bool = True) -> None:
+# The server keeps this many events; the runner reads them all (one /events request allows 100k). The
+# default 10k ring buffer lost the first 3-18 % of the events of a 4-agent factory run (placerec_candidate
+# events dominate), and with them the start merges and early recognitions of Tables 6-7.
+EXPERIMENT_EVENT_BUFFER = 100_000
+
+
+def write_server_config(
+    path: Path, scen: Path, tokens: dict[str, str], start_poses: bool = True, event_buffer: int | None = None
+) -> None:
     """A server TOML config: one token per agent and, with ``start_poses``, the known start configuration."""
     path.write_text(
-        "[tokens]\n"
+        ("" if event_buffer is None else f"event_buffer = {int(event_buffer)}\n")
+        + "[tokens]\n"
         + "".join(f'{a} = "{t}"\n' for a, t in tokens.items())
         + (start_poses_toml(scen, list(tokens)) if start_poses else "")
     )
@@ -292,7 +301,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
     shutil.rmtree(sdir, ignore_errors=True)
     sdir.mkdir(parents=True)
     cfg = sdir / "server.toml"
-    write_server_config(cfg, scen, tokens, opts.start_poses)
+    write_server_config(cfg, scen, tokens, opts.start_poses, event_buffer=EXPERIMENT_EVENT_BUFFER)
     env = clean_env()
     slog = open(sdir / "server.log", "wb")  # noqa: SIM115
     server = subprocess.Popen(
@@ -331,7 +340,8 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
             stop(p)
         time.sleep(opts.settle_s)
         agents_info = {a["agent_id"]: a for a in httpx.get(url + "/agents", timeout=30).json()["agents"]}
-        events = httpx.get(url + "/events", params={"limit": 100000}, timeout=30).json()["events"]
+        ev_query = {"limit": EXPERIMENT_EVENT_BUFFER}
+        events = httpx.get(url + "/events", params=ev_query, timeout=30).json()["events"]
         maps = httpx.get(url + "/maps", timeout=30).json()["maps"]
         for aid, _kind in agents:
             res = results[aid]

@@ -457,6 +457,12 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
         maps = ", ".join(f"#{mp.get('id')} {mp.get('agents')}" for mp in data.get("maps", []))
         md.append(f"**{s} / {m}**: events {kinds}; {len(merges)} merges, {len(loops)} loops; maps: {maps}")
         md.append("")
+        if evs and int(evs[0].get("id", 1)) > 1:
+            md.append(
+                f"(The server's event ring buffer had dropped events 1-{int(evs[0]['id']) - 1} of this run: "
+                "the counts here and in Tables 6-7 miss them, and merges among them are not listed.)"
+            )
+            md.append("")
         details = [e for e in evs if e.get("kind") == "merge_detail"]
         t_mission = _mission_start(out, s, m, data)
         for e in merges:

@@ -108,6 +108,9 @@ def test_bandwidth_events_and_reproducibility(experiment):
         assert bw["down_total"] > 0  # at least the welcome/acks
         assert a["gnss"] == "denied"
     assert any(e["kind"] == "connect" for e in denied["events"])
+    # every event of the run was kept (the server ran with the experiment's large ring buffer)
+    assert denied["events"][0]["id"] == 1
+    assert [e["id"] for e in denied["events"]] == list(range(1, len(denied["events"]) + 1))
     md = (out / "report.md").read_text()
     for a in denied["agents"]:
         assert re.search(
