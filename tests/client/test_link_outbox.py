@@ -171,7 +171,11 @@ class MiniServer:
                 await ws.send(encode(Ack(seq), 0))
                 continue
             if self.on_data is not None and await self.on_data(self, ws, seq, msg):  # type: ignore[misc]
-                continue  # the hook replied (or dropped the connection) itself
+                if ws.close_code is not None:
+                    # the hook closed the session: frames the agent had already pipelined behind it
+                    # must not be stored (under load they were, before the resent message)
+                    return
+                continue  # the hook replied itself
             n += 1
             drop = self.drop_every and n % self.drop_every == 0
             if drop and self.drops % 2 == 1:  # drop before storing: the message is lost in transit
