@@ -129,11 +129,11 @@ class Backend:
         self._opt_running: set[int] = set()
         self._gnss_count: dict[int, int] = {}
         self._enu_maps: set[int] = set()  # maps the GNSS stage has put into ENU
-        # per map, the bend the last GNSS stage gave each keyframe (bent = C @ visual, the visual shape moved
-        # rigidly into ENU): the next stage takes its relative constraints from the visual shape, not from
-        # the bent one, or each run would bake the previous fixes' noise into the shape (factory01
-        # challenged1: the UGV's height swung +-0.5 m between fixes of 0.15 m sigma)
-        self._gnss_bend: dict[int, dict[KfKey, Sim3]] = {}
+        # per map, what undoes the bend the last GNSS stage gave each keyframe (visual = U @ bent, the
+        # visual shape moved rigidly into ENU): the next stage takes its relative constraints from the
+        # visual shape, not from the bent one, or each run would bake the previous fixes' noise into the
+        # shape (factory01 challenged1: the UGV's height swung +-0.5 m between fixes of 0.15 m sigma)
+        self._gnss_unbend: dict[int, dict[KfKey, Sim3]] = {}
         self._retry_at: dict[tuple[int, int], float] = {}  # map pair -> last GNSS-guided retry
         self._consist: dict[tuple[int, int, str], tuple[int, Sim3, int]] = {}
         self._opt_again: dict[int, list[tuple[KfKey, KfKey, Sim3]]] = {}
@@ -210,7 +210,7 @@ class Backend:
         self._generation[target] = self._generation.get(target, 0) + 1
         self._generation.pop(source, None)
         self._enu_maps.discard(source)  # the merged map keeps the target's frame
-        self._gnss_bend.pop(source, None)  # its keyframes' poses count as visual from now on
+        self._gnss_unbend.pop(source, None)  # its keyframes' poses count as visual from now on
         if self.recognizer is not None:
             await asyncio.get_running_loop().run_in_executor(
                 self._pr_exec, self.recognizer.on_merge, target, source
@@ -843,17 +843,17 @@ class Backend:
         """``poses`` without the last GNSS stage's bend: each keyframe's own, or for a keyframe that came
         later the bend of its agent's latest keyframe before it (new keyframes follow their agent's
         frame, which followed that keyframe's correction)."""
-        bend = self._gnss_bend.get(map_id)
-        if not bend:
+        unbend = self._gnss_unbend.get(map_id)
+        if not unbend:
             return poses
         latest: dict[str, Sim3] = {}
         out = poses.copy()
         for i, k in enumerate(keys):  # keys are sorted by agent, then time
-            c = bend.get(k, latest.get(k[0]))
-            if c is None:
+            u = unbend.get(k, latest.get(k[0]))
+            if u is None:
                 continue
-            latest[k[0]] = c
-            out[i] = c.inverse().transform_pose(poses[i])
+            latest[k[0]] = u
+            out[i] = u.transform_pose(poses[i])
         return out
 
     async def _gnss_stage(self, m: Any) -> None:
@@ -908,8 +908,8 @@ class Backend:
         # the bend alone, without the rigid move into ENU: the unbent poses are in the map's (new) frame,
         # like the keyframes of agents that join the map later
         rigid = Sim3.from_se3(np.asarray(res.enu_from_map))
-        self._gnss_bend[m.id] = {
-            k: Sim3.from_se3(new_cam[i]) @ (rigid @ Sim3.from_se3(visual[i])).inverse()
+        self._gnss_unbend[m.id] = {
+            k: rigid @ Sim3.from_se3(visual[i]) @ Sim3.from_se3(new_cam[i]).inverse()
             for i, k in enumerate(keys)
         }
         self._generation[m.id] = self._generation.get(m.id, 0) + 1
