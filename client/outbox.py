@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import sqlite3
 import threading
+import time
 from pathlib import Path
 
 from hivemap.protocol import Message, encode
@@ -20,6 +21,21 @@ class OutboxError(RuntimeError):
     """The outbox file is unusable (another agent's, or a newer schema)."""
 
 
+def _set_wal(db: sqlite3.Connection, timeout_s: float = 10.0) -> None:
+    """``PRAGMA journal_mode=WAL``, retried: SQLite answers "database is locked" at once, without its
+    busy handler, while another process is creating the same file (a restarted agent next to a reader
+    of its outbox)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+            return
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+
+
 class Outbox:
     """SQLite-backed queue of encoded frames keyed by seq (1, 2, 3, ... per agent)."""
 
@@ -28,24 +44,30 @@ class Outbox:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
         self._db = sqlite3.connect(str(self.path), check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
+        _set_wal(self._db)
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
         self._db.execute("CREATE TABLE IF NOT EXISTS outbox (seq INTEGER PRIMARY KEY, frame BLOB NOT NULL)")
-        meta = dict(self._db.execute("SELECT key, value FROM meta").fetchall())
-        if not meta:
-            self._db.execute("BEGIN")
-            self._db.executemany(
-                "INSERT INTO meta VALUES (?, ?)",
-                [
-                    ("schema", str(SCHEMA_VERSION)),
-                    ("agent_id", agent_id),
-                    ("last_acked", "0"),
-                    ("last_seq", "0"),
-                ],
-            )
-            self._db.execute("COMMIT")
+        # Check-and-create under a write lock: two processes opening a new outbox at once (a restarted
+        # agent next to a reader) both saw an empty meta table and the second insert failed.
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
             meta = dict(self._db.execute("SELECT key, value FROM meta").fetchall())
+            if not meta:
+                self._db.executemany(
+                    "INSERT INTO meta VALUES (?, ?)",
+                    [
+                        ("schema", str(SCHEMA_VERSION)),
+                        ("agent_id", agent_id),
+                        ("last_acked", "0"),
+                        ("last_seq", "0"),
+                    ],
+                )
+                meta = dict(self._db.execute("SELECT key, value FROM meta").fetchall())
+            self._db.execute("COMMIT")
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
         if int(meta["schema"]) != SCHEMA_VERSION:
             raise OutboxError(
                 f"{self.path}: outbox schema {meta['schema']}, this hivemap reads {SCHEMA_VERSION}"

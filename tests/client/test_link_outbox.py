@@ -98,6 +98,31 @@ PUTTER = textwrap.dedent(
 
 
 @pytest.mark.timeout(60)
+def _open_outbox(path: str, barrier: object) -> None:
+    barrier.wait()  # type: ignore[attr-defined]
+    Outbox(path, "uav1").close()
+
+
+def test_outbox_created_by_several_processes_at_once(tmp_path: Path) -> None:
+    """Processes that open a new outbox file at the same moment (a restarted agent while something reads
+    its outbox) all get it: none fails on SQLite's lock or on the meta rows another one just wrote."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    for trial in range(6):
+        path = str(tmp_path / f"race{trial}.sqlite")
+        barrier = ctx.Barrier(3)
+        procs = [ctx.Process(target=_open_outbox, args=(path, barrier)) for _ in range(3)]
+        for p in procs:
+            p.start()
+        for p in procs:
+            p.join(60)
+        assert [p.exitcode for p in procs] == [0, 0, 0], f"trial {trial}"
+        box = Outbox(path, "uav1")
+        assert (box.last_seq, box.last_acked) == (0, 0)
+        box.close()
+
+
 def test_outbox_survives_sigkill_of_the_agent_process(tmp_path: Path) -> None:
     """Every put() that returned before a SIGKILL is on disk afterwards, with its seq and content."""
     path = tmp_path / "k.outbox"
