@@ -26,6 +26,13 @@ def agent_command(
     agent_id: Annotated[str | None, typer.Option("--agent-id", help="Agent id (default: dataset's).")] = None,
     token: Annotated[str | None, typer.Option("--token", help="Agent token for the server.")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    no_imu_factors: Annotated[
+        bool,
+        typer.Option(
+            "--no-imu-factors",
+            help="Second stage without IMU factors between keyframes (the IMU then only aligns gravity).",
+        ),
+    ] = False,
 ) -> None:
     """Run one agent on a dataset: offline (front-end + second stage) or streaming to a server."""
     from hivemap.client.runner import RunnerOptions, parse_gnss_mode
@@ -38,7 +45,9 @@ def agent_command(
         raise typer.BadParameter("give exactly one of --offline or --server URL")
     if not dataset.is_dir():
         raise typer.BadParameter(f"{dataset} is not a directory", param_hint="--dataset")
-    options = RunnerOptions(gnss=mode, seed=seed, max_frames=max_frames, progress=not no_progress)
+    options = RunnerOptions(
+        gnss=mode, seed=seed, max_frames=max_frames, progress=not no_progress, imu_factors=not no_imu_factors
+    )
     out_dir = out if out is not None else Path("out") / (agent_id or dataset.name)
     if offline:
         from hivemap.client.runner import run_offline

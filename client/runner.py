@@ -111,6 +111,7 @@ class RunnerOptions:
     corrections_grace_s: float = 2.0
     corrections_quiet_s: float = 10.0
     corrections_max_wait_s: float = 120.0
+    imu_factors: bool = True  # IMU factors in the second stage (loosely coupled VIO) when there is an IMU
     progress: bool = True
 
 
@@ -298,6 +299,7 @@ class OfflineAgent:
         t0 = time.perf_counter()
         res = self.frontend.process(t, left, right, imu, gnss_epoch=gnss_epoch)
         t1 = time.perf_counter()
+        self.stage.add_imu(imu)
         self._consume(self.frontend.poll_events())
         t2 = time.perf_counter()
         self.fe_ms.append(1e3 * (t1 - t0))
@@ -483,7 +485,7 @@ def _make_agent(
     frontend_options: object | None,
     second_stage_options: object | None,
 ) -> OfflineAgent:
-    from hivemap.client.second_stage import SecondStageOptions
+    from hivemap.client.second_stage import ImuOptions, SecondStageOptions
 
     if getattr(ds, "rig", None) is None:
         raise ValueError("the dataset has no stereo pair (cam1): the built-in front-end needs stereo")
@@ -492,9 +494,14 @@ def _make_agent(
         # second-stage nodes are body poses: the antenna lever arm is T_BS(gnss0)'s translation
         T_BS = getattr(ds, "T_BS", {}) or {}
         lever = np.asarray(T_BS.get("gnss0", np.eye(4)), dtype=np.float64)[:3, 3]
+        imu = None
+        if imu_params is not None and options.imu_factors:
+            # the second stage's nodes are body poses, so the IMU's pose in them is T_BS(imu0)
+            imu = ImuOptions.from_noise(imu_params, np.asarray(T_BS.get("imu0", np.eye(4)), dtype=np.float64))
         second_stage_options = SecondStageOptions(
             gravity_aligned=imu_params is not None,
             kf_from_antenna=(float(lever[0]), float(lever[1]), float(lever[2])),
+            imu=imu,
         )
     return OfflineAgent(ds.rig, imu_params, gnss, options, frontend_options, second_stage_options)
 
