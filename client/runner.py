@@ -465,6 +465,16 @@ class OfflineAgent:
         self.corrections_applied += n
         return n
 
+    def up_in_cam(self, session: int, kf_id: int) -> F64 | None:
+        """The keyframe's up direction (unit, against gravity) in its camera frame, from the second stage
+        when it fuses the IMU (its local frame's z is then up); None without IMU factors."""
+        node = self._node_of.get((int(session), int(kf_id)))
+        if node is None or self.stage.options.imu is None:
+            return None
+        R_local_cam = self.stage.keyframe_pose(node)[:3, :3] @ self.frontend.body_from_cam[:3, :3]
+        up = R_local_cam.T @ np.array([0.0, 0.0, 1.0])
+        return up / np.linalg.norm(up)
+
     def local_trajectory(self) -> tuple[F64, F64]:
         """Every tracked frame's pose in the local frame (final estimate, interpolated corrections)."""
         out = []
@@ -753,6 +763,7 @@ async def _stream(
                     None if fix is None else gnss.enu[fix],
                     None if fix is None else gnss.cov[fix],
                     ev.session,
+                    agent.up_in_cam(ev.session, ev.kf_id),
                 )  # fmt: skip
             )
         elif isinstance(ev, PoseUpdateEvent):

@@ -91,7 +91,8 @@ class Keyframe:
 
     Arrays: ``world_from_cam`` f64 (4, 4); ``keypoints`` f32 (N, 2) distorted pixels; ``octaves`` u8 (N,);
     ``descriptors`` u8 (N, 32); ``point_ids`` i64 (N,) (-1 = no point); ``gnss_enu`` f64 (3,) or None;
-    ``gnss_cov`` f64 (3, 3) or None.
+    ``gnss_cov`` f64 (3, 3) or None; ``up_cam`` f64 (3,) or None (the agent's IMU up direction in the
+    camera frame).
 
     Point references: keypoint ``i`` references point ``(agent, point_ids[i])`` where ``agent`` is
     ``point_agents.get(i, agent_id)`` (``point_agents`` only lists keypoints that reference another agent's
@@ -115,6 +116,7 @@ class Keyframe:
         "point_agents",
         "gnss_enu",
         "gnss_cov",
+        "up_cam",
         "parent",
     )
 
@@ -133,6 +135,7 @@ class Keyframe:
         gnss_cov: ArrayLike | None = None,
         *,
         point_keys: Sequence[PointKey | None] | None = None,
+        up_cam: ArrayLike | None = None,
     ) -> None:
         self.agent_id = str(agent_id)
         self.id = int(id)
@@ -178,6 +181,8 @@ class Keyframe:
                 raise ValueError(f"point_ids {self.point_ids.shape} does not match {n} keypoints")
         self.gnss_enu: F64 | None = None if gnss_enu is None else np.array(gnss_enu, np.float64).reshape(3)
         self.gnss_cov: F64 | None = None if gnss_cov is None else np.array(gnss_cov, np.float64).reshape(3, 3)
+        # up direction (unit, against gravity) in the camera frame as the agent's IMU measured it
+        self.up_cam: F64 | None = None if up_cam is None else np.array(up_cam, np.float64).reshape(3)
         self.parent: KfKey | None = None
 
     @property
@@ -866,7 +871,7 @@ def map_differences(a: Map, b: Map) -> list[str]:
     for k in a.keyframes.keys() & b.keyframes.keys():
         x, y = a.keyframes[k], b.keyframes[k]
         arrays: tuple[str, ...] = ("world_from_cam", "keypoints", "octaves", "descriptors", "point_ids")
-        for f in (*arrays, "gnss_enu", "gnss_cov"):
+        for f in (*arrays, "gnss_enu", "gnss_cov", "up_cam"):
             if not _arr_eq(getattr(x, f), getattr(y, f)):
                 d.append(f"keyframe {k}: {f} differs")
         if np.float64(x.timestamp).tobytes() != np.float64(y.timestamp).tobytes():

@@ -42,7 +42,7 @@ from hivemap.maps.model import Keyframe, KfKey, Map, MapPoint, MapStack, PointKe
 
 logger = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: map_keyframes.up_cam
 
 _TABLES = (
     "map_maps",
@@ -77,6 +77,7 @@ CREATE TABLE IF NOT EXISTS map_keyframes (
     point_agents TEXT,                    -- json {keypoint index: agent} for other agents' points
     gnss_enu BLOB,
     gnss_cov BLOB,
+    up_cam BLOB,
     parent_agent TEXT,
     parent_id INTEGER,
     PRIMARY KEY (map_id, agent, id)
@@ -112,15 +113,15 @@ CREATE INDEX IF NOT EXISTS map_merges_map ON map_merges (map_id);
 
 _KF_COLS = (
     "map_id, agent, id, seq, timestamp, world_from_cam, camera, keypoints, octaves, descriptors, "
-    "point_ids, point_agents, gnss_enu, gnss_cov, parent_agent, parent_id"
+    "point_ids, point_agents, gnss_enu, gnss_cov, up_cam, parent_agent, parent_id"
 )
 _KF_UPSERT = (
-    f"INSERT INTO map_keyframes ({_KF_COLS}) VALUES ({', '.join('?' * 16)}) "
+    f"INSERT INTO map_keyframes ({_KF_COLS}) VALUES ({', '.join('?' * 17)}) "
     "ON CONFLICT (map_id, agent, id) DO UPDATE SET timestamp = excluded.timestamp, "
     "world_from_cam = excluded.world_from_cam, camera = excluded.camera, keypoints = excluded.keypoints, "
     "octaves = excluded.octaves, descriptors = excluded.descriptors, point_ids = excluded.point_ids, "
     "point_agents = excluded.point_agents, gnss_enu = excluded.gnss_enu, gnss_cov = excluded.gnss_cov, "
-    "parent_agent = excluded.parent_agent, parent_id = excluded.parent_id"
+    "up_cam = excluded.up_cam, parent_agent = excluded.parent_agent, parent_id = excluded.parent_id"
 )
 _PT_UPSERT = (
     "INSERT INTO map_points (map_id, agent, id, seq, xyz, descriptor) VALUES (?, ?, ?, ?, ?, ?) "
@@ -174,6 +175,7 @@ def _kf_row(map_id: int, kf: Keyframe, seq: int) -> tuple[Any, ...]:
         json.dumps({str(i): a for i, a in sorted(kf.point_agents.items())}) if kf.point_agents else None,
         None if kf.gnss_enu is None else pack_array(kf.gnss_enu),
         None if kf.gnss_cov is None else pack_array(kf.gnss_cov),
+        None if kf.up_cam is None else pack_array(kf.up_cam),
         None if parent is None else parent[0],
         None if parent is None else parent[1],
     )
@@ -223,7 +225,11 @@ class MapStore:
                     f"{self.path}: map store schema version {version!r} is not supported by this hivemap "
                     f"(it reads version {SCHEMA_VERSION}); use a newer hivemap or another data directory"
                 )
-            # version == SCHEMA_VERSION (future migrations from older versions go here)
+            if version < 2:  # 1 -> 2: keyframes carry the agent's IMU up direction (NULL for old rows)
+                with self._tx():
+                    self.conn.execute("ALTER TABLE map_keyframes ADD COLUMN up_cam BLOB")
+                    self.conn.execute("UPDATE map_schema SET version = ?", (SCHEMA_VERSION,))
+                logger.info("%s: map store schema migrated from version %d to %d", self.path, version, 2)
             self.conn.executescript(_SCHEMA)
             return
         if tables & set(_TABLES):
@@ -512,7 +518,7 @@ class MapStore:
         for row in c.execute(
             f"SELECT {_KF_COLS} FROM map_keyframes WHERE map_id = ? ORDER BY seq", (mid,)
         ).fetchall():
-            (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pagents, genu, gcov, pa, pi) = row
+            (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pagents, genu, gcov, up, pa, pi) = row
             camera = cameras.get(cam)
             if camera is None:
                 camera = cameras[cam] = PinholeCamera.from_dict(json.loads(cam))
@@ -528,6 +534,7 @@ class MapStore:
                 unpack_array(pids),
                 None if genu is None else unpack_array(genu),
                 None if gcov is None else unpack_array(gcov),
+                up_cam=None if up is None else unpack_array(up),
             )
             if pagents:
                 kf.point_agents = {int(i): a for i, a in json.loads(pagents).items()}

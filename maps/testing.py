@@ -57,6 +57,7 @@ def random_keyframes_and_points(
                 point_ids,
                 gnss_enu=rng.normal(0, 30, 3) if gnss else None,
                 gnss_cov=np.diag(rng.uniform(0.01, 0.1, 3)) if gnss else None,
+                up_cam=T[2, :3] if k % 3 == 1 else None,  # the pose's own up axis in the camera frame
             )
         )
     return kfs, pts

@@ -294,6 +294,12 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         cov = _arr(cov, "body.gnss_cov", "<f8", (3, 3))
         if not _spd3(cov.tolist()):
             raise FieldError("covariance must be symmetric positive definite", "body.gnss_cov")
+    up = b.get("up_cam")
+    if up is not None:
+        up = _arr(up, "body.up_cam", "<f8", (3,))
+        norm = float(np.linalg.norm(up)) if np.all(np.isfinite(up)) else math.nan
+        if not 0.99 <= norm <= 1.01:
+            raise FieldError(f"up direction must be a unit vector, its norm is {norm:.3g}", "body.up_cam")
     return Keyframe(
         kf_id=_int(b["kf_id"], "body.kf_id", 0),
         timestamp=_float(b["timestamp"], "body.timestamp"),
@@ -305,6 +311,7 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         gnss_enu=enu,
         gnss_cov=cov,
         session=_session(b),
+        up_cam=up,
     )
 
 

@@ -43,7 +43,9 @@ class Welcome:
 @dataclass(frozen=True)
 class Keyframe:
     """Agent -> server. keypoints f32 (N,2), octaves u8 (N,), descriptors u8 (N,32), point_ids i64 (N,)
-    (-1 = no map point), world_from_cam f64 (4,4); optional GNSS fix in ENU f64 (3,) + covariance (3,3)."""
+    (-1 = no map point), world_from_cam f64 (4,4); optional GNSS fix in ENU f64 (3,) + covariance (3,3);
+    optional ``up_cam`` f64 (3,): the unit up direction (against gravity) in the camera frame, from the
+    agent's IMU (its second stage), which the server's GNSS stage holds the keyframe's roll/pitch to."""
 
     TYPE: ClassVar[str] = "keyframe"
     kf_id: int
@@ -56,6 +58,7 @@ class Keyframe:
     gnss_enu: NDArray[np.float64] | None = None
     gnss_cov: NDArray[np.float64] | None = None
     session: int = 0
+    up_cam: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)

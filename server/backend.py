@@ -879,10 +879,18 @@ class Backend:
         cam_from_ant = np.array([se3(np.eye(3), levers[k[0]]) for k in keys])
         world_from_ant = visual @ cam_from_ant
         links = self._gnss_links(m, keys)
+        # the agents' IMU up directions (camera frame = antenna frame's rotation): the attitude factors hold
+        # those keyframes to gravity, the others to the map's own roll/pitch
+        nan3 = np.full(3, np.nan)
+        up = np.array([nan3 if m.keyframes[k].up_cam is None else m.keyframes[k].up_cam for k in keys])
         snap = _Snapshot(m.id, self._generation.get(m.id, 0), keys, poses)
         try:
             res = await asyncio.get_running_loop().run_in_executor(
-                self._opt_exec, partial(fuse_gnss, links=links), world_from_ant, list(chains.values()), fixes
+                self._opt_exec,
+                partial(fuse_gnss, links=links, up_in_body=up),
+                world_from_ant,
+                list(chains.values()),
+                fixes,
             )
         except NotEnoughFixes as exc:
             self.server.events.add("gnss_stage", f"map {m.id}: {exc}", map_id=m.id)

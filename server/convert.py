@@ -39,6 +39,7 @@ def keyframe_from_msg(
         point_ids=np.array(msg.point_ids, dtype=np.int64),
         gnss_enu=None if msg.gnss_enu is None else np.array(msg.gnss_enu, dtype=np.float64),
         gnss_cov=None if msg.gnss_cov is None else np.array(msg.gnss_cov, dtype=np.float64),
+        up_cam=None if msg.up_cam is None else np.array(msg.up_cam, dtype=np.float64),
     )
 
 

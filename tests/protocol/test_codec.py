@@ -72,6 +72,9 @@ cameras = st.fixed_dictionaries(
 def keyframes(draw: Any) -> Keyframe:
     n = draw(st.integers(0, 300))
     has_gnss = draw(st.booleans())
+    up = draw(st.one_of(st.none(), arr(np.float64, (3,), st.floats(-1, 1))))
+    if up is not None and np.linalg.norm(up) < 0.1:
+        up = None
     return Keyframe(
         kf_id=draw(ids),
         timestamp=draw(finite),
@@ -83,6 +86,7 @@ def keyframes(draw: Any) -> Keyframe:
         gnss_enu=draw(arr(np.float64, (3,), finite)) if has_gnss else None,
         gnss_cov=np.diag(draw(arr(np.float64, (3,), st.floats(1e-4, 10)))) if has_gnss else None,
         session=draw(st.integers(0, 100)),
+        up_cam=None if up is None else up / np.linalg.norm(up),
     )
 
 
@@ -192,6 +196,9 @@ def _tamper(frame: bytes, **changes: Any) -> bytes:
         (lambda m: replace(m, world_from_cam=np.full((4, 4), 2.0)), FieldError, "body.world_from_cam"),
         (lambda m: replace(m, point_ids=np.full(100, -5, np.int64)), FieldError, "body.point_ids"),
         (lambda m: replace(m, gnss_enu=np.zeros(3)), FieldError, "body.gnss_cov"),
+        (lambda m: replace(m, up_cam=np.array([0.0, 0.0, 2.0])), FieldError, "body.up_cam"),
+        (lambda m: replace(m, up_cam=np.array([np.nan, 0.0, 1.0])), FieldError, "body.up_cam"),
+        (lambda m: replace(m, up_cam=np.zeros(2)), FieldError, "body.up_cam"),
     ],
 )
 def test_bad_keyframe_fields_are_named(mutate: Any, error: type[ProtocolError], field: str) -> None:
