@@ -111,6 +111,7 @@ class RunnerOptions:
     corrections_grace_s: float = 2.0
     corrections_quiet_s: float = 10.0
     corrections_max_wait_s: float = 120.0
+    health_max_failures: int = 5  # unanswered /health polls in a row before falling back to the quiet timer
     imu_factors: bool = True  # IMU factors in the second stage (loosely coupled VIO) when there is an IMU
     progress: bool = True
 
@@ -646,15 +647,17 @@ def health_url(server: str) -> str:
 
 
 def _backend_idle(url: str) -> bool | None:
-    """The server's ``backend_idle`` (None: no back-end, an older server, or no answer)."""
+    """The server's ``backend_idle`` (None: the server reports none, i.e. no back-end or an older server).
+
+    Raises ``OSError`` when the server does not answer (the caller retries)."""
     import urllib.request
 
-    try:
-        with urllib.request.urlopen(url, timeout=5.0) as r:  # noqa: S310 (http(s) only, see health_url)
+    with urllib.request.urlopen(url, timeout=5.0) as r:  # noqa: S310 (http(s) only, see health_url)
+        try:
             value = json.loads(r.read()).get("backend_idle")
-    except (OSError, ValueError) as exc:
-        log.warning("server health %s unreadable: %s", url, exc)
-        return None
+        except (ValueError, AttributeError) as exc:
+            log.warning("server health %s unreadable: %s", url, exc)
+            return None
     return value if isinstance(value, bool) else None
 
 
@@ -667,13 +670,24 @@ async def _wait_for_server(
 
     t_end = time.monotonic()
     url = health_url(server)
-    idle_polls, use_health = 0, True
+    idle_polls, use_health, failures = 0, True, 0
     while time.monotonic() - t_end < options.corrections_max_wait_s:
         await asyncio.sleep(0.5)
         apply_pending()
         quiet = time.monotonic() - max(last_correction[0], t_end)
         if use_health:
-            idle = await asyncio.to_thread(_backend_idle, url)
+            try:
+                idle = await asyncio.to_thread(_backend_idle, url)
+            except OSError as exc:
+                # a busy server can miss one poll's 5 s timeout: retry; the quiet timer only after several
+                failures += 1
+                log.warning("server health %s: no answer (%s), %d in a row", url, exc, failures)
+                if failures >= options.health_max_failures:
+                    log.warning("server health unreachable: waiting until %.0f s without corrections",
+                                options.corrections_quiet_s)  # fmt: skip
+                    use_health = False
+                continue
+            failures = 0
             if idle is None:
                 log.warning("server reports no back-end state: waiting until %.0f s without corrections",
                             options.corrections_quiet_s)  # fmt: skip

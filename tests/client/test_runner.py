@@ -71,3 +71,70 @@ def test_health_url_from_the_websocket_address() -> None:
     assert health_url("ws://host:1/") == "http://host:1/health"
     with pytest.raises(ValueError, match="ftp://x/ws"):
         health_url("ftp://x/ws")
+
+
+class _FlakyHealth:
+    """A real HTTP /health endpoint whose first ``drop`` requests get no answer (connection closed)."""
+
+    def __init__(self, drop: int, idle: bool | None) -> None:
+        import http.server
+        import json
+        import threading
+
+        outer = self
+        self.requests = 0
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+                outer.requests += 1
+                if outer.requests <= drop:
+                    self.close_connection = True
+                    self.connection.close()
+                    return
+                body = json.dumps({"status": "ok"} if idle is None else {"backend_idle": idle}).encode()
+                self.send_response(200)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def log_message(self, *args: object) -> None:
+                pass
+
+        self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"ws://127.0.0.1:{self.httpd.server_address[1]}/ws"
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+@pytest.mark.parametrize(
+    ("drop", "idle", "expect_health"),
+    [
+        (3, True, True),  # a few unanswered polls are retried: the back-end's idle state ends the wait
+        (100, True, False),  # never answered: after health_max_failures the quiet timer ends it
+        (0, None, False),  # an older server without backend_idle: the quiet timer
+    ],
+)
+def test_wait_for_server_retries_unanswered_health_polls(drop: int, idle: bool | None, expect_health: bool):
+    import asyncio
+    import time
+
+    from hivemap.client.runner import _wait_for_server
+
+    srv = _FlakyHealth(drop, idle)
+    try:
+        opts = RunnerOptions(corrections_grace_s=0.0, corrections_quiet_s=6.0, corrections_max_wait_s=30.0)
+        t0 = time.monotonic()
+        asyncio.run(_wait_for_server(srv.url, opts, [0.0], lambda: None))
+        took = time.monotonic() - t0
+    finally:
+        srv.close()
+    if expect_health:
+        # 3 dropped + 2 idle polls at 0.5 s: well before the 6 s quiet timer
+        assert took < 5.0 and srv.requests == drop + 2, (took, srv.requests)
+    else:
+        assert took >= 6.0, took
+        assert srv.requests == (5 if drop else 1), srv.requests  # health_max_failures, or one answer
