@@ -64,6 +64,8 @@ class BackendOptions:
     gnss: bool = True
     # GNSS stage of a map after this many new keyframes with a fix (runs coalesce while one is busy)
     gnss_every_kfs: int = 1
+    # hold keyframes' roll/pitch to the up direction their agent's IMU measured (Keyframe.up_cam)
+    gnss_agent_up: bool = True
     # corrections carry every 12th keyframe of the agent (~6 s apart; the corrected map is smooth between
     # them) plus the moved ones, at most ``correction_max_kfs`` in all: the downlink was 2.2 kB/s per
     # agent on factory01 with every 8th and twice the cap
@@ -883,6 +885,8 @@ class Backend:
         # those keyframes to gravity, the others to the map's own roll/pitch
         nan3 = np.full(3, np.nan)
         up = np.array([nan3 if m.keyframes[k].up_cam is None else m.keyframes[k].up_cam for k in keys])
+        if not self.options.gnss_agent_up:
+            up[:] = np.nan
         snap = _Snapshot(m.id, self._generation.get(m.id, 0), keys, poses)
         try:
             res = await asyncio.get_running_loop().run_in_executor(
