@@ -122,6 +122,12 @@ class SecondStageOptions:
     """Extra ``update()`` calls after each new factor batch (lets iSAM2 relinearise)."""
     imu: ImuOptions | None = None
     """IMU factors between keyframes (feed samples with :meth:`SecondStage.add_imu`); None: off."""
+    colocation_offset_sigma: tuple[float, float, float] | None = None
+    """(tilt rad, yaw rad, translation m): co-location priors take the server's shape, placed by one
+    free transform ``O`` per agent (``local_from_kf ~ O @ prior``) with a prior of these sigmas at
+    identity, instead of pinning every keyframe absolutely. A server map's common tilt or ENU offset
+    (the visual tilt drift it keeps; 0.2-1 m of height in factory01's GNSS runs) then yields to the
+    agent's own IMU and GNSS. None: plain priors."""
 
 
 @dataclass
@@ -153,6 +159,12 @@ def _vkey(kf_id: int) -> int:
     import gtsam
 
     return int(gtsam.symbol("v", int(kf_id)))
+
+
+def _okey() -> int:
+    import gtsam
+
+    return int(gtsam.symbol("o", 0))
 
 
 def _bkey(kf_id: int) -> int:
@@ -224,6 +236,7 @@ class SecondStage:
         self._next_handle = 0
         self._colocation_handle: dict[int, int] = {}  # kf_id -> handle of its co-location prior
         self._colocation_enu = False  # the current co-location priors are absolute ENU poses
+        self._offset: F64 | None = None  # estimate of O (colocation_offset_sigma), once it exists
         # kf_id -> (handle of its relative-pose factor, previous kf_id, 6x6 covariance)
         self._between: dict[int, tuple[int, int, F64]] = {}
         self._segment_prior: dict[int, tuple[int, int, F64]] = {}  # segment -> (handle, kf_id, mean)
@@ -317,6 +330,8 @@ class SecondStage:
             if kf_id in self._vel:
                 self._vel[kf_id] = np.asarray(est.atVector(_vkey(kf_id)), dtype=np.float64)
                 self._bias[kf_id] = est.atConstantBias(_bkey(kf_id))
+        if self._offset is not None:
+            self._offset = est.atPose3(_okey()).matrix()
         self._update_local_from_vio()
 
     def _rebuild(self, T: F64) -> None:
@@ -336,6 +351,11 @@ class SecondStage:
             # map-frame co-location priors were expressed in the old local frame: they move along
             for kf_id, h in self._colocation_handle.items():
                 f = self._factors[h]
+                if self._offset is not None:  # O ~ identity: the measurement moves like a prior
+                    self._factors[h] = gtsam.BetweenFactorPose3(
+                        _okey(), _key(kf_id), gtsam.Pose3(T @ f.measured().matrix()), f.noiseModel()
+                    )
+                    continue
                 self._factors[h] = gtsam.PriorFactorPose3(
                     _key(kf_id), gtsam.Pose3(T @ f.prior().matrix()), f.noiseModel()
                 )
@@ -356,6 +376,8 @@ class SecondStage:
             if kf_id in self._vel:
                 theta.insert(_vkey(kf_id), R @ self._vel[kf_id])
                 theta.insert(_bkey(kf_id), self._bias[kf_id])
+        if self._offset is not None:
+            theta.insert(_okey(), gtsam.Pose3(self._offset))
         result = self._isam.update(graph, theta)
         self._handle_to_index = {
             h: int(i) for h, i in zip(handles, result.getNewFactorsIndices(), strict=True)
@@ -629,22 +651,37 @@ class SecondStage:
         and pulled against the new ones (factory01, GNSS denied: the agents' local trajectories ended
         worse than both their VIO and the server's map)."""
         gtsam = self._gtsam
+        sig = self.options.colocation_offset_sigma
         factors, owners = [], []
         for kf_id, (pose, cov) in priors.items():
             if kf_id not in self._kfs:
                 continue
-            T = np.asarray(pose, dtype=np.float64).reshape(4, 4)
-            factors.append(
-                gtsam.PriorFactorPose3(_key(kf_id), gtsam.Pose3(T), _gaussian(np.asarray(cov).reshape(6, 6)))
-            )
+            T = gtsam.Pose3(np.asarray(pose, dtype=np.float64).reshape(4, 4))
+            noise = _gaussian(np.asarray(cov).reshape(6, 6))
+            if sig is None:
+                factors.append(gtsam.PriorFactorPose3(_key(kf_id), T, noise))
+            else:
+                factors.append(gtsam.BetweenFactorPose3(_okey(), _key(kf_id), T, noise))
             owners.append(kf_id)
         old = list(self._colocation_handle.values())
         self._colocation_handle.clear()
         self._colocation_enu = enu
         if not factors and not old:
             return
-        handles = self._commit(factors, {}, remove=old)
-        self._colocation_handle.update(zip(owners, handles, strict=True))
+        extra = None
+        n_own = len(factors)
+        if sig is not None and self._offset is None and factors:
+            # the offset's one prior (kept for good): identity, tilt/yaw/translation sigmas
+            extra = gtsam.Values()
+            extra.insert(_okey(), gtsam.Pose3())
+            self._offset = np.eye(4)
+            factors.append(
+                gtsam.PriorFactorPose3(
+                    _okey(), gtsam.Pose3(), _diag(np.array([sig[0], sig[0], sig[1]] + [sig[2]] * 3))
+                )
+            )
+        handles = self._commit(factors, {}, remove=old, extra_values=extra)
+        self._colocation_handle.update(zip(owners, handles[:n_own], strict=True))
 
     def add_correction(self, kf_id: int, global_from_kf: F64, global_from_local: F64, cov: F64) -> None:
         """A server correction: keyframe pose in the global frame + ``global_from_local`` (Sim(3)
