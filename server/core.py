@@ -119,6 +119,9 @@ class AgentMap:
     arrived_kfs: set[int] = field(default_factory=set)
     pending: dict[int, PendingKeyframe] = field(default_factory=dict)
     waiting: dict[int, set[int]] = field(default_factory=dict)
+    # the last VIO pose received per keyframe (memory only): a pose update moves the keyframe by the
+    # agent's refinement and keeps the back-end's own correction of it (loop, GNSS bend and tilt)
+    vio_poses: dict[int, NDArray[np.float64]] = field(default_factory=dict)
 
 
 @dataclass
@@ -494,6 +497,7 @@ class HiveServer:
         kf = keyframe_from_msg(am.folded, msg, am.camera, am.global_from_vio)
         m.add_keyframe(kf)
         am.arrived_kfs.add(msg.kf_id)
+        am.vio_poses[msg.kf_id] = np.array(msg.world_from_cam, dtype=np.float64)
         return kf
 
     def _apply_points(
@@ -574,7 +578,18 @@ class HiveServer:
                 continue
             kf = m.keyframes.get((am.folded, k)) if m is not None else None
             if kf is not None:  # None: removed by the back-end (culled); the update is moot
-                kf.world_from_cam = g.transform_pose(T)
+                old = am.vio_poses.get(k)
+                if old is None:  # not seen since a restart: the agent's transform alone
+                    kf.world_from_cam = g.transform_pose(T)
+                else:
+                    # the agent's refinement, in the keyframe's frame (scaled like the agent's map), on
+                    # top of the keyframe's current pose: g @ T would drop what the back-end did to this
+                    # keyframe alone (factory01 GNSS runs: the last keyframes of each agent, refined by
+                    # its local BA after the last GNSS stage, went back to the VIO's tilt, 1-2 degrees)
+                    delta = np.linalg.inv(old) @ T
+                    delta[:3, 3] *= g.s
+                    kf.world_from_cam = kf.world_from_cam @ delta
+                am.vio_poses[k] = T
                 changed_kfs.append(kf)
         changed_points = []
         if point_ids and m is not None:

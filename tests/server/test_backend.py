@@ -241,3 +241,42 @@ def test_gnss_guided_retry_merges_two_enu_maps(tmp_path: Path) -> None:
         check_transform(agent_transform(srv, "uav1"), uav_from_world.inverse(), uav_true[:, :3, 3])
     finally:
         srv.stop()
+
+
+def test_pose_update_keeps_the_backends_correction_of_the_keyframe(srv: Server) -> None:
+    """After the GNSS stage has bent each keyframe on its own, an agent's pose update (its local BA
+    refining a keyframe) moves that keyframe by the refinement only; it does not put it back at
+    ``global_from_vio @ vio_pose``, which would drop the stage's correction of that keyframe."""
+    from hivemap.maps.geometry import se3
+    from hivemap.protocol import PoseUpdates
+
+    rng = np.random.default_rng(5)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    msgs, _, sent = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, gnss_sigma=0.05)
+    kf_ids = [int(m.kf_id) for m in msgs if hasattr(m, "kf_id")]
+    a = stream(srv, "ugv1", "ugv", msgs)
+    with a:
+        srv.wait_idle()
+        assert srv.call(lambda: srv.hive.events.counts.get("gnss_stage", 0)) >= 1
+
+        def world(k: int) -> np.ndarray:
+            m = next(iter(srv.hive.stack.maps.values()))
+            return np.array(m.keyframes[("ugv1", k)].world_from_cam)
+
+        k = kf_ids[4]
+        before = srv.call(lambda: world(k))
+        g = agent_transform(srv, "ugv1")
+        # the stage's own correction of this keyframe: what the old rule would have thrown away
+        assert np.linalg.norm(g.transform_pose(sent[4])[:3, 3] - before[:3, 3]) > 1e-4
+        refine = se3(so3_exp([0.0, 0.0, 0.01]), np.array([0.02, 0.0, 0.0]))
+        upd = PoseUpdates(
+            kf_ids=np.array([k], dtype=np.int64),
+            world_from_cam=(sent[4] @ refine)[None],
+            point_ids=np.zeros(0, dtype=np.int64),
+            xyz=np.zeros((0, 3)),
+        )
+        acks, errors = a.send_all([upd], first_seq=len(msgs) + 1)
+        assert not errors and len(acks) == 1
+        after = srv.call(lambda: world(k))
+    expected = before @ se3(refine[:3, :3], refine[:3, 3] * g.s)
+    np.testing.assert_allclose(after, expected, atol=1e-9)
