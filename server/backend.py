@@ -64,8 +64,11 @@ class BackendOptions:
     gnss: bool = True
     # GNSS stage of a map after this many new keyframes with a fix (runs coalesce while one is busy)
     gnss_every_kfs: int = 1
-    # hold keyframes' roll/pitch to the up direction their agent's IMU measured (Keyframe.up_cam)
-    gnss_agent_up: bool = True
+    # hold keyframes' roll/pitch to the up direction their agent's IMU measured (Keyframe.up_cam). Off:
+    # offline on saved maps it helps (factory01 0.101 -> 0.083 m in ENU), but online it made the map worse
+    # (factory01 challenged1 at 5811ccf, server keyframes SE(3) 0.125/0.204/0.131/0.145 m on, 0.067/0.062/
+    # 0.041/0.047 m off; the final map kept ~1 degree of tilt p90 on the UAVs with it on); not understood
+    gnss_agent_up: bool = False
     # corrections carry every 12th keyframe of the agent (~6 s apart; the corrected map is smooth between
     # them) plus the moved ones, at most ``correction_max_kfs`` in all: the downlink was 2.2 kB/s per
     # agent on factory01 with every 8th and twice the cap
