@@ -17,8 +17,9 @@ whatever frame the caller's keyframe poses use, normally the left camera as in t
   (gtsam ``ImuFactor`` on the IMU samples fed with :meth:`add_imu`, a velocity and a bias per
   keyframe, bias random walk between keyframes): loosely coupled VIO. The front-end uses the IMU
   for gravity alignment and rotation prediction only, so its roll/pitch drifts with the visual
-  rotation error (factory01: about 1 degree on uav1 after 90 s); the IMU factors observe gravity
-  through the velocity change between keyframes and hold the tilt (0.2 degrees on the same run).
+  rotation error; the IMU factors observe gravity through the velocity change between keyframes and
+  hold the tilt (factory01 uav1, every:20s, every frame against ground truth: tilt p90 0.61 -> 0.15
+  degrees, worst frame 1.52 -> 1.15; GNSS denied: p90 1.27 -> 0.15).
 
 The **local frame** equals the VIO frame until GNSS or co-location factors move it.  When GNSS
 arrives, the estimate is re-initialised once (translation after the first fix, yaw + translation
@@ -246,12 +247,12 @@ class SecondStage:
         self._consecutive_rejections = 0
         self.rejected_fixes: list[dict[str, float]] = []  # kf_id, t, mahalanobis, residual_m
         self.n_gnss_accepted = 0
-        # IMU factors (options.imu): samples not yet integrated, per-keyframe velocity and bias estimates,
-        # and the velocity priors that start a segment (kf_id -> (handle, mean))
+        # IMU factors (options.imu): samples not yet integrated, the keyframes with a velocity and a bias
+        # variable, and the velocity priors that start a segment (kf_id -> (handle, mean))
         self._imu_buf: list[F64] = []
-        self._vel: dict[int, F64] = {}
-        self._bias: dict[int, Any] = {}
+        self._imu_kfs: set[int] = set()
         self._vel_prior: dict[int, tuple[int, F64]] = {}
+        self._est: Any = None  # the latest iSAM2 estimate (gtsam Values): velocities and biases are read here
         self.n_imu_factors = 0
         self._imu_params = self._make_imu_params() if self.options.imu is not None else None
         self._isam = self._new_isam()
@@ -327,9 +328,7 @@ class SecondStage:
         est = self._isam.calculateEstimate()
         for kf_id in self._order:
             self._estimate[kf_id] = est.atPose3(_key(kf_id)).matrix()
-            if kf_id in self._vel:
-                self._vel[kf_id] = np.asarray(est.atVector(_vkey(kf_id)), dtype=np.float64)
-                self._bias[kf_id] = est.atConstantBias(_bkey(kf_id))
+        self._est = est
         if self._offset is not None:
             self._offset = est.atPose3(_okey()).matrix()
         self._update_local_from_vio()
@@ -373,9 +372,10 @@ class SecondStage:
         theta = gtsam.Values()
         for kf_id in self._order:
             theta.insert(_key(kf_id), gtsam.Pose3(initial[kf_id]))
-            if kf_id in self._vel:
-                theta.insert(_vkey(kf_id), R @ self._vel[kf_id])
-                theta.insert(_bkey(kf_id), self._bias[kf_id])
+            if kf_id in self._imu_kfs:
+                v, b = self._velocity_bias(kf_id)
+                theta.insert(_vkey(kf_id), R @ v)
+                theta.insert(_bkey(kf_id), b)
         if self._offset is not None:
             theta.insert(_okey(), gtsam.Pose3(self._offset))
         result = self._isam.update(graph, theta)
@@ -431,18 +431,16 @@ class SecondStage:
             )
         factors = [factor]
         extra = None
-        vel_prior: tuple[int, F64] | None = None
+        vel_prior_mean: F64 | None = None
         if self._imu_params is not None:
-            imu_factors, extra, vel_prior_mean = self._imu_factors(kf_id, float(timestamp), segment, init)
+            imu_factors, extra, vel_prior_mean = self._imu_factors(kf_id, float(timestamp), segment)
             factors += imu_factors
-            if vel_prior_mean is not None:
-                vel_prior = (len(factors) - 2, vel_prior_mean)  # [.., velocity prior, bias prior]
         self._kfs[kf_id] = _Kf(kf_id, float(timestamp), vio_from_kf, segment)
         self._order.append(kf_id)
         handles = self._commit(factors, {kf_id: init}, extra_values=extra)
         h = handles[0]
-        if vel_prior is not None:
-            self._vel_prior[kf_id] = (handles[vel_prior[0]], vel_prior[1])
+        if vel_prior_mean is not None:  # factors: [pose factor, velocity prior, bias prior]
+            self._vel_prior[kf_id] = (handles[1], vel_prior_mean)
         if starts_segment:
             self._segment_prior[segment] = (h, kf_id, init)
         else:
@@ -461,9 +459,13 @@ class SecondStage:
             raise ValueError("IMU samples must be finite")
         self._imu_buf.extend(a)
 
-    def _imu_factors(
-        self, kf_id: int, t: float, segment: int, init: F64
-    ) -> tuple[list[Any], Any, F64 | None]:
+    def _velocity_bias(self, kf_id: int) -> tuple[F64, Any]:
+        """The current estimate of a keyframe's velocity (local frame) and IMU bias."""
+        return np.asarray(self._est.atVector(_vkey(kf_id)), dtype=np.float64), self._est.atConstantBias(
+            _bkey(kf_id)
+        )
+
+    def _imu_factors(self, kf_id: int, t: float, segment: int) -> tuple[list[Any], Any, F64 | None]:
         """The IMU factors and new values (velocity, bias) of a keyframe about to be added.
 
         Returns (factors, values, mean of the velocity prior or None). Within a segment, with samples
@@ -479,15 +481,16 @@ class SecondStage:
         samples = [r for r in buf if t_prev < r[0] <= t]
         self._imu_buf = [r for r in buf if r[0] > t]
         values = gtsam.Values()
-        if prev is not None and prev in self._vel and samples and 0.0 < t - t_prev <= o.max_gap_s:
-            b_prev = self._bias[prev]
+        v_prev, b_prev = self._velocity_bias(prev) if prev in self._imu_kfs else (None, None)
+        self._imu_kfs.add(kf_id)
+        if prev is not None and v_prev is not None and samples and 0.0 < t - t_prev <= o.max_gap_s:
             pim = gtsam.PreintegratedImuMeasurements(self._imu_params, b_prev)
             last = t_prev
             for r in samples:
                 if r[0] > last:
                     pim.integrateMeasurement(r[4:7], r[1:4], float(r[0] - last))
                     last = float(r[0])
-            nav = gtsam.NavState(gtsam.Pose3(self._estimate[prev]), self._vel[prev])
+            nav = gtsam.NavState(gtsam.Pose3(self._estimate[prev]), v_prev)
             v0 = np.asarray(pim.predict(nav, b_prev).velocity(), dtype=np.float64)
             dt = t - t_prev
             rw = np.array([o.accelerometer_random_walk] * 3 + [o.gyroscope_random_walk] * 3) * math.sqrt(dt)
@@ -499,11 +502,10 @@ class SecondStage:
             ]
             values.insert(_vkey(kf_id), v0)
             values.insert(_bkey(kf_id), b_prev)
-            self._vel[kf_id], self._bias[kf_id] = v0, b_prev
             self.n_imu_factors += 1
             return factors, values, None
-        v0 = self._vel[prev] if prev is not None and prev in self._vel else np.zeros(3)
-        b0 = self._bias[prev] if prev is not None and prev in self._bias else gtsam.imuBias.ConstantBias()
+        v0 = np.zeros(3) if v_prev is None else v_prev
+        b0 = gtsam.imuBias.ConstantBias() if b_prev is None else b_prev
         sig_b = np.array([o.bias_prior_sigma_accel] * 3 + [o.bias_prior_sigma_gyro] * 3)
         factors = [
             gtsam.PriorFactorVector(_vkey(kf_id), v0, _diag(np.full(3, o.velocity_prior_sigma))),
@@ -511,7 +513,6 @@ class SecondStage:
         ]
         values.insert(_vkey(kf_id), v0)
         values.insert(_bkey(kf_id), b0)
-        self._vel[kf_id], self._bias[kf_id] = v0, b0
         return factors, values, v0
 
     def update_vio_pose(self, kf_id: int, vio_from_kf: F64) -> None:

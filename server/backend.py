@@ -886,10 +886,10 @@ class Backend:
         links = self._gnss_links(m, keys)
         # the agents' IMU up directions (camera frame = antenna frame's rotation): the attitude factors hold
         # those keyframes to gravity, the others to the map's own roll/pitch
-        nan3 = np.full(3, np.nan)
-        up = np.array([nan3 if m.keyframes[k].up_cam is None else m.keyframes[k].up_cam for k in keys])
-        if not self.options.gnss_agent_up:
-            up[:] = np.nan
+        up = None
+        if self.options.gnss_agent_up:
+            nan3 = np.full(3, np.nan)
+            up = np.array([nan3 if m.keyframes[k].up_cam is None else m.keyframes[k].up_cam for k in keys])
         snap = _Snapshot(m.id, self._generation.get(m.id, 0), keys, poses)
         try:
             res = await asyncio.get_running_loop().run_in_executor(

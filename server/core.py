@@ -584,8 +584,7 @@ class HiveServer:
                 else:
                     # the agent's refinement, in the keyframe's frame (scaled like the agent's map), on
                     # top of the keyframe's current pose: g @ T would drop what the back-end did to this
-                    # keyframe alone (factory01 GNSS runs: the last keyframes of each agent, refined by
-                    # its local BA after the last GNSS stage, went back to the VIO's tilt, 1-2 degrees)
+                    # keyframe alone (its share of a loop closure or of the GNSS stage's bend)
                     delta = np.linalg.inv(old) @ T
                     delta[:3, 3] *= g.s
                     kf.world_from_cam = kf.world_from_cam @ delta

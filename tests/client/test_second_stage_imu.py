@@ -27,7 +27,6 @@ DURATION = 60.0
 KF_DT = 0.5
 REL_SIGMA_ROT, REL_SIGMA_TRANS = 0.002, 0.01
 PITCH_DRIFT = 3e-4  # rad per keyframe, not in the stated covariance
-DIV = 1.0  # the VIO noise drawn is at its stated covariance
 
 
 def _flight() -> Trajectory:
@@ -53,8 +52,8 @@ def sim() -> dict:
     for i in range(1, len(gt)):
         rel = se3_inverse(gt[i - 1]) @ gt[i]
         noise = se3(
-            Rotation.from_rotvec([0.0, PITCH_DRIFT, 0.0] + rng.normal(0, REL_SIGMA_ROT / DIV, 3)).as_matrix(),
-            rng.normal(0, REL_SIGMA_TRANS / DIV, 3),
+            Rotation.from_rotvec([0.0, PITCH_DRIFT, 0.0] + rng.normal(0, REL_SIGMA_ROT, 3)).as_matrix(),
+            rng.normal(0, REL_SIGMA_TRANS, 3),
         )
         rels.append(rel @ noise)
         vio.append(vio[-1] @ rels[-1])
