@@ -65,7 +65,8 @@ class BackendOptions:
     # GNSS stage of a map after this many new keyframes with a fix (runs coalesce while one is busy)
     gnss_every_kfs: int = 1
     # hold keyframes' roll/pitch to the up direction their agent's IMU measured (Keyframe.up_cam). Off:
-    # offline on saved maps it helps (factory01 0.101 -> 0.083 m in ENU), but online it made the map worse
+    # offline on a saved map it helps (factory01 denied map at d1bdd10 with its agents' own up directions
+    # and the every-20 s fixes: 0.101 -> 0.086 m in ENU), but online it made the map worse
     # (factory01 challenged1 at 5811ccf, server keyframes SE(3) 0.125/0.204/0.131/0.145 m on, 0.067/0.062/
     # 0.041/0.047 m off; the final map kept ~1 degree of tilt p90 on the UAVs with it on); not understood
     gnss_agent_up: bool = False
