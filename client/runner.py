@@ -512,12 +512,15 @@ def _make_agent(
         if imu_params is not None and options.imu_factors:
             # the second stage's nodes are body poses, so the IMU's pose in them is T_BS(imu0)
             imu = ImuOptions.from_noise(imu_params, np.asarray(T_BS.get("imu0", np.eye(4)), dtype=np.float64))
-        offset = (0.05 if imu is not None else 0.01, 0.01, 0.1) if options.colocation_offset else None
+        tilt = 0.05 if imu is not None else 0.01
+        offset = (tilt, 0.01, 0.1) if options.colocation_offset else None
+        offset_enu = (tilt, 0.01, 0.01) if options.colocation_offset else None
         second_stage_options = SecondStageOptions(
             gravity_aligned=imu_params is not None,
             kf_from_antenna=(float(lever[0]), float(lever[1]), float(lever[2])),
             imu=imu,
             colocation_offset_sigma=offset,
+            colocation_offset_sigma_enu=offset_enu,
         )
     return OfflineAgent(ds.rig, imu_params, gnss, options, frontend_options, second_stage_options)
 

@@ -129,6 +129,12 @@ class SecondStageOptions:
     identity, instead of pinning every keyframe absolutely. A server map's common tilt or ENU offset
     (the visual tilt drift it keeps; 0.2-1 m of height in factory01's GNSS runs) then yields to the
     agent's own IMU and GNSS. None: plain priors."""
+    colocation_offset_sigma_enu: tuple[float, float, float] | None = None
+    """O's prior while the co-location priors are absolute ENU poses (a server map the GNSS stage put
+    into ENU with every agent's fixes): a tighter translation lets the team's pooled fixes place this
+    agent instead of its own few (factory01 GNSS-challenged 1: each agent's local trajectory sat off
+    by the mean error of its own 5 fixes, e.g. uav3 (-0.04, -0.03, -0.07) m; the 19 fixes of the team
+    average (0.00, 0.01, -0.03) m). None: ``colocation_offset_sigma`` in both frames."""
 
 
 @dataclass
@@ -238,6 +244,7 @@ class SecondStage:
         self._colocation_handle: dict[int, int] = {}  # kf_id -> handle of its co-location prior
         self._colocation_enu = False  # the current co-location priors are absolute ENU poses
         self._offset: F64 | None = None  # estimate of O (colocation_offset_sigma), once it exists
+        self._offset_prior: tuple[int, bool] | None = None  # handle of O's prior, and whether the ENU one
         # kf_id -> (handle of its relative-pose factor, previous kf_id, 6x6 covariance)
         self._between: dict[int, tuple[int, int, F64]] = {}
         self._segment_prior: dict[int, tuple[int, int, F64]] = {}  # segment -> (handle, kf_id, mean)
@@ -671,18 +678,26 @@ class SecondStage:
             return
         extra = None
         n_own = len(factors)
-        if sig is not None and self._offset is None and factors:
-            # the offset's one prior (kept for good): identity, tilt/yaw/translation sigmas
-            extra = gtsam.Values()
-            extra.insert(_okey(), gtsam.Pose3())
-            self._offset = np.eye(4)
+        sig_enu = self.options.colocation_offset_sigma_enu
+        use_enu = enu and sig_enu is not None
+        if sig is not None and factors and (self._offset_prior is None or self._offset_prior[1] != use_enu):
+            # the offset's prior: identity, tilt/yaw/translation sigmas (the ENU ones with ENU priors)
+            if self._offset is None:
+                extra = gtsam.Values()
+                extra.insert(_okey(), gtsam.Pose3())
+                self._offset = np.eye(4)
+            if self._offset_prior is not None:
+                old.append(self._offset_prior[0])
+            s3 = sig_enu if use_enu and sig_enu is not None else sig
             factors.append(
                 gtsam.PriorFactorPose3(
-                    _okey(), gtsam.Pose3(), _diag(np.array([sig[0], sig[0], sig[1]] + [sig[2]] * 3))
+                    _okey(), gtsam.Pose3(), _diag(np.array([s3[0], s3[0], s3[1]] + [s3[2]] * 3))
                 )
             )
         handles = self._commit(factors, {}, remove=old, extra_values=extra)
         self._colocation_handle.update(zip(owners, handles[:n_own], strict=True))
+        if len(handles) > n_own:
+            self._offset_prior = (handles[n_own], use_enu)
 
     def add_correction(self, kf_id: int, global_from_kf: F64, global_from_local: F64, cov: F64) -> None:
         """A server correction: keyframe pose in the global frame + ``global_from_local`` (Sim(3)
