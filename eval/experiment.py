@@ -371,8 +371,12 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
                     srv, tum, groundtruth_trajectory(scen / aid, sensor="cam0"), mode_dir / "server", "se3"
                 )
                 res.server_ate_rmse, res.server_ate_mean, res.server_n = srv.ate_rmse, srv.ate_mean, srv.n
+        from hivemap.eval.trajectory import loop_errors
+
+        gt_cam = {aid: groundtruth_trajectory(scen / aid, sensor="cam0") for aid, _ in agents}
         return {
             "agents": [asdict(r) for r in results.values()],
+            "loop_errors": loop_errors(events, gt_cam),
             "events": events,
             "maps": maps,
             "server_start_wall": t_server,

@@ -484,3 +484,42 @@ def _inter_agent(
         te.append(np.linalg.norm(rel_e[:3, 3] - rel_g[:3, 3]))
         re.append(math.degrees(Rotation.from_matrix(d[:3, :3]).magnitude()))  # exact near 0, unlike acos
     return ErrorStats.of(np.array(te)), ErrorStats.of(np.array(re))
+
+
+def loop_errors(
+    events: Sequence[dict[str, Any]], gt_cam: dict[str, Any], max_diff: float = 0.02
+) -> list[dict[str, Any]]:
+    """Accuracy of the server's accepted loop closures: each ``loop`` event that carries its measured
+    ``candidate_from_query`` (camera poses) against the true relative pose of the two keyframes'
+    cameras at their data times (``gt_cam``: agent -> ground truth with ``sensor="cam0"``). Per loop:
+    agents, translation error (m; its vertical part in the candidate camera's world orientation) and
+    rotation error (deg). Loops whose keyframes have no ground truth within ``max_diff`` s are left out."""
+
+    def pose_at(agent: str, t: float) -> F64 | None:
+        gt = gt_cam.get(agent)
+        if gt is None:
+            return None
+        ts = np.asarray(gt.timestamps)
+        j = int(np.argmin(np.abs(ts - t)))
+        return None if abs(ts[j] - t) > max_diff else np.asarray(gt.poses_se3[j])
+
+    out: list[dict[str, Any]] = []
+    for e in events:
+        d = e.get("data") or {}
+        if e.get("kind") != "loop" or "candidate_from_query" not in d or d.get("refused"):
+            continue
+        qa, ca = str(d["query"][0]).split("#")[0], str(d["candidate"][0]).split("#")[0]
+        Tq, Tc = pose_at(qa, float(d["query_t"])), pose_at(ca, float(d["candidate_t"]))
+        if Tq is None or Tc is None:
+            continue
+        meas = np.asarray(d["candidate_from_query"], dtype=np.float64)
+        true = np.linalg.inv(Tc) @ Tq
+        dt_world = Tc[:3, :3] @ (meas[:3, 3] - true[:3, 3])
+        cos = (np.trace(meas[:3, :3].T @ true[:3, :3]) - 1.0) / 2.0
+        out.append({
+            "query": qa, "candidate": ca, "distance_m": float(np.linalg.norm(true[:3, 3])),
+            "trans_err_m": float(np.linalg.norm(dt_world)), "vertical_err_m": float(dt_world[2]),
+            "rot_err_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
+            "n_inliers": int(d.get("n_inliers", 0)),
+        })  # fmt: skip
+    return out

@@ -505,9 +505,13 @@ class Backend:
             "query": list(det.query_key),
             "query_t": float(m.keyframes[det.query_key].timestamp),  # data time (plots mark it)
             "candidate": list(det.candidate_key),
+            "candidate_t": float(m.keyframes[det.candidate_key].timestamp),
             "scale": det.target_from_source.s,
             "n_inliers": det.n_inliers,
             "n_pairs": len(pairs),
+            # the measured relative pose (cam_candidate_from_cam_query): the experiment compares it with
+            # ground truth (eval: loop accuracy per agent pair)
+            "candidate_from_query": measured.matrix().tolist(),
         }
         self.loops.append(rec)
         self.server.events.add(

@@ -1,0 +1,37 @@
+"""eval.trajectory.loop_errors: a loop event's measured relative pose against ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hivemap.eval.trajectory import loop_errors, trajectory_from_poses
+from hivemap.maps.geometry import se3
+
+
+def test_loop_error_is_the_measurements_offset_from_the_true_relative_pose() -> None:
+    t = np.arange(0.0, 10.0, 0.5)
+    # two agents' cameras: "a" drives along x, "b" flies 3 m higher along y, both turned by some yaw
+    a = np.array([se3(Rotation.from_euler("z", 0.1 * i).as_matrix(), np.array([i, 0.0, 0.0])) for i in t])
+    b = np.array(
+        [se3(Rotation.from_euler("zx", [0.3, -0.7]).as_matrix(), np.array([0.0, i, 3.0])) for i in t]
+    )
+    gt = {"a": trajectory_from_poses(t, a), "b": trajectory_from_poses(t, b)}
+    true = np.linalg.inv(b[4]) @ a[6]  # cam_b(t=2.0)_from_cam_a(t=3.0)
+    # measured: the query camera 0.1 m too low in the world, and turned by 0.5 deg
+    world_shift = np.array([0.0, 0.0, -0.1])
+    meas = true.copy()
+    meas[:3, 3] += b[4][:3, :3].T @ world_shift
+    meas[:3, :3] = meas[:3, :3] @ Rotation.from_euler("x", 0.5, degrees=True).as_matrix()
+    first = {"query": ["a", 6], "candidate": ["b#2", 4], "query_t": 3.0, "candidate_t": 2.0}
+    late = {"query": ["a", 1], "candidate": ["b", 1], "query_t": 99.0, "candidate_t": 0.0}
+    events = [
+        {"kind": "loop", "data": {**first, "candidate_from_query": meas.tolist(), "n_inliers": 50}},
+        {"kind": "loop", "data": {"refused": True, "n_inliers": 9}},  # refused loops carry no measurement
+        {"kind": "loop", "data": {**late, "candidate_from_query": true.tolist()}},  # no ground truth at 99 s
+    ]
+    (e,) = loop_errors(events, gt)
+    assert (e["query"], e["candidate"]) == ("a", "b")
+    assert abs(e["trans_err_m"] - 0.1) < 1e-9 and abs(e["vertical_err_m"] + 0.1) < 1e-9
+    assert abs(e["rot_err_deg"] - 0.5) < 1e-6
+    assert abs(e["distance_m"] - float(np.linalg.norm(true[:3, 3]))) < 1e-9
