@@ -64,12 +64,14 @@ class BackendOptions:
     gnss: bool = True
     # GNSS stage of a map after this many new keyframes with a fix (runs coalesce while one is busy)
     gnss_every_kfs: int = 1
-    # hold keyframes' roll/pitch to the up direction their agent's IMU measured (Keyframe.up_cam). Off:
-    # offline on a saved map it helps (factory01 denied map at d1bdd10 with its agents' own up directions
-    # and the every-20 s fixes: 0.101 -> 0.086 m in ENU), but online it made the map worse
-    # (factory01 challenged1 at 5811ccf, server keyframes SE(3) 0.125/0.204/0.131/0.145 m on, 0.067/0.062/
-    # 0.041/0.047 m off; the final map kept ~1 degree of tilt p90 on the UAVs with it on); not understood
-    gnss_agent_up: bool = False
+    # hold keyframes' roll/pitch to the up direction their agent's IMU measured (Keyframe.up_cam) rather
+    # than to the map's own (visual tilt drift). It made the map worse online only while each stage bent
+    # the previous stage's bend again (fixed by _unbend_map; the final map kept ~1 degree of tilt p90 on
+    # the UAVs, now 0.17-0.24 degrees). Factory01 at 2a9eea0, on vs off: challenged2 agents' local ENU ATE
+    # 0.099/0.085/0.070 m (UAVs) vs 0.278/0.216/0.264 m, median fix residual 0.09 vs 0.20 m; challenged1
+    # 0.107/0.082/0.086/0.139 vs 0.095/0.075/0.090/0.148 m; the last online stage of a challenged1 run
+    # replayed on its own input: server keyframes in ENU 0.065/0.065/0.076/0.124 vs 0.089/0.093/0.090/0.207
+    gnss_agent_up: bool = True
     # corrections carry every 12th keyframe of the agent (~6 s apart; the corrected map is smooth between
     # them) plus the moved ones, at most ``correction_max_kfs`` in all: the downlink was 2.2 kB/s per
     # agent on factory01 with every 8th and twice the cap

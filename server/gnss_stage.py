@@ -12,8 +12,8 @@ the keyframe) where there is one, else the map's own. The map's own carries the 
 drift (about 1 degree after 90 s on factory01's uav1); held there, it put the far ends of the merged
 map decimetres off in height (offline on the saved factory01 / factory05 GNSS-denied server maps with
 that run's fixes every 20 s: mean keyframe error in ENU 0.101 -> 0.083 m and 0.129 -> 0.095 m with up
-directions of 0.2 degree noise). The back-end passes them only with ``BackendOptions.gnss_agent_up``, off
-by default: online it made factory01's GNSS-challenged map worse (see there).
+directions of 0.2 degree noise). The back-end passes them with ``BackendOptions.gnss_agent_up`` (on by
+default; see there for the online figures).
 """
 
 from __future__ import annotations
