@@ -65,12 +65,13 @@ class BackendOptions:
     # GNSS stage of a map after this many new keyframes with a fix (runs coalesce while one is busy)
     gnss_every_kfs: int = 1
     # hold keyframes' roll/pitch to the up direction their agent's IMU measured (Keyframe.up_cam) rather
-    # than to the map's own (visual tilt drift). It made the map worse online only while each stage bent
-    # the previous stage's bend again (fixed by _unbend_map; the final map kept ~1 degree of tilt p90 on
-    # the UAVs, now 0.17-0.24 degrees). Factory01 at 2a9eea0, on vs off: challenged2 agents' local ENU ATE
-    # 0.099/0.085/0.070 m (UAVs) vs 0.278/0.216/0.264 m, median fix residual 0.09 vs 0.20 m; challenged1
-    # 0.107/0.082/0.086/0.139 vs 0.095/0.075/0.090/0.148 m; the last online stage of a challenged1 run
-    # replayed on its own input: server keyframes in ENU 0.065/0.065/0.076/0.124 vs 0.089/0.093/0.090/0.207
+    # than to the map's own (visual tilt drift). Online it made the map worse before _unbend_map existed
+    # (factory01 challenged1 at 5811ccf: server keyframes SE(3) 0.125/0.204/0.131/0.145 m on, 0.067/0.062/
+    # 0.041/0.047 m off). Since (one run each, factory01 at d61a6fb/2a9eea0), on vs off: challenged2 UAVs'
+    # local ENU ATE 0.099/0.085/0.070 m vs 0.278/0.216/0.264 m, median fix residual 0.09 vs 0.20 m;
+    # challenged1 0.107/0.082/0.086/0.139 vs 0.095/0.075/0.090/0.148 m; the last challenged1 stage
+    # replayed offline on its own online input: server keyframes in ENU 0.065/0.065/0.076/0.124 m on vs
+    # 0.089/0.093/0.090/0.207 m off
     gnss_agent_up: bool = True
     # corrections carry every 12th keyframe of the agent (~6 s apart; the corrected map is smooth between
     # them) plus the moved ones, at most ``correction_max_kfs`` in all: the downlink was 2.2 kB/s per
@@ -895,10 +896,10 @@ class Backend:
         the visual shape (moved rigidly into ENU), and the next GNSS stage bends that afresh. Returns the
         bend removed (to restore it if no new stage result replaces it), or None if there was none.
 
-        Left in, the bend leaked into the next stage's input: the pose graph held it as measured relative
-        poses, global BA pulled part of it back towards the images, and undoing it afterwards then undid
-        it twice (factory01 GNSS-challenged: the server map in ENU 0.087-0.149 m per agent, SE(3)-aligned
-        0.041-0.067 m; the stage alone on that map's final state gives 0.072 m mean with the agents' up)."""
+        Before, the map stayed bent through the pose graph (its essential edges held the bent relative
+        poses) and only the stage's input was unbent. Factory01 GNSS-challenged with the agents' up
+        directions (one run each): the final map's UAV tilt p90 was 0.96-1.14 degrees before (5811ccf),
+        0.17-0.24 degrees with this (d61a6fb). The mechanism is not isolated."""
         unbend = self._gnss_unbend.pop(m.id, None)
         if not unbend:
             return None

@@ -208,7 +208,7 @@ def test_gnss_stage_moves_merged_map_into_enu(srv: Server) -> None:
         asyncio.run_coroutine_threadsafe(
             srv.backend._optimise_once(m.id, [], time.monotonic(), []), srv.hive.loop
         ).result(60)
-    # 0.05 mm here; with the bend left in for global BA and the stage, keyframes moved 25 mm in 5 runs
+    # 0.05 mm here; with no unbending at all (neither here nor in the stage) keyframes moved 25 mm in 5 runs
     assert float(np.abs(srv.call(positions) - first).max()) < 1e-3
 
 
