@@ -42,6 +42,7 @@ def agent_stream(
     point_id0: int = 0,
     drift: Sim3 | None = None,
     gnss_sigma: float | None = None,
+    up_tilt_deg: float | None = None,
 ) -> tuple[list[Message], np.ndarray, np.ndarray]:
     """Messages of one agent (points first, then keyframes) + true and sent poses in its local frame.
 
@@ -50,7 +51,9 @@ def agent_stream(
     ``point_id0``: first keyframe / point id (a second pass). ``drift``: the sent poses
     and points are moved by it (odometry drift on a second pass); true poses are returned without it.
     ``gnss_sigma``: each keyframe carries a GNSS fix (the true camera centre in the world frame, taken as
-    ENU, plus noise of this standard deviation)."""
+    ENU, plus noise of this standard deviation). ``up_tilt_deg``: each keyframe carries ``up_cam``, the
+    world's z axis in its camera frame (an IMU's up direction), turned by this angle about the camera's x
+    axis (0: exact)."""
     true = []
     for cx in centres_x:
         R = so3_exp(rng.normal(0, 0.05, 3))
@@ -74,6 +77,7 @@ def agent_stream(
         )
     ]
     sent = []
+    lean = so3_exp(np.array([np.deg2rad(up_tilt_deg or 0.0), 0.0, 0.0]))
     for k, T in enumerate(true):
         rows = [(i, uv, o) for i in used for (kk, uv, o) in seen[i] if kk == k]
         n_cl = 150
@@ -94,7 +98,8 @@ def agent_stream(
             Keyframe(kf_id=id0 + k, timestamp=float(id0 + k), world_from_cam=T_sent,
                      keypoints=kps.astype(np.float32), octaves=octs, descriptors=d, point_ids=pids,
                      gnss_enu=None if gnss_sigma is None else T[:3, 3] + rng.normal(0, gnss_sigma, 3),
-                     gnss_cov=None if gnss_sigma is None else np.eye(3) * gnss_sigma**2)
+                     gnss_cov=None if gnss_sigma is None else np.eye(3) * gnss_sigma**2,
+                     up_cam=None if up_tilt_deg is None else lean @ T[:3, :3].T @ np.array([0.0, 0.0, 1.0]))
         )  # fmt: skip
     true_local = np.array([local_from_world.transform_pose(T) for T in true])
     return msgs, true_local, np.array(sent)

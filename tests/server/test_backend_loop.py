@@ -112,3 +112,25 @@ def test_keyframes_missing_from_an_optimisation_follow_their_parent(srv: Server)
     for k in old_pts:
         np.testing.assert_allclose(new_pts[k], C.apply(old_pts[k][None])[0], atol=1e-9)
     np.testing.assert_allclose((C @ g0).matrix(), g1.matrix(), atol=1e-6)
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 2.0])
+def test_loop_against_the_agents_up_directions_is_refused(srv: Server, tilt_deg: float) -> None:
+    """The same loop with IMU up directions on every keyframe: exact ones agree with the loop's measured
+    rotation, and it closes; on a second pass whose up directions lean 2 degrees (what a loop with a 2
+    degree tilt error looks like), it is refused (limit BackendOptions.loop_max_gravity_deg = 1 degree)."""
+    rng = np.random.default_rng(5)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
+    first, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, up_tilt_deg=0.0)
+    second, _, _ = agent_stream(rng, pts, desc, np.linspace(-4, 10, 10), UGV_FROM_WORLD, id0=1000,
+                                point_id0=100000, drift=drift, up_tilt_deg=tilt_deg)  # fmt: skip
+    with stream(srv, "ugv1", "ugv", first + second):
+        srv.wait_idle()
+    events = srv.call(lambda: srv.hive.events.since(0, kind="loop"))
+    refused = [e for e in events if (e.data or {}).get("gravity_deg") is not None]
+    if tilt_deg == 0.0:
+        assert srv.call(lambda: len(srv.backend.loops)) >= 1 and not refused, [e.message for e in events]
+    else:
+        assert srv.call(lambda: len(srv.backend.loops)) == 0, [e.message for e in events]
+        assert refused and all(abs(e.data["gravity_deg"] - 2.0) < 0.5 for e in refused)
