@@ -134,7 +134,10 @@ class SecondStageOptions:
     into ENU with every agent's fixes): a tighter translation lets the team's pooled fixes place this
     agent instead of its own few (factory01 GNSS-challenged 1: each agent's local trajectory sat off
     by the mean error of its own 5 fixes, e.g. uav3 (-0.04, -0.03, -0.07) m; the 19 fixes of the team
-    average (0.00, 0.01, -0.03) m). None: ``colocation_offset_sigma`` in both frames."""
+    average (0.00, 0.01, -0.03) m). None: ``colocation_offset_sigma`` in both frames. Online on
+    factory01 (one run each, average gain over single + GNSS) the effect is not resolved: challenged1
+    -32%, +27%, -1% with it (40d3c0d + the agents' up directions, 001a1ea, 1bce6f3) and -5% without
+    (d61a6fb + up directions); challenged2 +11%, +5%, +21% with it."""
 
 
 @dataclass
