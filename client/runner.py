@@ -113,7 +113,8 @@ class RunnerOptions:
     corrections_max_wait_s: float = 120.0
     health_max_failures: int = 5  # unanswered /health polls in a row before falling back to the quiet timer
     # co-location priors take the server's shape, placed by one free transform per agent (sigmas: tilt
-    # 0.05 rad with IMU factors, else 0.01; yaw 0.01 rad; 0.1 m), see SecondStageOptions
+    # 0.05 rad with IMU factors, else 0.01; yaw 0.01 rad; 0.1 m, or 0.01 m while the priors are ENU
+    # poses), see SecondStageOptions
     colocation_offset: bool = True
     imu_factors: bool = True  # IMU factors in the second stage (loosely coupled VIO) when there is an IMU
     progress: bool = True
@@ -512,9 +513,10 @@ def _make_agent(
         if imu_params is not None and options.imu_factors:
             # the second stage's nodes are body poses, so the IMU's pose in them is T_BS(imu0)
             imu = ImuOptions.from_noise(imu_params, np.asarray(T_BS.get("imu0", np.eye(4)), dtype=np.float64))
-        tilt = 0.05 if imu is not None else 0.01
-        offset = (tilt, 0.01, 0.1) if options.colocation_offset else None
-        offset_enu = (tilt, 0.01, 0.01) if options.colocation_offset else None
+        offset = offset_enu = None
+        if options.colocation_offset:
+            tilt = 0.05 if imu is not None else 0.01
+            offset, offset_enu = (tilt, 0.01, 0.1), (tilt, 0.01, 0.01)
         second_stage_options = SecondStageOptions(
             gravity_aligned=imu_params is not None,
             kf_from_antenna=(float(lever[0]), float(lever[1]), float(lever[2])),

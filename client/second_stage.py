@@ -135,9 +135,10 @@ class SecondStageOptions:
     agent instead of its own few (factory01 GNSS-challenged 1: each agent's local trajectory sat off
     by the mean error of its own 5 fixes, e.g. uav3 (-0.04, -0.03, -0.07) m; the 19 fixes of the team
     average (0.00, 0.01, -0.03) m). None: ``colocation_offset_sigma`` in both frames. Online on
-    factory01 (one run each, average gain over single + GNSS) the effect is not resolved: challenged1
-    -32%, +27%, -1% with it (40d3c0d + the agents' up directions, 001a1ea, 1bce6f3) and -5% without
-    (d61a6fb + up directions); challenged2 +11%, +5%, +21% with it."""
+    factory01 (average gain over single + GNSS, one run per figure) the effect is not resolved:
+    challenged1 with it -32% and +27% (two runs of the code of 001a1ea), -1% (1bce6f3), +15% and -14%
+    (d77be1f); without it -5% (d61a6fb with the agents' up directions); challenged2 with it +11%, +5%,
+    +21%."""
 
 
 @dataclass
@@ -682,8 +683,10 @@ class SecondStage:
         extra = None
         n_own = len(factors)
         sig_enu = self.options.colocation_offset_sigma_enu
-        use_enu = enu and sig_enu is not None
-        if sig is not None and factors and (self._offset_prior is None or self._offset_prior[1] != use_enu):
+        # the sigmas of O's prior for these priors (None: no O)
+        s3 = None if sig is None else sig_enu if enu and sig_enu is not None else sig
+        use_enu = s3 is not sig
+        if s3 is not None and factors and (self._offset_prior is None or self._offset_prior[1] != use_enu):
             # the offset's prior: identity, tilt/yaw/translation sigmas (the ENU ones with ENU priors)
             if self._offset is None:
                 extra = gtsam.Values()
@@ -691,7 +694,6 @@ class SecondStage:
                 self._offset = np.eye(4)
             if self._offset_prior is not None:
                 old.append(self._offset_prior[0])
-            s3 = sig_enu if use_enu and sig_enu is not None else sig
             factors.append(
                 gtsam.PriorFactorPose3(
                     _okey(), gtsam.Pose3(), _diag(np.array([s3[0], s3[0], s3[1]] + [s3[2]] * 3))

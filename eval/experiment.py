@@ -292,7 +292,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
     """One server, every agent streaming to it at once."""
     import httpx
 
-    from hivemap.eval.trajectory import groundtruth_trajectory
+    from hivemap.eval.trajectory import groundtruth_trajectory, loop_errors
 
     port = free_port()
     url = f"http://127.0.0.1:{port}"
@@ -343,6 +343,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
         ev_query = {"limit": EXPERIMENT_EVENT_BUFFER}
         events = httpx.get(url + "/events", params=ev_query, timeout=30).json()["events"]
         maps = httpx.get(url + "/maps", timeout=30).json()["maps"]
+        gt_cam = {aid: groundtruth_trajectory(scen / aid, sensor="cam0") for aid, _ in agents}
         for aid, _kind in agents:
             res = results[aid]
             out = work / aid
@@ -367,13 +368,8 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
                 tum = out / "server_global.tum"
                 tum.write_text(r.text)
                 srv = AgentResult(aid, res.kind, res.gnss)
-                _evaluate(
-                    srv, tum, groundtruth_trajectory(scen / aid, sensor="cam0"), mode_dir / "server", "se3"
-                )
+                _evaluate(srv, tum, gt_cam[aid], mode_dir / "server", "se3")
                 res.server_ate_rmse, res.server_ate_mean, res.server_n = srv.ate_rmse, srv.ate_mean, srv.n
-        from hivemap.eval.trajectory import loop_errors
-
-        gt_cam = {aid: groundtruth_trajectory(scen / aid, sensor="cam0") for aid, _ in agents}
         return {
             "agents": [asdict(r) for r in results.values()],
             "loop_errors": loop_errors(events, gt_cam),

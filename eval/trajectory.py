@@ -494,6 +494,7 @@ def loop_errors(
     cameras at their data times (``gt_cam``: agent -> ground truth with ``sensor="cam0"``). Per loop:
     agents, translation error (m; its vertical part in the candidate camera's world orientation) and
     rotation error (deg). Loops whose keyframes have no ground truth within ``max_diff`` s are left out."""
+    from hivemap.maps.geometry import rotation_angle_deg, se3_inverse
 
     def pose_at(agent: str, t: float) -> F64 | None:
         gt = gt_cam.get(agent)
@@ -513,13 +514,12 @@ def loop_errors(
         if Tq is None or Tc is None:
             continue
         meas = np.asarray(d["candidate_from_query"], dtype=np.float64)
-        true = np.linalg.inv(Tc) @ Tq
+        true = se3_inverse(Tc) @ Tq
         dt_world = Tc[:3, :3] @ (meas[:3, 3] - true[:3, 3])
-        cos = (np.trace(meas[:3, :3].T @ true[:3, :3]) - 1.0) / 2.0
         out.append({
             "query": qa, "candidate": ca, "distance_m": float(np.linalg.norm(true[:3, 3])),
             "trans_err_m": float(np.linalg.norm(dt_world)), "vertical_err_m": float(dt_world[2]),
-            "rot_err_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
+            "rot_err_deg": rotation_angle_deg(meas[:3, :3].T @ true[:3, :3]),
             "n_inliers": int(d.get("n_inliers", 0)),
         })  # fmt: skip
     return out

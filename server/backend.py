@@ -841,6 +841,9 @@ class Backend:
         for k, kf in m.keyframes.items():
             c = correction_of(k)
             kf.world_from_cam = c.transform_pose(kf.world_from_cam)
+        # points follow their first observer's correction, one stacked apply per keyframe (point by point
+        # it took 0.45 s of the event loop for factory01's 150k points)
+        by_kf: dict[KfKey, list[Any]] = {}
         for pk, mp in m.points.items():
             x = new_xyz.get(pk)
             if x is not None:
@@ -848,7 +851,10 @@ class Backend:
                 continue
             obs = next(iter(mp.observations), None)
             if obs is not None and obs in full:
-                mp.xyz = full[obs].apply(mp.xyz[None])[0]
+                by_kf.setdefault(obs, []).append(mp)
+        for k, mps in by_kf.items():
+            for mp, x in zip(mps, full[k].apply(np.stack([mp.xyz for mp in mps])), strict=True):
+                mp.xyz = x
         for folded in list(m.agents):
             am = self.server._agent_map_by_folded(folded)
             recent = sorted((k for k in full if k[0] == folded and k in m.keyframes), key=lambda k: k[1])
