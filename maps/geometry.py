@@ -172,3 +172,45 @@ class Sim3:
     def from_pycolmap(sim: Any) -> Sim3:
         M = np.asarray(sim.matrix())
         return Sim3.from_matrix(np.vstack([M[:3, :4], [0, 0, 0, 1]]))
+
+
+def rotation_between(a: F64, b: F64) -> F64:
+    """The smallest rotation taking direction ``a`` onto direction ``b`` (both (3,), any length)."""
+    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    sin, cos = float(np.linalg.norm(axis)), float(np.dot(a, b))
+    if sin < 1e-12:
+        if cos > 0:
+            return np.eye(3)
+        perp = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])  # opposite: half turn about any normal
+        return so3_exp(np.pi * perp / np.linalg.norm(perp))
+    return so3_exp(axis / sin * np.arctan2(sin, cos))
+
+
+def levelled_similarity(src: F64, dst: F64, up_src: F64, up_dst: F64, with_scale: bool = True) -> Sim3:
+    """Least-squares ``dst ~ s R src + t`` with ``R`` constrained to take ``up_src`` onto ``up_dst``.
+
+    The 4-DoF (5 with scale) Umeyama of visual-inertial maps: roll and pitch are known from gravity in
+    both frames, so only the rotation about the up axis is fitted to the points (2D Procrustes in the
+    plane normal to ``up_dst``). Points (N, 3), N >= 1; s = 1 without ``with_scale``.
+    """
+    src = np.asarray(src, dtype=np.float64).reshape(-1, 3)
+    dst = np.asarray(dst, dtype=np.float64).reshape(-1, 3)
+    R0 = rotation_between(up_src, up_dst)
+    axis = np.asarray(up_dst, dtype=np.float64) / np.linalg.norm(up_dst)
+    a = (src - src.mean(axis=0)) @ R0.T
+    b = dst - dst.mean(axis=0)
+    # the yaw about ``axis`` maximising sum(b . Rz a): atan2 of the summed cross and dot in the plane
+    a_perp = a - np.outer(a @ axis, axis)
+    b_perp = b - np.outer(b @ axis, axis)
+    s_ = float(np.sum(np.cross(a_perp, b_perp) @ axis))
+    c_ = float(np.sum(a_perp * b_perp))
+    yaw = float(np.arctan2(s_, c_)) if abs(s_) + abs(c_) > 1e-12 else 0.0
+    R = so3_exp(axis * yaw) @ R0
+    s = 1.0
+    if with_scale:
+        ra = a @ so3_exp(axis * yaw).T
+        den = float(np.sum(ra * ra))
+        s = float(np.sum(ra * b) / den) if den > 1e-12 else 1.0
+    return Sim3(R, dst.mean(axis=0) - s * R @ src.mean(axis=0), s)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from test_backend import UAV_FROM_WORLD, UGV_FROM_WORLD, Server, agent_transform, check_transform, stream
 
-from hivemap.maps.geometry import Sim3, so3_exp
+from hivemap.maps.geometry import Sim3, rotation_angle_deg, so3_exp
 from hivemap.server.backend_synth import agent_stream, make_world
 
 
@@ -114,23 +114,34 @@ def test_keyframes_missing_from_an_optimisation_follow_their_parent(srv: Server)
     np.testing.assert_allclose((C @ g0).matrix(), g1.matrix(), atol=1e-6)
 
 
-@pytest.mark.parametrize("tilt_deg", [0.0, 2.0])
+@pytest.mark.parametrize("tilt_deg", [0.0, 0.5, 2.0])
 def test_loop_against_the_agents_up_directions_is_refused(srv: Server, tilt_deg: float) -> None:
     """The same loop with IMU up directions on every keyframe: exact ones agree with the loop's measured
     rotation, and it closes; on a second pass whose up directions lean 2 degrees (what a loop with a 2
-    degree tilt error looks like), it is refused (limit BackendOptions.loop_max_gravity_deg = 1 degree)."""
+    degree tilt error looks like), it is refused (limit BackendOptions.loop_max_gravity_deg = 1 degree).
+    Under the limit (0.5 degree) the loop closes levelled: its rotation follows the up directions
+    (BackendOptions.loop_level_gravity), so it differs from the points' own by the lean."""
     rng = np.random.default_rng(5)
     pts, desc = make_world(rng, 2500, (-20, 30))
     drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
-    first, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, up_tilt_deg=0.0)
-    second, _, _ = agent_stream(rng, pts, desc, np.linspace(-4, 10, 10), UGV_FROM_WORLD, id0=1000,
-                                point_id0=100000, drift=drift, up_tilt_deg=tilt_deg)  # fmt: skip
+    first, true1, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, up_tilt_deg=0.0)
+    second, true2, _ = agent_stream(rng, pts, desc, np.linspace(-4, 10, 10), UGV_FROM_WORLD, id0=1000,
+                                    point_id0=100000, drift=drift, up_tilt_deg=tilt_deg)  # fmt: skip
     with stream(srv, "ugv1", "ugv", first + second):
         srv.wait_idle()
     events = srv.call(lambda: srv.hive.events.since(0, kind="loop"))
-    refused = [e for e in events if (e.data or {}).get("gravity_deg") is not None]
-    if tilt_deg == 0.0:
-        assert srv.call(lambda: len(srv.backend.loops)) >= 1 and not refused, [e.message for e in events]
-    else:
+    refused = [e for e in events if (e.data or {}).get("refused")]
+    if tilt_deg > 1.0:
         assert srv.call(lambda: len(srv.backend.loops)) == 0, [e.message for e in events]
-        assert refused and all(abs(e.data["gravity_deg"] - 2.0) < 0.5 for e in refused)
+        assert refused and all(abs(e.data["gravity_deg"] - tilt_deg) < 0.5 for e in refused)
+        return
+    loops = srv.call(lambda: list(srv.backend.loops))
+    assert loops and not refused, [e.message for e in events]
+    true = {k: T for k, T in enumerate(true1)} | {1000 + k: T for k, T in enumerate(true2)}
+    for rec in loops:
+        assert rec["levelled"] and abs(rec["gravity_deg"] - tilt_deg) < 0.3, rec
+        gt = np.linalg.inv(true[rec["candidate"][1]]) @ true[rec["query"][1]]
+        measured = Sim3.from_matrix(np.asarray(rec["candidate_from_query"]))  # these test maps are Sim(3)
+        err = rotation_angle_deg(measured.R.T @ gt[:3, :3])
+        # levelled to the (leaning) up directions: the loop's rotation error is the lean, to 0.2 deg
+        assert abs(err - tilt_deg) < 0.2, (rec["query"], rec["candidate"], err)
