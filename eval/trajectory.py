@@ -492,8 +492,9 @@ def loop_errors(
     """Accuracy of the server's accepted loop closures: each ``loop`` event that carries its measured
     ``candidate_from_query`` (camera poses) against the true relative pose of the two keyframes'
     cameras at their data times (``gt_cam``: agent -> ground truth with ``sensor="cam0"``). Per loop:
-    agents, translation error (m; its vertical part in the candidate camera's world orientation) and
-    rotation error (deg). Loops whose keyframes have no ground truth within ``max_diff`` s are left out."""
+    agents, translation error (m; its vertical part in the candidate camera's world orientation),
+    rotation error (deg) and its tilt part (deg: how far the error turns the true up direction). Loops
+    whose keyframes have no ground truth within ``max_diff`` s are left out."""
     from hivemap.maps.geometry import rotation_angle_deg, se3_inverse
 
     def pose_at(agent: str, t: float) -> F64 | None:
@@ -516,10 +517,13 @@ def loop_errors(
         meas = np.asarray(d["candidate_from_query"], dtype=np.float64)
         true = se3_inverse(Tc) @ Tq
         dt_world = Tc[:3, :3] @ (meas[:3, 3] - true[:3, 3])
+        up_c = Tc[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # the world's up in the candidate camera
+        up_err = meas[:3, :3] @ true[:3, :3].T @ up_c
         out.append({
             "query": qa, "candidate": ca, "distance_m": float(np.linalg.norm(true[:3, 3])),
             "trans_err_m": float(np.linalg.norm(dt_world)), "vertical_err_m": float(dt_world[2]),
             "rot_err_deg": rotation_angle_deg(meas[:3, :3].T @ true[:3, :3]),
+            "tilt_err_deg": math.degrees(math.acos(float(np.clip(up_err @ up_c, -1.0, 1.0)))),
             "n_inliers": int(d.get("n_inliers", 0)),
         })  # fmt: skip
     return out

@@ -24,14 +24,18 @@ def test_loop_error_is_the_measurements_offset_from_the_true_relative_pose() -> 
     meas[:3, 3] += b[4][:3, :3].T @ world_shift
     meas[:3, :3] = meas[:3, :3] @ Rotation.from_euler("x", 0.5, degrees=True).as_matrix()
     first = {"query": ["a", 6], "candidate": ["b#2", 4], "query_t": 3.0, "candidate_t": 2.0}
+    # the same loop turned 0.5 deg about the vertical instead (a's camera z is the world's up): no tilt
+    yawed = true @ se3(Rotation.from_euler("z", 0.5, degrees=True).as_matrix(), np.zeros(3))
     late = {"query": ["a", 1], "candidate": ["b", 1], "query_t": 99.0, "candidate_t": 0.0}
     events = [
         {"kind": "loop", "data": {**first, "candidate_from_query": meas.tolist(), "n_inliers": 50}},
+        {"kind": "loop", "data": {**first, "candidate_from_query": yawed.tolist()}},
         {"kind": "loop", "data": {"refused": True, "n_inliers": 9}},  # refused loops carry no measurement
         {"kind": "loop", "data": {**late, "candidate_from_query": true.tolist()}},  # no ground truth at 99 s
     ]
-    (e,) = loop_errors(events, gt)
+    e, y = loop_errors(events, gt)
     assert (e["query"], e["candidate"]) == ("a", "b")
     assert abs(e["trans_err_m"] - 0.1) < 1e-9 and abs(e["vertical_err_m"] + 0.1) < 1e-9
-    assert abs(e["rot_err_deg"] - 0.5) < 1e-6
+    assert abs(e["rot_err_deg"] - 0.5) < 1e-6 and abs(e["tilt_err_deg"] - 0.5) < 1e-6  # about a's x: all tilt
+    assert abs(y["rot_err_deg"] - 0.5) < 1e-6 and y["tilt_err_deg"] < 1e-4  # acos: ~1e-6 deg near 0
     assert abs(e["distance_m"] - float(np.linalg.norm(true[:3, 3]))) < 1e-9
