@@ -100,11 +100,14 @@ class BackendOptions:
     # error (2.59 vs 2.60, 1.43 vs 1.39, 0.92 vs 0.97 deg); the 3 over 1 degree were 0.955, 0.371 and
     # 0.090 m wrong (median of all 0.05 m). 0 disables.
     loop_max_gravity_deg: float = 1.0
-    # A loop's Sim(3) is re-fitted to its 3D point pairs with roll/pitch taken from the two keyframes' IMU
-    # up directions (ORB-SLAM3 closes visual-inertial loops in 4 DoF for the same reason): the points'
-    # depth errors tilt a free fit, and the tilt times the keyframes' distance puts the far one off in
-    # height (factory01: UGV loops 8-17 m apart were 0.09-0.95 m wrong, mostly vertically).
-    loop_level_gravity: bool = True
+    # A loop's or merge's Sim(3) is re-fitted to its 3D point pairs with roll/pitch taken from the two
+    # keyframes' IMU up directions (ORB-SLAM3 closes visual-inertial loops in 4 DoF for the same reason):
+    # the points' depth errors tilt a free fit, and the tilt times the keyframes' distance puts the far
+    # one off in height (factory01 challenged1, loops 5-17 m apart: median rotation error 0.26-0.33 deg
+    # in three runs before (1bce6f3/d77be1f), 0.18 deg with it (13eeb44); the UGV-UAV loop 0.20-0.48 m
+    # wrong before, 0.04 m with it). What is left is mostly the up directions' own error (keyframes'
+    # up_cam vs ground truth: median 0.08-0.13 deg, p90 0.16-0.24 deg).
+    level_gravity: bool = True
     pose_graph_max_move_m: float = 3.0  # a pose graph moving any keyframe farther is refused
     # GNSS-guided retry (paper 2.5.3) between maps that are both in ENU: an agent's latest keyframe against
     # the other map's keyframes within this radius (0 = off), at most once per map pair per interval
@@ -402,6 +405,9 @@ class Backend:
         if det.query_map not in maps or det.candidate_map not in maps or det.query_map == det.candidate_map:
             server.events.add("merge", f"stale merge detection {det.query_key} dropped", data=det.to_dict())
             return
+        levelled = self._levelled(det)
+        if levelled is not None:
+            det = replace(det, target_from_source=levelled)
         target = self._target_of(det.query_map, det.candidate_map)
         target_id, source_id, sim, pairs = det.merge_args(target)
         for k in [k for k in self._consist if source_id in k[:2] or target_id in k[:2]]:
@@ -420,6 +426,7 @@ class Backend:
             "n_fused": len(pairs),
             "merge_ms": merge_ms,
             "target_from_source": sim.matrix().tolist(),
+            "levelled": levelled is not None,
             "detection": det.to_dict(),
         }
         self.merges.append(rec)
@@ -477,6 +484,24 @@ class Backend:
         self._consist[key] = (det.query_key[1], sim, count)
         return None
 
+    def _levelled(self, det: Detection) -> Sim3 | None:
+        """The detection's Sim(3) re-fitted to its 3D pairs with roll/pitch taken from the two keyframes' IMU
+        up directions (``BackendOptions.level_gravity``); None when off, when either keyframe has no up
+        direction, or when the pairs do not fit."""
+        o = self.options
+        maps = self.server.stack.maps
+        mq, mc = maps.get(det.query_map), maps.get(det.candidate_map)
+        if not o.level_gravity or mq is None or mc is None:
+            return None
+        qkf, ckf = mq.keyframes.get(det.query_key), mc.keyframes.get(det.candidate_key)
+        if qkf is None or ckf is None or qkf.up_cam is None or ckf.up_cam is None:
+            return None
+        # the IMU's up in either map's frame, at either keyframe
+        up = (qkf.world_from_cam[:3, :3] @ qkf.up_cam, ckf.world_from_cam[:3, :3] @ ckf.up_cam)
+        pairs = list(zip(det.candidate_points, det.query_points, strict=True))
+        sim, _, _ = _fit_pairs(mc, mq, pairs, o.min_pair_inlier_ratio, not o.fix_scale, up)
+        return sim
+
     @staticmethod
     def _edge_measure(m: Any, det: Detection, target_is_query: bool) -> Sim3:
         """``cand_from_query`` between the two detection keyframes as measured by the detection (after the
@@ -523,14 +548,10 @@ class Backend:
             )
             return
         pairs = list(zip(det.candidate_points, det.query_points, strict=True))
-        levelled = None
-        if o.loop_level_gravity and tilt is not None:
-            qkf, ckf = m.keyframes[det.query_key], m.keyframes[det.candidate_key]
-            up = (Tq.R @ qkf.up_cam, Tc.R @ ckf.up_cam)  # the IMU's up in the map, at either keyframe
-            levelled, _, _ = _fit_pairs(m, m, pairs, o.min_pair_inlier_ratio, not o.fix_scale, up)
-            if levelled is not None:
-                det = replace(det, target_from_source=levelled)
-                measured = Tc.inverse() @ levelled @ Tq
+        levelled = self._levelled(det)
+        if levelled is not None:
+            det = replace(det, target_from_source=levelled)
+            measured = Tc.inverse() @ levelled @ Tq
         m.add_loop_edge(det.candidate_key, det.query_key)
         rec = {
             "map": m.id,

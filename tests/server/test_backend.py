@@ -125,6 +125,30 @@ def test_two_overlapping_agents_merge_in_ugv_frame(srv: Server) -> None:
     assert any(d["accepted"] for d in cands)
 
 
+@pytest.mark.parametrize("lean_deg", [0.0, 0.6])
+def test_merge_rotation_follows_the_agents_up_directions(srv: Server, lean_deg: float) -> None:
+    """With IMU up directions on both agents' keyframes the merge is levelled
+    (BackendOptions.level_gravity): exact ones give the true Sim(3); when the UAV's lean by 0.6 degrees,
+    the merge's rotation follows them, off the truth by the lean in tilt (a free fit would stay on it)."""
+    rng = np.random.default_rng(1)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    ugv_msgs, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, up_tilt_deg=0.0)
+    uav_msgs, uav_true, _ = agent_stream(
+        rng, pts, desc, np.linspace(-2, 12, 10), UAV_FROM_WORLD, up_tilt_deg=lean_deg
+    )
+    with stream(srv, "ugv1", "ugv", ugv_msgs), stream(srv, "uav1", "uav", uav_msgs):
+        srv.wait_idle()
+    merges = srv.call(lambda: list(srv.backend.merges))
+    assert len(merges) == 1 and merges[0]["levelled"], merges
+    sim = Sim3.from_matrix(np.asarray(merges[0]["target_from_source"]))
+    true = UGV_FROM_WORLD @ UAV_FROM_WORLD.inverse()
+    up_ugv = UGV_FROM_WORLD.R @ np.array([0.0, 0.0, 1.0])  # the world's up in the UGV's frame
+    tilt = np.degrees(np.arccos(np.clip((sim.R @ true.R.T @ up_ugv) @ up_ugv, -1.0, 1.0)))
+    assert abs(tilt - lean_deg) < 0.1, tilt
+    if lean_deg == 0.0:
+        check_transform(sim, true, uav_true[:, :3, 3])
+
+
 def test_scale_recovered_and_correction_moves_agent_toward_ground_truth(srv: Server) -> None:
     rng = np.random.default_rng(2)
     pts, desc = make_world(rng, 2500, (-20, 30))

@@ -120,7 +120,7 @@ def test_loop_against_the_agents_up_directions_is_refused(srv: Server, tilt_deg:
     rotation, and it closes; on a second pass whose up directions lean 2 degrees (what a loop with a 2
     degree tilt error looks like), it is refused (limit BackendOptions.loop_max_gravity_deg = 1 degree).
     Under the limit (0.5 degree) the loop closes levelled: its rotation follows the up directions
-    (BackendOptions.loop_level_gravity), so it differs from the points' own by the lean."""
+    (BackendOptions.level_gravity), so it differs from the points' own by the lean."""
     rng = np.random.default_rng(5)
     pts, desc = make_world(rng, 2500, (-20, 30))
     drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
