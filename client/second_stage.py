@@ -139,6 +139,12 @@ class SecondStageOptions:
     challenged1 with it -32% and +27% (two runs of the code of 001a1ea), -1% (1bce6f3), +15% and -14%
     (d77be1f); without it -5% (d61a6fb with the agents' up directions); challenged2 with it +11%, +5%,
     +21%."""
+    colocation_enu_holds_own_fixes: bool = True
+    """While the co-location priors are ENU poses, this agent's own fixes on the keyframes they cover (up
+    to the latest one) leave the graph: the server's GNSS stage already fused them with the team's, and
+    counting them twice pulls the agent back toward its own few fixes' mean error (factory01
+    challenged1 at 13eeb44: uav1's five fixes average +0.057 m north, its local trajectory sat +0.05 m
+    north, the server's keyframes +0.008 m). They come back if the priors stop being ENU."""
 
 
 @dataclass
@@ -258,6 +264,8 @@ class SecondStage:
         self._consecutive_rejections = 0
         self.rejected_fixes: list[dict[str, float]] = []  # kf_id, t, mahalanobis, residual_m
         self.n_gnss_accepted = 0
+        self._gnss_handles: dict[int, list[int]] = {}  # kf_id -> handles of its GNSS factors in the graph
+        self._gnss_held: dict[int, list[Any]] = {}  # kf_id -> its GNSS factors held out (the server has them)
         # IMU factors (options.imu): samples not yet integrated, the keyframes with a velocity and a bias
         # variable, and the velocity priors that start a segment (kf_id -> (handle, mean))
         self._imu_buf: list[F64] = []
@@ -636,7 +644,8 @@ class SecondStage:
             factor = gtsam.GPSFactor(_key(kf_id), enu, _gaussian(cov))
         kf.fixes.append((enu, cov))
         self.n_gnss_accepted += 1
-        self._commit([factor], {})
+        (h,) = self._commit([factor], {})
+        self._gnss_handles.setdefault(kf_id, []).append(h)
         self._maybe_realign()
         return GnssDecision(True, d, float(np.linalg.norm(r)), forced)
 
@@ -678,10 +687,24 @@ class SecondStage:
         old = list(self._colocation_handle.values())
         self._colocation_handle.clear()
         self._colocation_enu = enu
+        # this agent's fixes the server already fused (options.colocation_enu_holds_own_fixes)
+        restore: list[Any] = []
+        if enu and owners and self.options.colocation_enu_holds_own_fixes:
+            pos = {k: i for i, k in enumerate(self._order)}
+            last = max(pos[k] for k in owners)
+            for kf_id in [k for k in self._gnss_handles if pos[k] <= last]:
+                hs = self._gnss_handles.pop(kf_id)
+                self._gnss_held[kf_id] = [self._factors[h] for h in hs]
+                old += hs
+        elif not enu and self._gnss_held:
+            for kf_id, fs in self._gnss_held.items():
+                restore += [(kf_id, f) for f in fs]
+            self._gnss_held.clear()
+        factors += [f for _, f in restore]
         if not factors and not old:
             return
         extra = None
-        n_own = len(factors)
+        n_own = len(owners)
         sig_enu = self.options.colocation_offset_sigma_enu
         # the sigmas of O's prior for these priors (None: no O)
         s3 = None if sig is None else sig_enu if enu and sig_enu is not None else sig
@@ -701,8 +724,11 @@ class SecondStage:
             )
         handles = self._commit(factors, {}, remove=old, extra_values=extra)
         self._colocation_handle.update(zip(owners, handles[:n_own], strict=True))
-        if len(handles) > n_own:
-            self._offset_prior = (handles[n_own], use_enu)
+        n_restore = len(restore)
+        for (kf_id, _), h in zip(restore, handles[n_own : n_own + n_restore], strict=True):
+            self._gnss_handles.setdefault(kf_id, []).append(h)
+        if len(handles) > n_own + n_restore:
+            self._offset_prior = (handles[n_own + n_restore], use_enu)
 
     def add_correction(self, kf_id: int, global_from_kf: F64, global_from_local: F64, cov: F64) -> None:
         """A server correction: keyframe pose in the global frame + ``global_from_local`` (Sim(3)
