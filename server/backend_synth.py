@@ -42,7 +42,7 @@ def agent_stream(
     point_id0: int = 0,
     drift: Sim3 | None = None,
     gnss_sigma: float | None = None,
-    up_tilt_deg: float | None = None,
+    up_tilt_deg: float | np.ndarray | None = None,
 ) -> tuple[list[Message], np.ndarray, np.ndarray]:
     """Messages of one agent (points first, then keyframes) + true and sent poses in its local frame.
 
@@ -53,7 +53,7 @@ def agent_stream(
     ``gnss_sigma``: each keyframe carries a GNSS fix (the true camera centre in the world frame, taken as
     ENU, plus noise of this standard deviation). ``up_tilt_deg``: each keyframe carries ``up_cam``, the
     world's z axis in its camera frame (an IMU's up direction), turned by this angle about the camera's x
-    axis (0: exact)."""
+    axis (0: exact; an array: one angle per keyframe)."""
     true = []
     for cx in centres_x:
         R = so3_exp(rng.normal(0, 0.05, 3))
@@ -77,7 +77,8 @@ def agent_stream(
         )
     ]
     sent = []
-    lean = so3_exp(np.array([np.deg2rad(up_tilt_deg or 0.0), 0.0, 0.0]))
+    tilts = np.broadcast_to(np.asarray(0.0 if up_tilt_deg is None else up_tilt_deg, float), len(true))
+    leans = [so3_exp(np.array([np.deg2rad(a), 0.0, 0.0])) for a in tilts]
     for k, T in enumerate(true):
         rows = [(i, uv, o) for i in used for (kk, uv, o) in seen[i] if kk == k]
         n_cl = 150
@@ -99,7 +100,7 @@ def agent_stream(
                      keypoints=kps.astype(np.float32), octaves=octs, descriptors=d, point_ids=pids,
                      gnss_enu=None if gnss_sigma is None else T[:3, 3] + rng.normal(0, gnss_sigma, 3),
                      gnss_cov=None if gnss_sigma is None else np.eye(3) * gnss_sigma**2,
-                     up_cam=None if up_tilt_deg is None else lean @ T[:3, :3].T @ np.array([0.0, 0.0, 1.0]))
+                     up_cam=None if up_tilt_deg is None else leans[k] @ T[:3, :3].T @ np.eye(3)[2])
         )  # fmt: skip
     true_local = np.array([local_from_world.transform_pose(T) for T in true])
     return msgs, true_local, np.array(sent)

@@ -15,6 +15,7 @@ import pytest
 from test_backend import UAV_FROM_WORLD, UGV_FROM_WORLD, Server, agent_transform, check_transform, stream
 
 from hivemap.maps.geometry import Sim3, rotation_angle_deg, so3_exp
+from hivemap.server.backend import BackendOptions
 from hivemap.server.backend_synth import agent_stream, make_world
 
 
@@ -145,3 +146,39 @@ def test_loop_against_the_agents_up_directions_is_refused(srv: Server, tilt_deg:
         err = rotation_angle_deg(measured.R.T @ gt[:3, :3])
         # levelled to the (leaning) up directions: the loop's rotation error is the lean, to 0.2 deg
         assert abs(err - tilt_deg) < 0.2, (rec["query"], rec["candidate"], err)
+
+
+@pytest.mark.parametrize("window", [0, 6])
+def test_loop_levelled_by_neighbouring_up_directions(tmp_path: Path, window: int) -> None:
+    """The second pass's up directions jump +-1.5 degrees from keyframe to keyframe (an agent's filter can
+    be off for a while). Each keyframe's own (BackendOptions.level_up_window = 0) make every loop look
+    1.5 degrees off gravity, and the loops are refused; the mean over +-6 neighbours, carried by the map's
+    relative rotations, is within 0.2 degree, so the loops close and their rotation is right to 0.3 deg."""
+    rng = np.random.default_rng(5)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
+    jumpy = np.where(np.arange(10) % 2 == 0, 1.5, -1.5)
+    first, true1, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, up_tilt_deg=0.0)
+    second, true2, _ = agent_stream(rng, pts, desc, np.linspace(-4, 10, 10), UGV_FROM_WORLD, id0=1000,
+                                    point_id0=100000, drift=drift, up_tilt_deg=jumpy)  # fmt: skip
+    srv = Server(tmp_path / "data", BackendOptions(verifications_per_s=1000.0, fix_scale=False,
+                                                   level_up_window=window))  # fmt: skip
+    try:
+        with stream(srv, "ugv1", "ugv", first + second):
+            srv.wait_idle()
+        events = srv.call(lambda: srv.hive.events.since(0, kind="loop"))
+        loops = srv.call(lambda: list(srv.backend.loops))
+    finally:
+        srv.stop()
+    refused = [e for e in events if (e.data or {}).get("refused")]
+    if window == 0:
+        assert not loops and refused, [e.message for e in events]
+        assert all(abs(e.data["gravity_deg"] - 1.5) < 0.3 for e in refused), [e.message for e in refused]
+        return
+    assert loops and not refused, [e.message for e in events]
+    true = {k: T for k, T in enumerate(true1)} | {1000 + k: T for k, T in enumerate(true2)}
+    for rec in loops:
+        assert rec["levelled"] and rec["gravity_deg"] < 0.3, rec
+        gt = np.linalg.inv(true[rec["candidate"][1]]) @ true[rec["query"][1]]
+        measured = Sim3.from_matrix(np.asarray(rec["candidate_from_query"]))
+        assert rotation_angle_deg(measured.R.T @ gt[:3, :3]) < 0.3, rec
