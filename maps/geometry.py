@@ -188,29 +188,35 @@ def rotation_between(a: F64, b: F64) -> F64:
     return so3_exp(axis / sin * np.arctan2(sin, cos))
 
 
-def levelled_similarity(src: F64, dst: F64, up_src: F64, up_dst: F64, with_scale: bool = True) -> Sim3:
+def levelled_similarity(
+    src: F64, dst: F64, up_src: F64, up_dst: F64, with_scale: bool = True, weights: F64 | None = None
+) -> Sim3:
     """Least-squares ``dst ~ s R src + t`` with ``R`` constrained to take ``up_src`` onto ``up_dst``.
 
     The 4-DoF (5 with scale) Umeyama of visual-inertial maps: roll and pitch are known from gravity in
     both frames, so only the rotation about the up axis is fitted to the points (2D Procrustes in the
-    plane normal to ``up_dst``). Points (N, 3), N >= 1; s = 1 without ``with_scale``.
+    plane normal to ``up_dst``). Points (N, 3), N >= 1; s = 1 without ``with_scale``; ``weights`` (N,)
+    of the pairs' squared residuals (None: equal).
     """
     src = np.asarray(src, dtype=np.float64).reshape(-1, 3)
     dst = np.asarray(dst, dtype=np.float64).reshape(-1, 3)
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    w = w / w.sum()
+    ms, md = w @ src, w @ dst
     R0 = rotation_between(up_src, up_dst)
     axis = np.asarray(up_dst, dtype=np.float64) / np.linalg.norm(up_dst)
-    a = (src - src.mean(axis=0)) @ R0.T
-    b = dst - dst.mean(axis=0)
-    # the yaw about ``axis`` maximising sum(b . Rz a): atan2 of the summed cross and dot in the plane
+    a = (src - ms) @ R0.T
+    b = dst - md
+    # the yaw about ``axis`` maximising sum(w b . Rz a): atan2 of the weighted cross and dot in the plane
     a_perp = a - np.outer(a @ axis, axis)
     b_perp = b - np.outer(b @ axis, axis)
-    s_ = float(np.sum(np.cross(a_perp, b_perp) @ axis))
-    c_ = float(np.sum(a_perp * b_perp))
+    s_ = float(w @ (np.cross(a_perp, b_perp) @ axis))
+    c_ = float(w @ np.sum(a_perp * b_perp, axis=1))
     yaw = float(np.arctan2(s_, c_)) if abs(s_) + abs(c_) > 1e-12 else 0.0
     R = so3_exp(axis * yaw) @ R0
     s = 1.0
     if with_scale:
         ra = a @ so3_exp(axis * yaw).T
-        den = float(np.sum(ra * ra))
-        s = float(np.sum(ra * b) / den) if den > 1e-12 else 1.0
-    return Sim3(R, dst.mean(axis=0) - s * R @ src.mean(axis=0), s)
+        den = float(w @ np.sum(ra * ra, axis=1))
+        s = float(w @ np.sum(ra * b, axis=1) / den) if den > 1e-12 else 1.0
+    return Sim3(R, md - s * R @ ms, s)
