@@ -607,6 +607,9 @@ class Backend:
             "candidate_from_query": measured.matrix().tolist(),
             "gravity_deg": tilt,  # the detection's own tilt disagreement (before levelling)
             "levelled": levelled is not None,
+            # what the loop asks of the query keyframe (the correction the pose graph starts from)
+            "move_m": float(np.linalg.norm(det.target_from_source.apply(Tq.t) - Tq.t)),
+            "turn_deg": rotation_angle_deg(det.target_from_source.R),
         }
         self.loops.append(rec)
         self.server.events.add(

@@ -36,7 +36,8 @@ def test_second_pass_closes_a_loop_and_removes_the_drift(srv: Server) -> None:
     )
     with stream(srv, "ugv1", "ugv", first + second):
         srv.wait_idle()
-    assert srv.call(lambda: len(srv.backend.loops)) >= 1, srv.call(lambda: dict(srv.hive.events.counts))
+    loops = srv.call(lambda: list(srv.backend.loops))
+    assert len(loops) >= 1, srv.call(lambda: dict(srv.hive.events.counts))
     poses = srv.call(
         lambda: {
             k[1]: kf.world_from_cam.copy()
@@ -51,6 +52,10 @@ def test_second_pass_closes_a_loop_and_removes_the_drift(srv: Server) -> None:
     # 2 cm, pixel noise 0.5 px: the BA solution is good to a few cm)
     assert before.mean() > 0.4
     assert after.max() < 0.1, (before, after)
+    # each loop record says what it asked of its query keyframe: the drift there, to 5 cm / 0.2 deg
+    for rec in loops:
+        q = rec["query"][1] - 1000
+        assert abs(rec["move_m"] - before[q]) < 0.05 and abs(rec["turn_deg"] - 2.29) < 0.2, (rec, before[q])
 
 
 def test_keyframes_reloaded_after_restart_are_indexed_and_merge(tmp_path: Path) -> None:
