@@ -103,14 +103,15 @@ class BackendOptions:
     # A loop's or merge's Sim(3) is re-fitted to its 3D point pairs with roll/pitch taken from the two
     # keyframes' IMU up directions (ORB-SLAM3 closes visual-inertial loops in 4 DoF for the same reason):
     # the points' depth errors tilt a free fit, and the tilt times the keyframes' distance puts the far
-    # one off in height (factory01 challenged1, loops 5-17 m apart: median rotation error 0.26-0.33 deg
-    # in three runs before (1bce6f3/d77be1f), 0.18 deg with it (13eeb44); the UGV-UAV loop 0.20-0.48 m
-    # wrong before, 0.04 m with it). What is left is mostly the up directions' own error (keyframes'
-    # up_cam vs ground truth: median 0.08-0.13 deg, p90 0.16-0.24 deg).
+    # one off in height (factory01 challenged1, UAV-UAV loops 5-17 m apart: median rotation error
+    # 0.26-0.33 deg in three runs before (1bce6f3/d77be1f), 0.16-0.18 deg in four runs with it
+    # (13eeb44..34f57f8)). What is left of their tilt is the up directions' own error (keyframes'
+    # up_cam vs ground truth: median 0.08-0.13 deg, p90 0.16-0.24 deg). It does not fix yaw: the UGV -
+    # uav3 loops of the same runs are still 0.19-0.55 m / 0.4-1.5 deg off in 7 of 8 runs.
     level_gravity: bool = True
-    # ... and each point pair weighted by its distance to the two keyframes (stereo depth error grows as
-    # its square): the UGV -> uav3 loop of factory01 challenged1 (keyframes 10.4 m apart, the UGV seeing
-    # the points far off) was 0.39-0.48 m / 1 deg wrong, in yaw, in 4 of 6 runs before this
+    # ... with each point pair weighted by its distance to the two keyframes (stereo depth error grows as
+    # its square). Factory01 challenged1, the UGV's loop between keyframes 12.5 m apart: 0.094 m without
+    # (3419dbf), 0.062 m with (34f57f8), one run each; the UGV - uav3 loops stayed 0.26 and 0.55 m off
     level_depth_weighted: bool = True
     # up directions averaged over the agent's keyframes within this many ids (0: each keyframe's own)
     level_up_window: int = 6
