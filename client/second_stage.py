@@ -145,7 +145,7 @@ class SecondStageOptions:
     counting them twice pulls the agent back toward its own few fixes' mean error (factory01
     challenged1 at 13eeb44: uav1's five fixes average +0.057 m north, its local trajectory sat +0.05 m
     north, the server's keyframes +0.008 m; with this (ef503a1, one run) +0.001 m, and every agent's
-    mean offset within about 1 cm of the server's). They come back if the priors stop being ENU."""
+    mean offset within 2 cm of the server's). They come back if the priors stop being ENU."""
 
 
 @dataclass
