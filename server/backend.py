@@ -107,7 +107,7 @@ class BackendOptions:
     # 0.26-0.33 deg in three runs before (1bce6f3/d77be1f), 0.16-0.18 deg in four runs with it
     # (13eeb44..34f57f8)). What is left of their tilt is the up directions' own error (keyframes'
     # up_cam vs ground truth: median 0.08-0.13 deg, p90 0.16-0.24 deg). It does not fix yaw: the UGV -
-    # uav3 loops of the same runs are still 0.19-0.55 m / 0.4-1.5 deg off in 7 of 8 runs.
+    # uav3 loops of the same runs are still 0.19-0.55 m / 0.4-1.5 deg off in 7 of 9 runs.
     level_gravity: bool = True
     # ... with each point pair weighted by its distance to the two keyframes (stereo depth error grows as
     # its square). Factory01 challenged1, the UGV's loop between keyframes 12.5 m apart: 0.094 m without
