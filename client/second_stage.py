@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
-from hivemap.maps.geometry import Sim3, se3, se3_inverse
+from hivemap.maps.geometry import Sim3, levelled_similarity, se3, se3_inverse
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -211,15 +211,9 @@ def yaw_translation_alignment(src: F64, dst: F64) -> F64:
     The gravity-aligned case of Umeyama/Kabsch: rotation about z only, no scale. N >= 1
     (with one point, or points on a vertical line, the yaw is 0).
     """
-    src = np.asarray(src, dtype=np.float64).reshape(-1, 3)
-    dst = np.asarray(dst, dtype=np.float64).reshape(-1, 3)
-    ms, md = src.mean(axis=0), dst.mean(axis=0)
-    a, b = src - ms, dst - md
-    s = float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
-    c = float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
-    yaw = math.atan2(s, c) if abs(s) + abs(c) > 1e-12 else 0.0
-    R = Rotation.from_euler("z", yaw).as_matrix()
-    return se3(R, md - R @ ms)
+    z = np.array([0.0, 0.0, 1.0])
+    sim = levelled_similarity(src, dst, z, z, with_scale=False)
+    return se3(sim.R, sim.t)
 
 
 def rigid_alignment(src: F64, dst: F64) -> F64:

@@ -178,14 +178,8 @@ def rotation_between(a: F64, b: F64) -> F64:
     """The smallest rotation taking direction ``a`` onto direction ``b`` (both (3,), any length)."""
     a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
     b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    sin, cos = float(np.linalg.norm(axis)), float(np.dot(a, b))
-    if sin < 1e-12:
-        if cos > 0:
-            return np.eye(3)
-        perp = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])  # opposite: half turn about any normal
-        return so3_exp(np.pi * perp / np.linalg.norm(perp))
-    return so3_exp(axis / sin * np.arctan2(sin, cos))
+    R, _ = Rotation.align_vectors(b[None], a[None])  # one pair: scipy gives the shortest arc
+    return np.asarray(R.as_matrix(), dtype=np.float64)
 
 
 def levelled_similarity(

@@ -491,9 +491,10 @@ class Backend:
         self._consist[key] = (det.query_key[1], sim, count)
         return None
 
-    def _levelled(self, det: Detection) -> Sim3 | None:
+    def _levelled(self, det: Detection, ups: tuple[F64 | None, F64 | None] | None = None) -> Sim3 | None:
         """The detection's Sim(3) re-fitted to its 3D pairs with roll/pitch taken from the two keyframes' IMU
-        up directions (``BackendOptions.level_gravity``); None when off, when either keyframe has no up
+        up directions (``BackendOptions.level_gravity``; ``ups``: the query's and the candidate's from
+        :meth:`_up_cam` if the caller has them); None when off, when either keyframe has no up
         direction, or when the pairs do not fit."""
         o = self.options
         maps = self.server.stack.maps
@@ -503,7 +504,7 @@ class Backend:
         qkf, ckf = mq.keyframes.get(det.query_key), mc.keyframes.get(det.candidate_key)
         if qkf is None or ckf is None:
             return None
-        uq, uc = self._up_cam(mq, det.query_key), self._up_cam(mc, det.candidate_key)
+        uq, uc = ups or (self._up_cam(mq, det.query_key), self._up_cam(mc, det.candidate_key))
         if uq is None or uc is None:
             return None
         # the IMU's up in either map's frame, at either keyframe
@@ -576,9 +577,8 @@ class Backend:
                     data={"refused": True, "move_m": move, "turn_deg": turn, "n_inliers": det.n_inliers},
                 )
                 return
-        tilt = _gravity_disagreement_deg(
-            measured, self._up_cam(m, det.query_key), self._up_cam(m, det.candidate_key)
-        )
+        ups = (self._up_cam(m, det.query_key), self._up_cam(m, det.candidate_key))
+        tilt = _gravity_disagreement_deg(measured, *ups)
         if o.loop_max_gravity_deg > 0 and tilt is not None and tilt > o.loop_max_gravity_deg:
             self.server.events.add(
                 "loop",
@@ -589,7 +589,7 @@ class Backend:
             )
             return
         pairs = list(zip(det.candidate_points, det.query_points, strict=True))
-        levelled = self._levelled(det)
+        levelled = self._levelled(det, ups)
         if levelled is not None:
             det = replace(det, target_from_source=levelled)
             measured = Tc.inverse() @ levelled @ Tq
