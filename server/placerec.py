@@ -765,7 +765,12 @@ class PlaceRecognizer:
         rep: CandidateReport,
     ) -> None:
         o = self.options
-        mq, mc = maps[query_map], maps[cand_map]
+        mq, mc = maps.get(query_map), maps.get(cand_map)
+        if mq is None or mc is None:
+            # merged into another map since the query started (the event loop merges while this thread
+            # verifies): this candidate is skipped, the agents' next keyframes query the merged map
+            rep.reason = "map_merged_meanwhile"
+            return
         q = mq.keyframes[query_key]
         c = mc.keyframes.get(cand_key)
         if c is None:

@@ -310,3 +310,20 @@ def test_intra_map_loop_with_drift() -> None:
     assert last is not None and last.confirmed
     # query points (second pass, drifted frame) -> candidate points (first pass): the inverse drift
     _check_sim(last.target_from_source, drift.inverse())
+
+
+def test_candidate_in_a_map_merged_meanwhile_is_skipped_without_error(scene, caplog) -> None:
+    """The event loop merges maps while the recognition thread verifies: a candidate whose map is gone
+    is reported as such (not an exception with a traceback in the log) and the query goes on."""
+    a, b = scene["A"], scene["B"]
+    maps = {0: a, 1: b}
+    pr = _recognizer(maps)
+    ck = sorted(b.keyframes)[5]
+    with caplog.at_level("ERROR", logger="hivemap.server.placerec"):
+        rep = pr._verify({0: a}, 0, ("uavA", 5), 1, ck, True, pr.options.thresholds, "merge")
+    assert not rep.accepted and rep.reason == "map_merged_meanwhile"
+    assert not caplog.records
+    # with both maps there, the same pair verifies (the skip is only for the missing map)
+    assert pr._verify(maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge").reason != (
+        "map_merged_meanwhile"
+    )
