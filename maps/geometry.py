@@ -183,21 +183,28 @@ def rotation_between(a: F64, b: F64) -> F64:
 
 
 def levelled_similarity(
-    src: F64, dst: F64, up_src: F64, up_dst: F64, with_scale: bool = True, weights: F64 | None = None
+    src: F64,
+    dst: F64,
+    up_src: F64,
+    up_dst: F64,
+    with_scale: bool = True,
+    weights: F64 | None = None,
+    level: F64 | None = None,
 ) -> Sim3:
     """Least-squares ``dst ~ s R src + t`` with ``R`` constrained to take ``up_src`` onto ``up_dst``.
 
     The 4-DoF (5 with scale) Umeyama of visual-inertial maps: roll and pitch are known from gravity in
     both frames, so only the rotation about the up axis is fitted to the points (2D Procrustes in the
     plane normal to ``up_dst``). Points (N, 3), N >= 1; s = 1 without ``with_scale``; ``weights`` (N,)
-    of the pairs' squared residuals (None: equal).
+    of the pairs' squared residuals (None: equal); ``level``: ``rotation_between(up_src, up_dst)`` if the
+    caller has it (fits repeated with the same up directions).
     """
     src = np.asarray(src, dtype=np.float64).reshape(-1, 3)
     dst = np.asarray(dst, dtype=np.float64).reshape(-1, 3)
     w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
     w = w / w.sum()
     ms, md = w @ src, w @ dst
-    R0 = rotation_between(up_src, up_dst)
+    R0 = rotation_between(up_src, up_dst) if level is None else np.asarray(level, dtype=np.float64)
     axis = np.asarray(up_dst, dtype=np.float64) / np.linalg.norm(up_dst)
     a = (src - ms) @ R0.T
     b = dst - md

@@ -29,12 +29,19 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import Sim3, levelled_similarity, rotation_angle_deg, se3, se3_inverse
+from hivemap.maps.geometry import (
+    Sim3,
+    levelled_similarity,
+    rotation_angle_deg,
+    rotation_between,
+    se3,
+    se3_inverse,
+)
 from hivemap.protocol import Correction, encode
 from hivemap.server.convert import split_folded
 from hivemap.server.placerec import Detection, PlaceRecognizer, PlaceRecOptions, RecognitionResult
@@ -116,6 +123,23 @@ class BackendOptions:
     # up directions averaged over the agent's keyframes within this many ids (0: each keyframe's own)
     level_up_window: int = 6
     pose_graph_max_move_m: float = 3.0  # a pose graph moving any keyframe farther is refused
+    # Sigmas of the pose graph's essential edges (each holds its keyframes' relative pose). The agents'
+    # VIO is better than this over one keyframe interval (factory01 challenged1, vio.tum vs ground truth
+    # over 0.5 s: 0.07-0.13 deg, 1.3-3.2 cm rms), but edges that tight (0.002 rad / 0.02 m, one run at
+    # f705327 + this change) let the early UAV loops' up-direction errors (0.4-0.56 deg while the filters
+    # settle after take-off) tilt all of uav1's later keyframes on the server by 0.5-0.9 deg (0.1-0.4
+    # without); loops then gained less (challenged1 +14.7 %).
+    pose_graph_sigma_rot: float = 0.01  # rad
+    pose_graph_sigma_trans: float = 0.05  # m
+    # A levelled loop's or merge's edge gets the spread of its fit over this many bootstrap resamples of
+    # its point pairs (each trimmed again): the rms of their rotation and of the query camera's position,
+    # at least the essential edges' sigmas. A UGV-UAV loop is held by points 10+ m from both cameras and
+    # is often 0.2-0.6 m / 0.4-1.5 deg off in yaw; with its fit's spread it bends the map less. Offline,
+    # 78 loops of factory01 challenged1/2 (f705327): spread and true error correlate 0.71 (UGV loops
+    # 10-14 m long spread 0.13-0.28 m, UAV loops 0.02-0.08 m). Online (bb36836 + this): the UGV - uav3
+    # loop 0.32 m / 0.77 deg, the UGV's own 12.5-13 m loops 0.14-0.16 m, 5 of 86 UAV loops above the
+    # 0.05 m floor (at most 0.086 m). 0: the essential edges' sigmas.
+    loop_sigma_bootstrap: int = 30
     # GNSS-guided retry (paper 2.5.3) between maps that are both in ENU: an agent's latest keyframe against
     # the other map's keyframes within this radius (0 = off), at most once per map pair per interval
     gnss_retry_radius_m: float = 10.0
@@ -125,6 +149,17 @@ class BackendOptions:
     # is the likelier cause than bad fixes)
     gnss_max_rejected_ratio: float = 0.34
     gnss_max_median_residual_m: float = 0.5
+
+
+class _NewEdge(NamedTuple):
+    """A loop's or merge's pose-graph edge: ``measured`` is cam_candidate_from_cam_query; sigmas in rad
+    and m (``BackendOptions.loop_sigma_bootstrap``)."""
+
+    candidate: KfKey
+    query: KfKey
+    measured: Sim3
+    sigma_rot: float
+    sigma_trans: float
 
 
 @dataclass
@@ -167,7 +202,7 @@ class Backend:
         self._gnss_unbend: dict[int, dict[KfKey, Sim3]] = {}
         self._retry_at: dict[tuple[int, int], float] = {}  # map pair -> last GNSS-guided retry
         self._consist: dict[tuple[int, int, str], tuple[int, Sim3, int]] = {}
-        self._opt_again: dict[int, list[tuple[KfKey, KfKey, Sim3]]] = {}
+        self._opt_again: dict[int, list[_NewEdge]] = {}
         self._tokens = self.options.verifications_per_s
         self._last_refill = time.monotonic()
         # figures
@@ -409,19 +444,23 @@ class Backend:
     async def _merge(self, det: Detection, t_det: float) -> None:
         server = self.server
         maps = server.stack.maps
+        o = self.options
         if det.query_map not in maps or det.candidate_map not in maps or det.query_map == det.candidate_map:
             server.events.add("merge", f"stale merge detection {det.query_key} dropped", data=det.to_dict())
             return
         levelled = self._levelled(det)
+        sigmas = (o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)
         if levelled is not None:
-            det = replace(det, target_from_source=levelled)
+            det = replace(det, target_from_source=levelled[0])
+            sigmas = levelled[1]
         target = self._target_of(det.query_map, det.candidate_map)
         target_id, source_id, sim, pairs = det.merge_args(target)
         for k in [k for k in self._consist if source_id in k[:2] or target_id in k[:2]]:
             del self._consist[k]
         merged, merge_ms = await self._apply_merge(target_id, source_id, sim, pairs)
         # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
-        edge = (det.candidate_key, det.query_key, self._edge_measure(merged, det, target_id == det.query_map))
+        measure = self._edge_measure(merged, det, target_id == det.query_map)
+        edge = _NewEdge(det.candidate_key, det.query_key, measure, *sigmas)
         if det.candidate_key in merged.keyframes and det.query_key in merged.keyframes:
             merged.add_loop_edge(det.candidate_key, det.query_key)
         qkf = merged.keyframes.get(det.query_key)
@@ -434,6 +473,8 @@ class Backend:
             "merge_ms": merge_ms,
             "target_from_source": sim.matrix().tolist(),
             "levelled": levelled is not None,
+            "sigma_rot_deg": math.degrees(sigmas[0]),
+            "sigma_trans_m": sigmas[1],
             "detection": det.to_dict(),
         }
         self.merges.append(rec)
@@ -457,7 +498,7 @@ class Backend:
         if mq is None or mc is None:
             return None
         pairs = list(zip(det.candidate_points, det.query_points, strict=True))
-        sim, src_xyz, n_in = _fit_pairs(mc, mq, pairs, o.min_pair_inlier_ratio, with_scale=not o.fix_scale)
+        sim, src_xyz, n_in, _ = _fit_pairs(mc, mq, pairs, o.min_pair_inlier_ratio, with_scale=not o.fix_scale)
         key = (det.query_map, det.candidate_map, det.query_key[0])
         data: dict[str, Any] = {"query_key": list(det.query_key), "candidate_key": list(det.candidate_key),
                                 "n_pairs": len(pairs), "n_pair_inliers": n_in}  # fmt: skip
@@ -491,10 +532,13 @@ class Backend:
         self._consist[key] = (det.query_key[1], sim, count)
         return None
 
-    def _levelled(self, det: Detection, ups: tuple[F64 | None, F64 | None] | None = None) -> Sim3 | None:
+    def _levelled(
+        self, det: Detection, ups: tuple[F64 | None, F64 | None] | None = None
+    ) -> tuple[Sim3, tuple[float, float]] | None:
         """The detection's Sim(3) re-fitted to its 3D pairs with roll/pitch taken from the two keyframes' IMU
         up directions (``BackendOptions.level_gravity``; ``ups``: the query's and the candidate's from
-        :meth:`_up_cam` if the caller has them); None when off, when either keyframe has no up
+        :meth:`_up_cam` if the caller has them) and the edge sigmas (rad, m) its spread gives
+        (``BackendOptions.loop_sigma_bootstrap``); None when off, when either keyframe has no up
         direction, or when the pairs do not fit."""
         o = self.options
         maps = self.server.stack.maps
@@ -511,8 +555,13 @@ class Backend:
         up = (qkf.world_from_cam[:3, :3] @ uq, ckf.world_from_cam[:3, :3] @ uc)
         centres = (qkf.world_from_cam[:3, 3], ckf.world_from_cam[:3, 3]) if o.level_depth_weighted else None
         pairs = list(zip(det.candidate_points, det.query_points, strict=True))
-        sim, _, _ = _fit_pairs(mc, mq, pairs, o.min_pair_inlier_ratio, not o.fix_scale, up, centres)
-        return sim
+        sim, _, _, spread = _fit_pairs(
+            mc, mq, pairs, o.min_pair_inlier_ratio, not o.fix_scale, up, centres, o.loop_sigma_bootstrap
+        )
+        if sim is None:
+            return None
+        sd_rot, sd_trans = spread or (0.0, 0.0)
+        return sim, (max(sd_rot, o.pose_graph_sigma_rot), max(sd_trans, o.pose_graph_sigma_trans))
 
     def _up_cam(self, m: Any, key: KfKey) -> F64 | None:
         """The IMU's up direction in keyframe ``key``'s camera: the mean of its agent's keyframes' up
@@ -590,9 +639,11 @@ class Backend:
             return
         pairs = list(zip(det.candidate_points, det.query_points, strict=True))
         levelled = self._levelled(det, ups)
+        sigmas = (o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)
         if levelled is not None:
-            det = replace(det, target_from_source=levelled)
-            measured = Tc.inverse() @ levelled @ Tq
+            det = replace(det, target_from_source=levelled[0])
+            measured = Tc.inverse() @ levelled[0] @ Tq
+            sigmas = levelled[1]
         m.add_loop_edge(det.candidate_key, det.query_key)
         rec = {
             "map": m.id,
@@ -611,6 +662,9 @@ class Backend:
             # what the loop asks of the query keyframe (the correction the pose graph starts from)
             "move_m": float(np.linalg.norm(det.target_from_source.apply(Tq.t) - Tq.t)),
             "turn_deg": rotation_angle_deg(det.target_from_source.R),
+            # the pose-graph edge's sigmas (the fit's bootstrap spread, at least the essential edges')
+            "sigma_rot_deg": math.degrees(sigmas[0]),
+            "sigma_trans_m": sigmas[1],
         }
         self.loops.append(rec)
         self.server.events.add(
@@ -624,15 +678,14 @@ class Backend:
         hood = [det.query_key, *m.best_covisible(det.query_key, 30)]
         hood = [k for k in hood if k not in m.loop_neighbours(det.query_key) or k == det.query_key]
         pre = (det.target_from_source, hood)
-        self._schedule_optimisation(
-            m.id, [(det.candidate_key, det.query_key, measured)], t_det, fuse=pairs, pre=pre
-        )
+        edge = _NewEdge(det.candidate_key, det.query_key, measured, *sigmas)
+        self._schedule_optimisation(m.id, [edge], t_det, fuse=pairs, pre=pre)
 
     # -- optimisation pipeline ------------------------------------------------------------------------
     def _schedule_optimisation(
         self,
         map_id: int,
-        edges: list[tuple[KfKey, KfKey, Sim3]],
+        edges: list[_NewEdge],
         t_det: float,
         fuse: list[tuple[Any, Any]] | None = None,
         pre: tuple[Sim3, list[KfKey]] | None = None,
@@ -647,7 +700,7 @@ class Backend:
     async def _optimise(
         self,
         map_id: int,
-        edges: list[tuple[KfKey, KfKey, Sim3]],
+        edges: list[_NewEdge],
         t_det: float,
         fuse: list[tuple[Any, Any]],
         pre: tuple[Sim3, list[KfKey]] | None = None,
@@ -700,7 +753,7 @@ class Backend:
     async def _optimise_once(
         self,
         map_id: int,
-        edges: list[tuple[KfKey, KfKey, Sim3]],
+        edges: list[_NewEdge],
         t_det: float,
         fuse: list[tuple[Any, Any]],
         pre: tuple[Sim3, list[KfKey]] | None = None,
@@ -720,7 +773,7 @@ class Backend:
     async def _optimise_steps(
         self,
         map_id: int,
-        edges: list[tuple[KfKey, KfKey, Sim3]],
+        edges: list[_NewEdge],
         t_det: float,
         fuse: list[tuple[Any, Any]],
         pre: tuple[Sim3, list[KfKey]] | None,
@@ -737,13 +790,17 @@ class Backend:
         if o.pose_graph and edges:
             snap = self._snapshot(m)
             index = {k: i for i, k in enumerate(snap.keys)}
-            new_pairs = {frozenset((a, b)) for a, b, _ in edges}
+            new_pairs = {frozenset((e.candidate, e.query)) for e in edges}
             graph_edges = [
                 (index[a], index[b])
                 for a, b in m.essential_edges()
                 if a in index and b in index and frozenset((a, b)) not in new_pairs
             ]
-            new_edges = [(index[a], index[b], s) for a, b, s in edges if a in index and b in index]
+            new_edges = [
+                (index[e.candidate], index[e.query], e.measured, e.sigma_rot, e.sigma_trans)
+                for e in edges
+                if e.candidate in index and e.query in index
+            ]
             # one keyframe per connected start: the reference agent's first and every start-posed agent's
             # (with only the first, agents joined by their start pose floated in the graph's gauge until
             # a loop tied them; factory01 then diverged)
@@ -755,7 +812,14 @@ class Backend:
                         initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
             t0 = time.perf_counter()
             sims = await loop.run_in_executor(
-                self._opt_exec, _pose_graph, initial, snap.poses, graph_edges, new_edges, fixed, o.fix_scale
+                self._opt_exec,
+                partial(_pose_graph, sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)),
+                initial,
+                snap.poses,
+                graph_edges,
+                new_edges,
+                fixed,
+                o.fix_scale,
             )
             pg_ms = (time.perf_counter() - t0) * 1e3
             cur = self._current(snap)
@@ -1163,9 +1227,13 @@ def _fit_pairs(
     with_scale: bool = True,
     up: tuple[F64, F64] | None = None,
     centres: tuple[F64, F64] | None = None,
-) -> tuple[Sim3 | None, F64, int]:
+    bootstrap: int = 0,
+) -> tuple[Sim3 | None, F64, int, tuple[float, float] | None]:
     """``target_from_source`` fitted to duplicate point pairs ``(target_point, source_point)`` by trimmed
-    Umeyama; returns (Sim3 or None if most pairs do not fit, inlier source points, number of inliers).
+    Umeyama; returns (Sim3 or None if most pairs do not fit, inlier source points, number of inliers,
+    spread). ``bootstrap`` (with ``centres``): the trimmed fit is repeated on that many resamples of the
+    pairs, and the spread is the rms of their rotation angles from it (rad) and of the source camera
+    centre's displacement under them (m; None without).
     ``up``: the up direction in the source and the target frame; the rotation then takes one onto the
     other and only its part about the up axis is fitted (:func:`levelled_similarity`). ``centres`` (with
     ``up``): the camera centres in the source and the target frame that saw the points; each pair is
@@ -1177,30 +1245,53 @@ def _fit_pairs(
             a.append(ps.xyz)
             b.append(pt.xyz)
     if len(a) < 20:
-        return None, np.zeros((0, 3)), 0
+        return None, np.zeros((0, 3)), 0, None
     A, B = np.array(a), np.array(b)
-    keep = np.ones(len(A), dtype=bool)
     sig = np.ones(len(A))
     if up is not None and centres is not None:
         d_src, d_tgt = np.linalg.norm(A - centres[0], axis=1), np.linalg.norm(B - centres[1], axis=1)
         sig = np.sqrt(d_src**4 + d_tgt**4) + 1e-9
 
-    def fit(sel: NDArray[np.bool_]) -> Sim3:
-        if up is None:
-            return _umeyama(A[sel], B[sel], with_scale)
-        return levelled_similarity(A[sel], B[sel], *up, with_scale, 1.0 / sig[sel] ** 2)
+    level = rotation_between(*up) if up is not None else None
 
-    est = fit(keep)
-    for _ in range(4):
-        r = np.linalg.norm(est.apply(A) - B, axis=1) / sig
-        keep = r <= max(2.5 * float(np.median(r[keep])), 1e-12)
-        if keep.sum() < 20:
-            return None, np.zeros((0, 3)), int(keep.sum())
-        est = fit(keep)
-    n_in = int(keep.sum())
+    def fit(idx: NDArray[np.int64]) -> Sim3:
+        if up is None:
+            return _umeyama(A[idx], B[idx], with_scale)
+        return levelled_similarity(A[idx], B[idx], *up, with_scale, 1.0 / sig[idx] ** 2, level)
+
+    def trimmed(idx: NDArray[np.int64]) -> tuple[Sim3 | None, NDArray[np.int64]]:
+        """The fit to pairs ``idx`` (repeats allowed) and the ones its trimming keeps."""
+        est, ok = fit(idx), np.ones(len(idx), dtype=bool)
+        for _ in range(4):
+            r = np.linalg.norm(est.apply(A[idx]) - B[idx], axis=1) / sig[idx]
+            ok = r <= max(2.5 * float(np.median(r[ok])), 1e-12)
+            if ok.sum() < 20:
+                return None, idx[ok]
+            est = fit(idx[ok])
+        return est, idx[ok]
+
+    est, keep = trimmed(np.arange(len(A)))
+    if est is None:
+        return None, np.zeros((0, 3)), len(keep), None
+    n_in = len(keep)
     if n_in < min_inlier_ratio * len(A):
-        return None, A[keep], n_in
-    return est, A[keep], n_in
+        return None, A[keep], n_in, None
+    spread = None
+    if bootstrap > 0 and centres is not None:
+        # the same resamples for the same pairs (reproducible runs); each resample of all the pairs is
+        # trimmed again (resampling the inliers alone gave a 0.65 m-wrong UGV loop a spread of 0.15 m)
+        rng = np.random.default_rng(len(A))
+        c = est.apply(centres[0][None])[0]
+        rot, move = [], []
+        for _ in range(bootstrap):
+            eb, _ = trimmed(rng.integers(0, len(A), len(A)))
+            if eb is None:
+                continue
+            rot.append(math.radians(rotation_angle_deg(eb.R @ est.R.T)))
+            move.append(float(np.linalg.norm(eb.apply(centres[0][None])[0] - c)))
+        if rot:
+            spread = (float(np.sqrt(np.mean(np.square(rot)))), float(np.sqrt(np.mean(np.square(move)))))
+    return est, A[keep], n_in, spread
 
 
 def _umeyama(src: F64, dst: F64, with_scale: bool = True) -> Sim3:
@@ -1228,11 +1319,13 @@ def _pose_graph(
     initial: F64,
     poses: F64,
     graph_edges: list[tuple[int, int]],
-    new_edges: list[tuple[int, int, Sim3]],
+    new_edges: list[tuple[int, int, Sim3, float, float]],
     fixed: list[int],
     metric: bool = False,
+    sigmas: tuple[float, float] = (0.002, 0.02),
 ) -> list[Sim3]:
-    """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected).
+    """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
+    with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust.
 
     ``metric``: the map has metric scale (stereo agents), so the graph is SE(3) (gtsam Pose3). A Sim(3)
     graph let scale creep in at each of the dozens of loop closures of a factory run until poses
@@ -1245,8 +1338,11 @@ def _pose_graph(
         relative_sim3,
     )
 
-    edges = [PoseGraphEdge(i, j, relative_sim3(poses[i], poses[j])) for i, j in graph_edges]
-    edges += [PoseGraphEdge(i, j, s, robust=True) for i, j, s in new_edges]
+    edges = [
+        PoseGraphEdge(i, j, relative_sim3(poses[i], poses[j]), sigma_rot=sigmas[0], sigma_trans=sigmas[1])
+        for i, j in graph_edges
+    ]
+    edges += [PoseGraphEdge(i, j, s, sr, st, robust=True) for i, j, s, sr, st in new_edges]
     if metric:
         return optimize_pose_graph_se3(initial, edges, set(fixed))
     return optimize_pose_graph_sim3(initial, edges, set(fixed))
