@@ -1322,7 +1322,7 @@ def _pose_graph(
     new_edges: list[tuple[int, int, Sim3, float, float]],
     fixed: list[int],
     metric: bool = False,
-    sigmas: tuple[float, float] = (0.002, 0.02),
+    sigmas: tuple[float, float] = (0.01, 0.05),
 ) -> list[Sim3]:
     """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
     with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust.
