@@ -444,15 +444,12 @@ class Backend:
     async def _merge(self, det: Detection, t_det: float) -> None:
         server = self.server
         maps = server.stack.maps
-        o = self.options
         if det.query_map not in maps or det.candidate_map not in maps or det.query_map == det.candidate_map:
             server.events.add("merge", f"stale merge detection {det.query_key} dropped", data=det.to_dict())
             return
-        levelled = self._levelled(det)
-        sigmas = (o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)
+        levelled, sigmas = self._levelled(det)
         if levelled is not None:
-            det = replace(det, target_from_source=levelled[0])
-            sigmas = levelled[1]
+            det = replace(det, target_from_source=levelled)
         target = self._target_of(det.query_map, det.candidate_map)
         target_id, source_id, sim, pairs = det.merge_args(target)
         for k in [k for k in self._consist if source_id in k[:2] or target_id in k[:2]]:
@@ -534,23 +531,25 @@ class Backend:
 
     def _levelled(
         self, det: Detection, ups: tuple[F64 | None, F64 | None] | None = None
-    ) -> tuple[Sim3, tuple[float, float]] | None:
+    ) -> tuple[Sim3 | None, tuple[float, float]]:
         """The detection's Sim(3) re-fitted to its 3D pairs with roll/pitch taken from the two keyframes' IMU
         up directions (``BackendOptions.level_gravity``; ``ups``: the query's and the candidate's from
-        :meth:`_up_cam` if the caller has them) and the edge sigmas (rad, m) its spread gives
-        (``BackendOptions.loop_sigma_bootstrap``); None when off, when either keyframe has no up
-        direction, or when the pairs do not fit."""
+        :meth:`_up_cam` if the caller has them), and the sigmas (rad, m) of its pose-graph edge: the fit's
+        spread (``BackendOptions.loop_sigma_bootstrap``), at least the essential edges'. The Sim(3) is
+        None when off, when either keyframe has no up direction, or when the pairs do not fit (the
+        sigmas are then the essential edges')."""
         o = self.options
+        floor = (o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)
         maps = self.server.stack.maps
         mq, mc = maps.get(det.query_map), maps.get(det.candidate_map)
         if not o.level_gravity or mq is None or mc is None:
-            return None
+            return None, floor
         qkf, ckf = mq.keyframes.get(det.query_key), mc.keyframes.get(det.candidate_key)
         if qkf is None or ckf is None:
-            return None
+            return None, floor
         uq, uc = ups or (self._up_cam(mq, det.query_key), self._up_cam(mc, det.candidate_key))
         if uq is None or uc is None:
-            return None
+            return None, floor
         # the IMU's up in either map's frame, at either keyframe
         up = (qkf.world_from_cam[:3, :3] @ uq, ckf.world_from_cam[:3, :3] @ uc)
         centres = (qkf.world_from_cam[:3, 3], ckf.world_from_cam[:3, 3]) if o.level_depth_weighted else None
@@ -559,9 +558,9 @@ class Backend:
             mc, mq, pairs, o.min_pair_inlier_ratio, not o.fix_scale, up, centres, o.loop_sigma_bootstrap
         )
         if sim is None:
-            return None
+            return None, floor
         sd_rot, sd_trans = spread or (0.0, 0.0)
-        return sim, (max(sd_rot, o.pose_graph_sigma_rot), max(sd_trans, o.pose_graph_sigma_trans))
+        return sim, (max(sd_rot, floor[0]), max(sd_trans, floor[1]))
 
     def _up_cam(self, m: Any, key: KfKey) -> F64 | None:
         """The IMU's up direction in keyframe ``key``'s camera: the mean of its agent's keyframes' up
@@ -638,12 +637,10 @@ class Backend:
             )
             return
         pairs = list(zip(det.candidate_points, det.query_points, strict=True))
-        levelled = self._levelled(det, ups)
-        sigmas = (o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)
+        levelled, sigmas = self._levelled(det, ups)
         if levelled is not None:
-            det = replace(det, target_from_source=levelled[0])
-            measured = Tc.inverse() @ levelled[0] @ Tq
-            sigmas = levelled[1]
+            det = replace(det, target_from_source=levelled)
+            measured = Tc.inverse() @ levelled @ Tq
         m.add_loop_edge(det.candidate_key, det.query_key)
         rec = {
             "map": m.id,
@@ -1321,8 +1318,9 @@ def _pose_graph(
     graph_edges: list[tuple[int, int]],
     new_edges: list[tuple[int, int, Sim3, float, float]],
     fixed: list[int],
-    metric: bool = False,
-    sigmas: tuple[float, float] = (0.01, 0.05),
+    metric: bool,
+    *,
+    sigmas: tuple[float, float],
 ) -> list[Sim3]:
     """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
     with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust.

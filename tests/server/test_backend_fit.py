@@ -72,7 +72,8 @@ def test_pose_graph_follows_a_tight_loop_edge_and_resists_a_loose_one() -> None:
     loop_meas = Sim3.from_se3(true[0]).inverse() @ Sim3.from_se3(true[-1])  # cam_0 from cam_20
     moved = {}
     for sig in (0.02, 0.3):
-        out = _pose_graph(poses, poses, chain, [(0, n - 1, loop_meas, 0.002, sig)], [0], True, (0.002, 0.02))
+        loop = [(0, n - 1, loop_meas, 0.002, sig)]
+        out = _pose_graph(poses, poses, chain, loop, [0], True, sigmas=(0.002, 0.02))
         moved[sig] = float(np.linalg.norm(out[-1].t - drift[-1][:3, 3]))
         err = float(np.linalg.norm(out[-1].t - true[-1][:3, 3]))
         if sig == 0.02:
