@@ -148,6 +148,8 @@ class BackendOptions:
     # GNSS stage results are applied only when most fixes agree with the map (else a wrong loop or merge
     # is the likelier cause than bad fixes)
     gnss_max_rejected_ratio: float = 0.34
+    # the GNSS stage's chain stiffness is cross-validated again once a map has this many more fixes
+    gnss_cv_new_fixes: int = 3
     gnss_max_median_residual_m: float = 0.5
 
 
@@ -201,6 +203,7 @@ class Backend:
         # (factory01 challenged1: the UGV's height swung +-0.5 m between fixes of 0.15 m sigma)
         self._gnss_unbend: dict[int, dict[KfKey, Sim3]] = {}
         self._retry_at: dict[tuple[int, int], float] = {}  # map pair -> last GNSS-guided retry
+        self._gnss_scale: dict[int, tuple[int, float]] = {}  # map -> (fixes at its last CV, chosen scale)
         self._consist: dict[tuple[int, int, str], tuple[int, Sim3, int]] = {}
         self._opt_again: dict[int, list[_NewEdge]] = {}
         self._tokens = self.options.verifications_per_s
@@ -1106,10 +1109,18 @@ class Backend:
             nan3 = np.full(3, np.nan)
             up = np.array([nan3 if m.keyframes[k].up_cam is None else m.keyframes[k].up_cam for k in keys])
         snap = _Snapshot(m.id, self._generation.get(m.id, 0), keys, poses)
+        # the chain's stiffness is cross-validated on the fixes (GnssStageOptions.stiffness_scales), again
+        # only once gnss_cv_new_fixes more have arrived: 20 solves take seconds on a merged map
+        cached = self._gnss_scale.get(m.id)
+        scale = (
+            cached[1]
+            if cached is not None and len(fixes) < cached[0] + self.options.gnss_cv_new_fixes
+            else None
+        )
         try:
             res = await asyncio.get_running_loop().run_in_executor(
                 self._opt_exec,
-                partial(fuse_gnss, links=links, up_in_body=up),
+                partial(fuse_gnss, links=links, up_in_body=up, stiffness_scale=scale),
                 world_from_ant,
                 list(chains.values()),
                 fixes,
@@ -1117,6 +1128,9 @@ class Backend:
         except NotEnoughFixes as exc:
             self.server.events.add("gnss_stage", f"map {m.id}: {exc}", map_id=m.id)
             return
+        cv = res.cv_scores or {}
+        if res.cv_scores is not None:
+            self._gnss_scale[m.id] = (len(fixes), res.stiffness_scale)
         used = int(np.sum(res.used))
         med = float(np.median(res.residuals_m))
         o = self.options
@@ -1147,10 +1161,12 @@ class Backend:
         self.server.events.add(
             "gnss_stage",
             f"map {m.id} bent onto {used}/{len(fixes)} fixes in ENU ({len(links)} inter-agent links, "
-            f"median residual {float(np.median(res.residuals_m)):.2f} m)",
+            f"median residual {float(np.median(res.residuals_m)):.2f} m, chain stiffness "
+            f"x{res.stiffness_scale:g}{'' if res.cv_scores is None else ' by cross-validation'})",
             map_id=m.id,
             data={"used": used, "n_fixes": len(fixes), "n_links": len(links),
-                  "enu_from_map": res.enu_from_map.tolist()},
+                  "enu_from_map": res.enu_from_map.tolist(), "stiffness_scale": res.stiffness_scale,
+                  "cv_scores": None if res.cv_scores is None else {str(k): v for k, v in cv.items()}},
         )  # fmt: skip
 
     # -- corrections -----------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ default; see there for the online figures).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +50,20 @@ class GnssStageOptions:
     sigma_attitude: float = 0.005  # rad
     outlier_sigma: float = 10.0
     max_iterations: int = 50
+    # How stiff the chain is (the relative sigmas above times a scale) is chosen from the data by
+    # cross-validation: for each scale the fixes are split into ``cv_folds`` interleaved folds, each fold is
+    # predicted by the stage solved without it, and the scale whose predictions are closest to the held-out
+    # fixes (mean squared Mahalanobis distance) wins. A map whose BA closed its loops is better held near
+    # rigid, as the fixes' own noise (0.05 m / 0.15 m) would otherwise bend it; a drifting one needs the
+    # looser chain to follow its fixes. Offline, saved GNSS-denied server maps with their scenario's fixes
+    # every 20 s (4 agents, 19 fixes; mean keyframe error in ENU over the agents): factory01 (693c404 map)
+    # 0.084 m at scale 1 -> CV picks 0.03: 0.075 m (best of the four: 0.073 at 0.1); factory05 (5373e64 map)
+    # 0.087 -> CV picks 0.1: 0.074 (best 0.072 at 0.03); factory07 (5373e64 map) 0.124 -> CV picks 0.03:
+    # 0.108 (the best). A synthetic map drifting 2e-4 rad per keyframe: CV picks 1 (0.078 m; 0.153 at 0.1);
+    # not drifting: CV picks 0.03 (0.035 m vs 0.075 at 1).
+    stiffness_scales: tuple[float, ...] = (1.0, 0.3, 0.1, 0.03)
+    cv_folds: int = 5
+    cv_min_fixes: int = 10  # fewer used fixes: scale 1 (the first one), no cross-validation
 
 
 @dataclass(frozen=True)
@@ -66,6 +81,8 @@ class GnssStageResult:
     world_from_body: F64  # (N, 4, 4) corrected poses in ENU
     used: NDArray[np.bool_]  # per fix: fused (True) or rejected as outlier (False)
     residuals_m: F64  # per fix, after the final solve
+    stiffness_scale: float = 1.0  # the relative sigmas' scale used (see GnssStageOptions.stiffness_scales)
+    cv_scores: dict[float, float] | None = None  # scale -> mean held-out Mahalanobis^2 (None: no CV run)
 
 
 class NotEnoughFixes(ValueError):
@@ -79,6 +96,7 @@ def fuse_gnss(
     options: GnssStageOptions = GnssStageOptions(),
     links: list[tuple[int, int]] | None = None,
     up_in_body: F64 | None = None,
+    stiffness_scale: float | None = None,
 ) -> GnssStageResult:
     """Move a map into ENU and bend it onto the GNSS fixes.
 
@@ -90,6 +108,8 @@ def fuse_gnss(
     roll/pitch (which carries the visual tilt drift).
     fixes: GNSS fixes attached to keyframes. Raises :class:`NotEnoughFixes` when they cannot fix
     the map in ENU (fewer than ``min_fixes``, or spread less than ``min_spread_m``).
+    stiffness_scale: the relative sigmas' scale to use; None: chosen by cross-validation among
+    ``options.stiffness_scales`` (a caller can keep the choice until more fixes arrive).
     """
     import gtsam
 
@@ -111,7 +131,7 @@ def fuse_gnss(
     init = np.array([enu_from_map0 @ p for p in poses])
     used = np.ones(len(fixes), dtype=bool)
 
-    def solve(mask: NDArray[np.bool_]) -> F64:
+    def solve(mask: NDArray[np.bool_], scale: float = 1.0) -> F64:
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         for k in range(n):
@@ -121,7 +141,7 @@ def fuse_gnss(
             for a, b in zip(chain[:-1], chain[1:], strict=False):
                 rel = se3_inverse(poses[a]) @ poses[b]
                 dist = float(np.linalg.norm(rel[:3, 3]))
-                sig = np.array(
+                sig = scale * np.array(
                     [options.sigma_floor_rot + options.sigma_rel_rot * dist] * 3
                     + [options.sigma_floor_trans + options.sigma_rel_trans * dist] * 3
                 )
@@ -159,7 +179,8 @@ def fuse_gnss(
         res = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         return np.array([res.atPose3(k).matrix() for k in range(n)])
 
-    out = solve(used)
+    scale = options.stiffness_scales[0] if stiffness_scale is None else stiffness_scale
+    out = solve(used, scale)
     for _ in range(3):
         res = out[idx, :3, 3] - enu
         maha = np.array(
@@ -175,14 +196,51 @@ def fuse_gnss(
             [fixes[i].index for i in np.flatnonzero(bad)],
         )
         used &= ~bad
-        out = solve(used)
+        out = solve(used, scale)
+    scores = None
+    if stiffness_scale is None and len(options.stiffness_scales) > 1 and used.sum() >= options.cv_min_fixes:
+        scores = _cross_validate(solve, used, idx, enu, [f.cov for f in fixes], options)
+        best = min(scores, key=lambda k: scores[k])
+        if best != scale:
+            scale = best
+            out = solve(used, scale)
     residuals = np.linalg.norm(out[idx, :3, 3] - enu, axis=1)
     # The map-level transform: rigid alignment of the original poses onto the corrected ones; yaw and
     # translation only for a gravity-aligned map, so that a map moved by it stays gravity-aligned (with a
     # 6-DoF fit, the tilt each stage fitted to the fixes' vertical noise was held by the next stage's
     # attitude factors and compounded).
     R2, t2 = _rigid_fit(poses[:, :3, 3], out[:, :3, 3], options.gravity_aligned) if n >= 3 else (R, t)
-    return GnssStageResult(se3(R2, t2), out, used, residuals)
+    return GnssStageResult(se3(R2, t2), out, used, residuals, scale, scores)
+
+
+def _cross_validate(
+    solve: Callable[[NDArray[np.bool_], float], F64],
+    used: NDArray[np.bool_],
+    idx: NDArray[np.int64],
+    enu: F64,
+    covs: list[F64],
+    options: GnssStageOptions,
+) -> dict[float, float]:
+    """Per scale of ``options.stiffness_scales``: the mean squared Mahalanobis distance of each used fix to
+    the stage's prediction of its keyframe's antenna when solved without the fix's fold (folds interleaved
+    in the fixes' order, so that every fold spans every agent's path)."""
+    rows = np.flatnonzero(used)
+    fold = np.full(len(used), -1)
+    fold[rows] = np.arange(len(rows)) % options.cv_folds
+    scores: dict[float, float] = {}
+    for scale in options.stiffness_scales:
+        d2 = []
+        for f in range(options.cv_folds):
+            held = fold == f
+            if not held.any():
+                continue
+            pred = solve(used & ~held, scale)
+            for i in np.flatnonzero(held):
+                r = pred[idx[i], :3, 3] - enu[i]
+                d2.append(float(r @ np.linalg.solve(covs[i], r)))
+        scores[float(scale)] = float(np.mean(d2))
+    log.info("GNSS stage stiffness by cross-validation: %s", {k: round(v, 2) for k, v in scores.items()})
+    return scores
 
 
 def _rigid_fit(src: F64, dst: F64, yaw_only: bool) -> tuple[F64, F64]:
