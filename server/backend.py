@@ -148,9 +148,9 @@ class BackendOptions:
     # GNSS stage results are applied only when most fixes agree with the map (else a wrong loop or merge
     # is the likelier cause than bad fixes)
     gnss_max_rejected_ratio: float = 0.34
+    gnss_max_median_residual_m: float = 0.5
     # the GNSS stage's chain stiffness is cross-validated again once a map has this many more fixes
     gnss_cv_new_fixes: int = 3
-    gnss_max_median_residual_m: float = 0.5
 
 
 class _NewEdge(NamedTuple):
@@ -1128,8 +1128,8 @@ class Backend:
         except NotEnoughFixes as exc:
             self.server.events.add("gnss_stage", f"map {m.id}: {exc}", map_id=m.id)
             return
-        cv = res.cv_scores or {}
-        if res.cv_scores is not None:
+        cv = res.cv_scores
+        if cv is not None:
             self._gnss_scale[m.id] = (len(fixes), res.stiffness_scale)
         used = int(np.sum(res.used))
         med = float(np.median(res.residuals_m))
@@ -1162,11 +1162,11 @@ class Backend:
             "gnss_stage",
             f"map {m.id} bent onto {used}/{len(fixes)} fixes in ENU ({len(links)} inter-agent links, "
             f"median residual {float(np.median(res.residuals_m)):.2f} m, chain stiffness "
-            f"x{res.stiffness_scale:g}{'' if res.cv_scores is None else ' by cross-validation'})",
+            f"x{res.stiffness_scale:g}{'' if cv is None else ' by cross-validation'})",
             map_id=m.id,
             data={"used": used, "n_fixes": len(fixes), "n_links": len(links),
                   "enu_from_map": res.enu_from_map.tolist(), "stiffness_scale": res.stiffness_scale,
-                  "cv_scores": None if res.cv_scores is None else {str(k): v for k, v in cv.items()}},
+                  "cv_scores": None if cv is None else {str(k): v for k, v in cv.items()}},
         )  # fmt: skip
 
     # -- corrections -----------------------------------------------------------------------------------

@@ -226,6 +226,16 @@ def test_gnss_stage_moves_merged_map_into_enu(srv: Server) -> None:
         m = next(iter(srv.hive.stack.maps.values()))
         return np.array([m.keyframes[k].world_from_cam[:3, 3] for k in sorted(m.keyframes)])
 
+    def stages() -> list[dict]:
+        evs = srv.call(lambda: srv.hive.events.since(0, kind="gnss_stage"))
+        return [e.data for e in evs if e.data and "stiffness_scale" in e.data]
+
+    # the chain's stiffness was cross-validated once the map had 10 fixes (GnssStageOptions.cv_min_fixes):
+    # the scale with the lowest held-out score was used
+    cvs = [d for d in stages() if d["cv_scores"] is not None]
+    assert cvs and all(set(d["cv_scores"]) == {"1.0", "0.3", "0.1", "0.03"} for d in cvs)
+    assert all(d["stiffness_scale"] == float(min(d["cv_scores"], key=d["cv_scores"].get)) for d in cvs)
+    n_before = len(stages())
     first = srv.call(positions)
     m = srv.call(lambda: next(iter(srv.hive.stack.maps.values())))
     for _ in range(5):
@@ -234,6 +244,10 @@ def test_gnss_stage_moves_merged_map_into_enu(srv: Server) -> None:
         ).result(60)
     # 0.05 mm here; with no unbending at all (neither here nor in the stage) keyframes moved 25 mm in 5 runs
     assert float(np.abs(srv.call(positions) - first).max()) < 1e-3
+    # no new fixes: the five stages kept the last cross-validated scale without validating again
+    again = stages()[n_before:]
+    assert len(again) == 5 and all(d["cv_scores"] is None for d in again)
+    assert all(d["stiffness_scale"] == cvs[-1]["stiffness_scale"] for d in again)
 
 
 def test_gnss_guided_retry_merges_two_enu_maps(tmp_path: Path) -> None:
