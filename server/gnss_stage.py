@@ -4,7 +4,9 @@ After global BA, a gtsam graph over a merged map's keyframe poses: relative-pose
 consecutive keyframes of each agent (from the BA result) plus a GNSS position factor per fix,
 weighted by the fix's covariance under a Huber loss. Its output is ``enu_from_map`` (the rigid
 transform that moves the whole map into ENU) and the corrected poses. Fixes more than
-``outlier_sigma`` sigmas off after a first solve are rejected and the graph is solved again.
+``outlier_sigma`` sigmas off after a first solve are rejected and the graph is solved again. How stiffly
+the relative-pose factors hold the map's shape against the fixes is chosen by cross-validation on the
+fixes (``GnssStageOptions.stiffness_scales``).
 
 Roll/pitch: GNSS positions barely observe a keyframe's tilt, so on a gravity-aligned map an attitude
 factor holds each keyframe's up direction: the one the agent's IMU measured (``up_in_body``, sent with
