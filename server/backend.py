@@ -149,8 +149,11 @@ class BackendOptions:
     # is the likelier cause than bad fixes)
     gnss_max_rejected_ratio: float = 0.34
     gnss_max_median_residual_m: float = 0.5
-    # the GNSS stage's chain stiffness is cross-validated again once a map has this many more fixes
+    # the GNSS stage's chain stiffness is cross-validated again once a map has this many more fixes and
+    # this fraction more (a CV round is 20 solves: with fixes at 5 Hz the round would otherwise repeat
+    # at every stage)
     gnss_cv_new_fixes: int = 3
+    gnss_cv_growth: float = 0.15
 
 
 class _NewEdge(NamedTuple):
@@ -1112,11 +1115,7 @@ class Backend:
         # the chain's stiffness is cross-validated on the fixes (GnssStageOptions.stiffness_scales), again
         # only once gnss_cv_new_fixes more have arrived: 20 solves take seconds on a merged map
         cached = self._gnss_scale.get(m.id)
-        scale = (
-            cached[1]
-            if cached is not None and len(fixes) < cached[0] + self.options.gnss_cv_new_fixes
-            else None
-        )
+        scale = None if cached is None or _cv_due(len(fixes), cached[0], self.options) else cached[1]
         try:
             res = await asyncio.get_running_loop().run_in_executor(
                 self._opt_exec,
@@ -1316,6 +1315,12 @@ def _umeyama(src: F64, dst: F64, with_scale: bool = True) -> Sim3:
 
 
 # -- compute (worker thread, no map access) ----------------------------------------------------------
+def _cv_due(n_fixes: int, n_at_last_cv: int, o: BackendOptions) -> bool:
+    """Whether the GNSS stage's chain stiffness is cross-validated again (``gnss_cv_new_fixes`` more fixes
+    and ``gnss_cv_growth`` more than at the last round)."""
+    return n_fixes >= max(n_at_last_cv + o.gnss_cv_new_fixes, n_at_last_cv * (1.0 + o.gnss_cv_growth))
+
+
 def _gravity_disagreement_deg(
     candidate_from_query: Sim3, up_query: F64 | None, up_candidate: F64 | None
 ) -> float | None:

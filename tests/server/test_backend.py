@@ -320,3 +320,20 @@ def test_pose_update_keeps_the_backends_correction_of_the_keyframe(srv: Server) 
         after = srv.call(lambda: world(k))
     expected = before @ se3(refine[:3, :3], refine[:3, 3] * g.s)
     np.testing.assert_allclose(after, expected, atol=1e-9)
+
+
+def test_gnss_cross_validation_repeats_at_growing_fix_counts() -> None:
+    """BackendOptions.gnss_cv_new_fixes / gnss_cv_growth: from the first round at 10 fixes the stiffness is
+    validated again at 13, 16 and 19 fixes (3 more each), later only every 15 % more (with fixes at 5 Hz,
+    a round at every stage would cost 20 solves each): 27 rounds up to 600 fixes, not 590."""
+    from hivemap.server.backend import _cv_due
+
+    o = BackendOptions()
+    rounds, last = [10], 10
+    for n in range(11, 601):
+        if _cv_due(n, last, o):
+            rounds.append(n)
+            last = n
+    assert rounds[:4] == [10, 13, 16, 19]
+    assert len(rounds) == 27 and all(b >= 1.15 * a for a, b in zip(rounds[4:], rounds[5:], strict=False))
+    assert not _cv_due(12, 10, o) and _cv_due(13, 10, o)
