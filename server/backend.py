@@ -558,11 +558,12 @@ class Backend:
             return None, floor
         # the IMU's up in either map's frame, at either keyframe
         up = (qkf.world_from_cam[:3, :3] @ uq, ckf.world_from_cam[:3, :3] @ uc)
-        centres = (qkf.world_from_cam[:3, 3], ckf.world_from_cam[:3, 3]) if o.level_depth_weighted else None
+        centres = (qkf.world_from_cam[:3, 3], ckf.world_from_cam[:3, 3])
         pairs = list(zip(det.candidate_points, det.query_points, strict=True))
         sim, _, _, spread = _fit_pairs(
-            mc, mq, pairs, o.min_pair_inlier_ratio, not o.fix_scale, up, centres, o.loop_sigma_bootstrap
-        )
+            mc, mq, pairs, o.min_pair_inlier_ratio, not o.fix_scale, up, centres, o.loop_sigma_bootstrap,
+            depth_weighted=o.level_depth_weighted,
+        )  # fmt: skip
         if sim is None:
             return None, floor
         sd_rot, sd_trans = spread or (0.0, 0.0)
@@ -1113,7 +1114,8 @@ class Backend:
             up = np.array([nan3 if m.keyframes[k].up_cam is None else m.keyframes[k].up_cam for k in keys])
         snap = _Snapshot(m.id, self._generation.get(m.id, 0), keys, poses)
         # the chain's stiffness is cross-validated on the fixes (GnssStageOptions.stiffness_scales), again
-        # only once gnss_cv_new_fixes more have arrived: 20 solves take seconds on a merged map
+        # only once enough more have arrived (_cv_due): a round is 20 more solves (0.6 s in all on
+        # factory01's 728-keyframe denied map)
         cached = self._gnss_scale.get(m.id)
         scale = None if cached is None or _cv_due(len(fixes), cached[0], self.options) else cached[1]
         try:
@@ -1240,6 +1242,7 @@ def _fit_pairs(
     up: tuple[F64, F64] | None = None,
     centres: tuple[F64, F64] | None = None,
     bootstrap: int = 0,
+    depth_weighted: bool = True,
 ) -> tuple[Sim3 | None, F64, int, tuple[float, float] | None]:
     """``target_from_source`` fitted to duplicate point pairs ``(target_point, source_point)`` by trimmed
     Umeyama; returns (Sim3 or None if most pairs do not fit, inlier source points, number of inliers,
@@ -1247,9 +1250,10 @@ def _fit_pairs(
     pairs, and the spread is the rms of their rotation angles from it (rad) and of the source camera
     centre's displacement under them (m; None without).
     ``up``: the up direction in the source and the target frame; the rotation then takes one onto the
-    other and only its part about the up axis is fitted (:func:`levelled_similarity`). ``centres`` (with
-    ``up``): the camera centres in the source and the target frame that saw the points; each pair is
-    then weighted as stereo depth error grows, by 1 / (d_src^4 + d_tgt^4), its distances to them."""
+    other and only its part about the up axis is fitted (:func:`levelled_similarity`). ``centres``: the
+    camera centres in the source and the target frame that saw the points; with ``up`` and
+    ``depth_weighted`` each pair is then weighted as stereo depth error grows, by 1 / (d_src^4 + d_tgt^4),
+    its distances to them."""
     a, b = [], []
     for kt, ks in pairs:
         pt, ps = tgt.points.get(tgt.resolve_point(kt)), src.points.get(src.resolve_point(ks))
@@ -1260,7 +1264,7 @@ def _fit_pairs(
         return None, np.zeros((0, 3)), 0, None
     A, B = np.array(a), np.array(b)
     sig = np.ones(len(A))
-    if up is not None and centres is not None:
+    if up is not None and centres is not None and depth_weighted:
         d_src, d_tgt = np.linalg.norm(A - centres[0], axis=1), np.linalg.norm(B - centres[1], axis=1)
         sig = np.sqrt(d_src**4 + d_tgt**4) + 1e-9
 
@@ -1314,13 +1318,13 @@ def _umeyama(src: F64, dst: F64, with_scale: bool = True) -> Sim3:
     return Sim3(np.asarray(R), np.asarray(t).reshape(3), float(s))
 
 
-# -- compute (worker thread, no map access) ----------------------------------------------------------
 def _cv_due(n_fixes: int, n_at_last_cv: int, o: BackendOptions) -> bool:
     """Whether the GNSS stage's chain stiffness is cross-validated again (``gnss_cv_new_fixes`` more fixes
     and ``gnss_cv_growth`` more than at the last round)."""
     return n_fixes >= max(n_at_last_cv + o.gnss_cv_new_fixes, n_at_last_cv * (1.0 + o.gnss_cv_growth))
 
 
+# -- compute (worker thread, no map access) ----------------------------------------------------------
 def _gravity_disagreement_deg(
     candidate_from_query: Sim3, up_query: F64 | None, up_candidate: F64 | None
 ) -> float | None:

@@ -133,49 +133,56 @@ def fuse_gnss(
     init = np.array([enu_from_map0 @ p for p in poses])
     used = np.ones(len(fixes), dtype=bool)
 
+    # What every solve shares (the cross-validation solves 20 more times): the initial values, the links,
+    # the loose priors and attitude factors, and each chain edge's relative pose and unscaled sigmas.
+    values = gtsam.Values()
+    for k in range(n):
+        values.insert(k, gtsam.Pose3(init[k]))
+    fixed = gtsam.NonlinearFactorGraph()
+    link_noise = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([options.sigma_link_rot] * 3 + [options.sigma_link_trans] * 3)
+    )
+    for a, b in links or []:
+        fixed.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(se3_inverse(poses[a]) @ poses[b]), link_noise))
+    # Keyframes of no chain and without fixes would be unconstrained: anchor all loosely.
+    loose = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0] * 3 + [100.0] * 3))
+    for k in range(n):
+        fixed.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(init[k]), loose))
+        if options.gravity_aligned:
+            down_in_body = init[k, :3, :3].T @ np.array([0.0, 0.0, -1.0])
+            if up_in_body is not None and np.all(np.isfinite(up_in_body[k])):
+                down_in_body = -np.asarray(up_in_body[k], dtype=np.float64)
+            fixed.add(
+                gtsam.AttitudeFactorPose3(
+                    k,
+                    gtsam.Unit3(np.array([0.0, 0.0, -1.0])),
+                    gtsam.noiseModel.Isotropic.Sigma(2, options.sigma_attitude),
+                    gtsam.Unit3(down_in_body),
+                )
+            )
+    chain_edges = []
+    for chain in chains:
+        for a, b in zip(chain[:-1], chain[1:], strict=False):
+            rel = se3_inverse(poses[a]) @ poses[b]
+            dist = float(np.linalg.norm(rel[:3, 3]))
+            sig = np.array(
+                [options.sigma_floor_rot + options.sigma_rel_rot * dist] * 3
+                + [options.sigma_floor_trans + options.sigma_rel_trans * dist] * 3
+            )
+            chain_edges.append((a, b, gtsam.Pose3(rel), sig))
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k)
+    fix_models = [
+        gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(f.cov)) for f in fixes
+    ]
+
     def solve(mask: NDArray[np.bool_], scale: float = 1.0) -> F64:
         graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        for k in range(n):
-            values.insert(k, gtsam.Pose3(init[k]))
-        huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k)
-        for chain in chains:
-            for a, b in zip(chain[:-1], chain[1:], strict=False):
-                rel = se3_inverse(poses[a]) @ poses[b]
-                dist = float(np.linalg.norm(rel[:3, 3]))
-                sig = scale * np.array(
-                    [options.sigma_floor_rot + options.sigma_rel_rot * dist] * 3
-                    + [options.sigma_floor_trans + options.sigma_rel_trans * dist] * 3
-                )
-                graph.add(
-                    gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(rel), gtsam.noiseModel.Diagonal.Sigmas(sig))
-                )
-        link_noise = gtsam.noiseModel.Diagonal.Sigmas(
-            np.array([options.sigma_link_rot] * 3 + [options.sigma_link_trans] * 3)
-        )
-        for a, b in links or []:
-            rel = se3_inverse(poses[a]) @ poses[b]
-            graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(rel), link_noise))
-        for f, ok in zip(fixes, mask, strict=True):
+        for a, b, rel, sig in chain_edges:
+            graph.add(gtsam.BetweenFactorPose3(a, b, rel, gtsam.noiseModel.Diagonal.Sigmas(scale * sig)))
+        graph.push_back(fixed)
+        for f, model, ok in zip(fixes, fix_models, mask, strict=True):
             if ok:
-                model = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(f.cov))
                 graph.add(gtsam.GPSFactor(f.index, np.asarray(f.enu, dtype=np.float64), model))
-        # Keyframes of no chain and without fixes would be unconstrained: anchor all loosely.
-        loose = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0] * 3 + [100.0] * 3))
-        for k in range(n):
-            graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(init[k]), loose))
-            if options.gravity_aligned:
-                down_in_body = init[k, :3, :3].T @ np.array([0.0, 0.0, -1.0])
-                if up_in_body is not None and np.all(np.isfinite(up_in_body[k])):
-                    down_in_body = -np.asarray(up_in_body[k], dtype=np.float64)
-                graph.add(
-                    gtsam.AttitudeFactorPose3(
-                        k,
-                        gtsam.Unit3(np.array([0.0, 0.0, -1.0])),
-                        gtsam.noiseModel.Isotropic.Sigma(2, options.sigma_attitude),
-                        gtsam.Unit3(down_in_body),
-                    )
-                )
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(options.max_iterations)
         res = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
