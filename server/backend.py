@@ -44,7 +44,14 @@ from hivemap.maps.geometry import (
 )
 from hivemap.protocol import Correction, encode
 from hivemap.server.convert import split_folded
-from hivemap.server.placerec import Detection, PlaceRecognizer, PlaceRecOptions, RecognitionResult
+from hivemap.server.placerec import (
+    Detection,
+    PlaceRecognizer,
+    PlaceRecOptions,
+    RecognitionResult,
+    pair_observations,
+    refine_sim3,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -120,6 +127,10 @@ class BackendOptions:
     # its square). Factory01 challenged1, the UGV's loop between keyframes 12.5 m apart: 0.094 m without
     # (3419dbf), 0.062 m with (34f57f8), one run each; the UGV - uav3 loops stayed 0.26 and 0.55 m off
     level_depth_weighted: bool = True
+    # ... and then refined by the pairs' bidirectional reprojection error (paper 2.5.1) in yaw and
+    # translation only: a 3D-3D fit of points 10+ m from both cameras carries their stereo depth error,
+    # which a keypoint's direction does not
+    level_reprojection: bool = True
     # up directions averaged over the agent's keyframes within this many ids (0: each keyframe's own)
     level_up_window: int = 6
     pose_graph_max_move_m: float = 3.0  # a pose graph moving any keyframe farther is refused
@@ -131,6 +142,15 @@ class BackendOptions:
     # without); loops then gained less (challenged1 +14.7 %).
     pose_graph_sigma_rot: float = 0.01  # rad
     pose_graph_sigma_trans: float = 0.05  # m
+    # ... except the rotation about the keyframe's up direction (its agent's IMU, Keyframe.up_cam): VIO
+    # observes yaw far better than tilt (factory01 challenged1 at 504e86a, vio.tum vs ground truth over
+    # 15 s: yaw 0.10-0.16 deg rms, tilt 0.15-0.42 deg). At 0.01 rad a loop's yaw error turned the whole
+    # trajectory after it (the UGV -> uav3 loops, 10-12 m apart, were 0.3-1.7 deg off in yaw). None: the
+    # isotropic sigma_rot, and the default: online on factory01 (dd0765e + this option, one run each)
+    # 0.001 rad gave challenged1 +8.3% (the UGV -34%: a loop 0.43 m off then moved it sideways instead of
+    # turning it) and +32.4%, challenged2 +23.0%; with pose_graph_sigma_trans 0.02 m too, challenged1
+    # +12.0% and +30.9%; without, six challenged1 runs gave +22.0% to +31.4% (mean +28.4%)
+    pose_graph_sigma_yaw: float | None = None  # rad
     # A levelled loop's or merge's edge gets the spread of its fit over this many bootstrap resamples of
     # its point pairs (each trimmed again): the rms of their rotation and of the query camera's position,
     # at least the essential edges' sigmas. A UGV-UAV loop is held by points 10+ m from both cameras and
@@ -566,8 +586,26 @@ class Backend:
         )  # fmt: skip
         if sim is None:
             return None, floor
+        if o.level_reprojection:
+            sim = self._refine_levelled(mq, mc, det, sim, up[1])
         sd_rot, sd_trans = spread or (0.0, 0.0)
         return sim, (max(sd_rot, floor[0]), max(sd_trans, floor[1]))
+
+    def _refine_levelled(self, mq: Any, mc: Any, det: Detection, sim: Sim3, up_c: F64) -> Sim3:
+        """The levelled fit refined by its pairs' bidirectional reprojection error (paper 2.5.1) in yaw and
+        translation only (BackendOptions.level_reprojection); the fit itself if too few pairs are seen."""
+        obs = pair_observations(mq, mc, det.query_key, det.candidate_key, det.query_points,
+                                det.candidate_points)  # fmt: skip
+        if len(obs.xc) < 20:
+            return sim
+        q = mq.keyframes[det.query_key]
+        q_cfw = se3_inverse(np.asarray(q.world_from_cam, dtype=np.float64))
+        out = refine_sim3(sim, obs, q.camera, q_cfw, self.options.fix_scale, yaw_axis=up_c)
+        c = np.asarray(q.world_from_cam, dtype=np.float64)[:3, 3][None]
+        moved = float(np.linalg.norm(out.apply(c) - sim.apply(c)))
+        logger.debug("levelled %s -> %s refined on %d reprojections: query camera moved %.3f m",
+                     det.query_key, det.candidate_key, len(obs.xc), moved)  # fmt: skip
+        return out
 
     def _up_cam(self, m: Any, key: KfKey) -> F64 | None:
         """The IMU's up direction in keyframe ``key``'s camera: the mean of its agent's keyframes' up
@@ -814,10 +852,19 @@ class Backend:
                 for k in pre[1]:
                     if k in index and index[k] not in fixed:
                         initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
+            ups = None
+            if o.pose_graph_sigma_yaw is not None:
+                nan3 = np.full(3, np.nan)
+                ups = np.array([nan3 if (u := m.keyframes[k].up_cam) is None else u for k in snap.keys])
             t0 = time.perf_counter()
             sims = await loop.run_in_executor(
                 self._opt_exec,
-                partial(_pose_graph, sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)),
+                partial(
+                    _pose_graph,
+                    sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
+                    sigma_yaw=o.pose_graph_sigma_yaw,
+                    ups=ups,
+                ),  # fmt: skip
                 initial,
                 snap.poses,
                 graph_edges,
@@ -1346,9 +1393,13 @@ def _pose_graph(
     metric: bool,
     *,
     sigmas: tuple[float, float],
+    sigma_yaw: float | None = None,
+    ups: F64 | None = None,
 ) -> list[Sim3]:
     """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
     with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust.
+    ``sigma_yaw`` with ``ups`` ((N, 3) up directions in the keyframes' camera frames, NaN rows where there
+    is none): the graph's edges hold the rotation about the far keyframe's up with this sigma instead.
 
     ``metric``: the map has metric scale (stereo agents), so the graph is SE(3) (gtsam Pose3). A Sim(3)
     graph let scale creep in at each of the dozens of loop closures of a factory run until poses
@@ -1361,8 +1412,21 @@ def _pose_graph(
         relative_sim3,
     )
 
+    def up(j: int) -> tuple[float, float, float] | None:
+        if sigma_yaw is None or ups is None or not np.all(np.isfinite(ups[j])):
+            return None
+        return (float(ups[j][0]), float(ups[j][1]), float(ups[j][2]))
+
     edges = [
-        PoseGraphEdge(i, j, relative_sim3(poses[i], poses[j]), sigma_rot=sigmas[0], sigma_trans=sigmas[1])
+        PoseGraphEdge(
+            i,
+            j,
+            relative_sim3(poses[i], poses[j]),
+            sigma_rot=sigmas[0],
+            sigma_trans=sigmas[1],
+            sigma_yaw=sigma_yaw,
+            up_j=up(j),
+        )  # fmt: skip
         for i, j in graph_edges
     ]
     edges += [PoseGraphEdge(i, j, s, sr, st, robust=True) for i, j, s, sr, st in new_edges]

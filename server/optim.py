@@ -29,6 +29,9 @@ class PoseGraphEdge:
 
     ``sigma_rot`` (rad), ``sigma_trans`` (m), ``sigma_logscale`` are the standard deviations of the
     measurement; ``robust`` applies a Huber loss (loop/merge edges, paper's peers do this).
+    ``sigma_yaw`` (rad) with ``up_j`` (the unit up direction in keyframe ``j``'s camera frame, from its
+    agent's IMU): the rotation about up gets this sigma and ``sigma_rot`` is left for roll/pitch. An
+    agent's VIO measures yaw far better than tilt (see BackendOptions.pose_graph_sigma_yaw).
     """
 
     i: int
@@ -38,6 +41,21 @@ class PoseGraphEdge:
     sigma_trans: float = 0.05
     sigma_logscale: float = 0.01
     robust: bool = False
+    sigma_yaw: float | None = None
+    up_j: tuple[float, float, float] | None = None
+
+    def rotation_covariance(self) -> F64:
+        """3x3 covariance of the rotation error, in keyframe ``j``'s frame (gtsam's Between error: the
+        tangent of ``measured^-1 (X_i^-1 X_j)``, a perturbation on the ``j`` side)."""
+        cov = np.eye(3) * self.sigma_rot**2
+        if self.sigma_yaw is None or self.up_j is None:
+            return cov
+        u = np.asarray(self.up_j, dtype=np.float64)
+        norm = float(np.linalg.norm(u))
+        if not np.isfinite(norm) or norm < 1e-9:
+            return cov
+        u = u / norm
+        return cov + (self.sigma_yaw**2 - self.sigma_rot**2) * np.outer(u, u)
 
 
 @dataclass(frozen=True)
@@ -57,6 +75,24 @@ def _check_graph(name: str, n: int, edges: list[PoseGraphEdge], fixed: set[int] 
     for e in edges:
         if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
             raise IndexError(f"pose-graph edge ({e.i}, {e.j}) invalid for {n} keyframes")
+
+
+def _edge_noise(e: PoseGraphEdge, tail: list[float], options: PoseGraphOptions) -> Any:
+    """The edge's noise model: rotation block from :meth:`PoseGraphEdge.rotation_covariance`, then
+    the independent sigmas ``tail`` (translation, and log-scale for Sim(3)); Huber if robust."""
+    import gtsam
+
+    noise: Any
+    if e.sigma_yaw is None or e.up_j is None:
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([e.sigma_rot] * 3 + tail))
+    else:
+        cov = np.diag(np.r_[np.zeros(3), np.square(tail)])
+        cov[:3, :3] = e.rotation_covariance()
+        noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+    if e.robust:
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k)
+        noise = gtsam.noiseModel.Robust.Create(huber, noise)
+    return noise
 
 
 def _solve_lm(graph: Any, initial: Any, options: PoseGraphOptions) -> Any:
@@ -94,12 +130,7 @@ def optimize_pose_graph_sim3(
     for k in sorted(fixed):
         graph.add(gtsam.NonlinearEqualitySimilarity3(k, Sim3.from_se3(poses[k]).to_gtsam()))
     for e in edges:
-        sig = np.array([e.sigma_rot] * 3 + [e.sigma_trans] * 3 + [e.sigma_logscale])
-        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(sig)
-        if e.robust:
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k), noise
-            )
+        noise = _edge_noise(e, [e.sigma_trans] * 3 + [e.sigma_logscale], options)
         graph.add(gtsam.BetweenFactorSimilarity3(e.i, e.j, e.i_from_j.to_gtsam(), noise))
     result = _solve_lm(graph, initial, options)
     out = [Sim3.from_gtsam(result.atSimilarity3(k)) for k in range(n)]
@@ -135,13 +166,7 @@ def optimize_pose_graph_se3(
     for k in sorted(fixed):
         graph.add(gtsam.NonlinearEqualityPose3(k, gtsam.Pose3(poses[k])))
     for e in edges:
-        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(
-            np.array([e.sigma_rot] * 3 + [e.sigma_trans] * 3)
-        )
-        if e.robust:
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k), noise
-            )
+        noise = _edge_noise(e, [e.sigma_trans] * 3, options)
         rel = se3(e.i_from_j.R, e.i_from_j.t)
         graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(rel), noise))
     result = _solve_lm(graph, initial, options)

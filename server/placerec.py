@@ -442,19 +442,24 @@ def refine_sim3(
     fix_scale: bool,
     huber: float = 2.45,
     max_nfev: int = 50,
+    yaw_axis: F64 | None = None,
 ) -> Sim3:
     """Minimise the bidirectional reprojection error over ``[rotvec, t, log s]`` (Huber loss).
 
     With ``obs.sig3`` set, a weak 3D term ``(S Xq - Xc) / sigma`` is added: when the query and the
     candidate keyframes see the place from (almost) the same viewpoint, a similarity centred on the
     camera is invisible in the reprojections, and only the maps' 3D structure fixes the scale.
+    ``yaw_axis`` (unit up direction in the candidate map's frame): only the rotation about it is refined
+    (``sim0``'s roll/pitch kept: a levelled loop, see BackendOptions.level_reprojection).
     """
-    n_par = 6 if fix_scale else 7
+    n_rot = 3 if yaw_axis is None else 1
+    n_par = n_rot + 3 + (0 if fix_scale else 1)
+    axis = None if yaw_axis is None else np.asarray(yaw_axis, dtype=np.float64) / np.linalg.norm(yaw_axis)
 
     def make(x: F64) -> Sim3:
-        R = so3_exp(x[:3]) @ sim0.R
-        s = sim0.s if fix_scale else sim0.s * float(np.exp(x[6]))
-        return Sim3(R, sim0.t + x[3:6], s)
+        R = (so3_exp(x[:3]) if axis is None else so3_exp(axis * x[0])) @ sim0.R
+        s = sim0.s if fix_scale else sim0.s * float(np.exp(x[n_rot + 3]))
+        return Sim3(R, sim0.t + x[n_rot : n_rot + 3], s)
 
     use3 = obs.sig3 is not None and bool(obs.has_b.any())
     if use3:
@@ -472,11 +477,39 @@ def refine_sim3(
 
     # translation steps are scaled to the scene (x_scale) so the numeric Jacobian is well conditioned
     depth = float(np.median(np.linalg.norm(obs.xc - np.median(obs.xc, axis=0), axis=1))) + 1e-9
-    x_scale = np.array([0.01] * 3 + [0.01 * depth] * 3 + ([0.01] if not fix_scale else []))
+    x_scale = np.array([0.01] * n_rot + [0.01 * depth] * 3 + ([0.01] if not fix_scale else []))
     res = least_squares(
         fun, np.zeros(n_par), loss="huber", f_scale=huber, x_scale=x_scale, max_nfev=max_nfev, method="trf"
     )
     return make(res.x)
+
+
+def pair_observations(
+    mq: Any,
+    mc: Any,
+    query_key: KfKey,
+    candidate_key: KfKey,
+    query_points: Sequence[PointKey],
+    candidate_points: Sequence[PointKey],
+    n_covisible: int = 5,
+) -> _Obs:
+    """The reprojection observations of a detection's point pairs (``query_points[i]`` is
+    ``candidate_points[i]``): the query keyframe's keypoints of its paired points, and those points'
+    keypoints in the candidate keyframe and its ``n_covisible`` best covisible keyframes."""
+    q = mq.keyframes[query_key]
+    q_pk = _point_keys(q)
+    index: dict[PointKey, int] = {}
+    for i, k in enumerate(q_pk):
+        if k is not None:
+            index.setdefault(mq.resolve_point(k), i)
+    pairs: dict[int, PointKey] = {}
+    for kq, kc in zip(query_points, candidate_points, strict=True):
+        iq, pc = index.get(mq.resolve_point(kq)), mc.resolve_point(kc)
+        if iq is not None and pc in mc.points:
+            pairs.setdefault(iq, pc)
+    keys = [candidate_key, *_best_covisible(mc, candidate_key, n_covisible)]
+    window = [mc.keyframes[k] for k in dict.fromkeys(keys) if k in mc.keyframes]
+    return _observations(pairs, q, q_pk, mq, mc, window)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -746,6 +779,12 @@ class PlaceRecognizer:
         rep = CandidateReport(query_key, cand_key, cand_map, kind)
         try:
             self._verify_inner(maps, query_map, query_key, cand_map, cand_key, fix_scale, th, rep)
+        except KeyError as e:
+            # a point or keyframe the verification reads was fused away by the event loop meanwhile (9-12
+            # verifications per factory01 run were logged as errors): skipped, as a merged-away map is
+            log.debug("verification of %s against %s: %r fused meanwhile", query_key, cand_key, e)
+            rep.accepted = False
+            rep.reason = "points_fused_meanwhile"
         except Exception as e:  # a bad candidate must never break ingest; it is logged and reported
             log.exception("verification of %s against %s failed", query_key, cand_key)
             rep.accepted = False
@@ -1021,5 +1060,6 @@ __all__ = [
     "estimate_sim3_ransac",
     "match_bow",
     "match_projected",
+    "pair_observations",
     "refine_sim3",
 ]

@@ -327,3 +327,34 @@ def test_candidate_in_a_map_merged_meanwhile_is_skipped_without_error(scene, cap
     assert pr._verify(maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge").reason != (
         "map_merged_meanwhile"
     )
+
+
+def test_candidate_whose_points_were_fused_meanwhile_is_skipped_without_error(scene, caplog) -> None:
+    """The event loop fuses points while the recognition thread verifies: a point that was in the map
+    when the verification checked it and is gone when it reads it (simulated: the map's points answer
+    ``in`` but not ``[]`` for half the query keyframe's points) is reported as points_fused_meanwhile;
+    9-12 such verifications per factory01 run were logged as errors with a KeyError traceback."""
+    a, b = scene["A"], scene["B"]
+    maps = {0: a, 1: b}
+    pr = _recognizer(maps)
+    ck = sorted(b.keyframes)[5]
+    q = a.keyframes[("uavA", 5)]
+    gone = {k for k in q.point_keys[::2] if k is not None}
+
+    class Racing(dict):  # type: ignore[type-arg]
+        def __getitem__(self, k: object) -> object:
+            if k in gone:
+                raise KeyError(k)
+            return super().__getitem__(k)
+
+    real = a.points
+    a.points = Racing(real)
+    try:
+        with caplog.at_level("ERROR", logger="hivemap.server.placerec"):
+            rep = pr._verify(maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge")
+    finally:
+        a.points = real
+    assert not rep.accepted and rep.reason == "points_fused_meanwhile", rep.reason
+    assert not caplog.records
+    # the same pair verifies with its points all there
+    assert pr._verify(maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge").accepted
