@@ -128,8 +128,12 @@ class BackendOptions:
     # (3419dbf), 0.062 m with (34f57f8), one run each; the UGV - uav3 loops stayed 0.26 and 0.55 m off
     level_depth_weighted: bool = True
     # ... and then refined by the pairs' bidirectional reprojection error (paper 2.5.1) in yaw and
-    # translation only: a 3D-3D fit of points 10+ m from both cameras carries their stereo depth error,
-    # which a keypoint's direction does not
+    # translation only. Online on factory01 (dd0765e + this, one run each): challenged1 +36.0%, +37.4%,
+    # +29.4% with every agent better (six runs without: +22.0% to +31.4%, mean +28.4%), median loop error
+    # 0.029-0.036 m (0.032-0.047 m without); challenged2 +28.0%. Why is not established: on synthetic
+    # pairs with zero-mean depth noise (along the rays or isotropic) the depth-weighted 3D fit alone was
+    # 1.2-3x more accurate, and an offline replay of 78 saved loops (docs/report) improved the far loops
+    # of challenged1 but not challenged2's UGV loop.
     level_reprojection: bool = True
     # up directions averaged over the agent's keyframes within this many ids (0: each keyframe's own)
     level_up_window: int = 6
