@@ -128,9 +128,10 @@ class BackendOptions:
     # (3419dbf), 0.062 m with (34f57f8), one run each; the UGV - uav3 loops stayed 0.26 and 0.55 m off
     level_depth_weighted: bool = True
     # ... and then refined by the pairs' bidirectional reprojection error (paper 2.5.1) in yaw and
-    # translation only. Online on factory01 (dd0765e + this, one run each): challenged1 +36.0%, +37.4%,
-    # +29.4% with every agent better (six runs without: +22.0% to +31.4%, mean +28.4%), median loop error
-    # 0.029-0.036 m (0.032-0.047 m without); challenged2 +28.0%. Why is not established: on synthetic
+    # translation only. Online on factory01 (dd0765e + this), every agent better in every run:
+    # challenged1 +36.0%, +37.4%, +29.4%, +36.1% (six runs without: +22.0% to +31.4%, mean +28.4%),
+    # challenged2 +28.0%, +24.8%, +32.0% (without: +30.2%, +25.8%, +29.3%), median loop error 0.028-0.036 m
+    # (0.032-0.045 m in the nine runs without). Why is not established: on synthetic
     # pairs with zero-mean depth noise (along the rays or isotropic) the depth-weighted 3D fit alone was
     # 1.2-3x more accurate, and an offline replay of 78 saved loops (docs/report) improved the far loops
     # of challenged1 but not challenged2's UGV loop.
@@ -563,7 +564,8 @@ class Backend:
         self, det: Detection, ups: tuple[F64 | None, F64 | None] | None = None
     ) -> tuple[Sim3 | None, tuple[float, float]]:
         """The detection's Sim(3) re-fitted to its 3D pairs with roll/pitch taken from the two keyframes' IMU
-        up directions (``BackendOptions.level_gravity``; ``ups``: the query's and the candidate's from
+        up directions, then refined in yaw and translation by the pairs' reprojections (``BackendOptions.
+        level_gravity``, ``level_reprojection``; ``ups``: the query's and the candidate's from
         :meth:`_up_cam` if the caller has them), and the sigmas (rad, m) of its pose-graph edge: the fit's
         spread (``BackendOptions.loop_sigma_bootstrap``), at least the essential edges'. The Sim(3) is
         None when off, when either keyframe has no up direction, or when the pairs do not fit (the
