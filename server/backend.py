@@ -129,9 +129,10 @@ class BackendOptions:
     level_depth_weighted: bool = True
     # ... and then refined by the pairs' bidirectional reprojection error (paper 2.5.1) in yaw and
     # translation only. Online on factory01 (dd0765e + this), every agent better in every run:
-    # challenged1 +36.0%, +37.4%, +29.4%, +36.1% (six runs without: +22.0% to +31.4%, mean +28.4%),
-    # challenged2 +28.0%, +24.8%, +32.0% (without: +30.2%, +25.8%, +29.3%), median loop error 0.028-0.036 m
-    # (0.032-0.045 m in the nine runs without). Why is not established: on synthetic
+    # challenged1 +36.0%, +37.4%, +29.4%, +36.1%, +34.5% (mean +34.7%; six runs without: +22.0% to
+    # +31.4%, mean +28.4%), challenged2 +28.0%, +24.8%, +32.0%, +31.9% (mean +29.2%; without: +30.2%,
+    # +25.8%, +29.3%); median loop error 0.028-0.042 m (0.032-0.045 m in the nine runs without). Why is
+    # not established: on synthetic
     # pairs with zero-mean depth noise (along the rays or isotropic) the depth-weighted 3D fit alone was
     # 1.2-3x more accurate, and an offline replay of 78 saved loops (docs/report) improved the far loops
     # of challenged1 but not challenged2's UGV loop.
