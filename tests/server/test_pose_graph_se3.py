@@ -45,7 +45,8 @@ def test_loop_edge_removes_drift_and_keeps_rotations_orthonormal() -> None:
 def _yaw_chain(n: int) -> tuple[list[np.ndarray], np.ndarray]:
     """Gravity-aligned camera poses (z forward, y down) driving 1 m per keyframe along a gentle curve,
     and the up direction in the camera frame."""
-    base = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # cam axes in world: x=-y_w...
+    # world_from_cam rotation: camera x = world -y, camera y = world -z (down), camera z = world x
+    base = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     truth, yaw, p = [], 0.0, np.zeros(3)
     for _ in range(n):
         R = so3_exp(np.array([0.0, 0.0, yaw])) @ base
