@@ -606,12 +606,14 @@ class Backend:
         if len(obs.xc) < 20:
             return sim
         q = mq.keyframes[det.query_key]
-        q_cfw = se3_inverse(np.asarray(q.world_from_cam, dtype=np.float64))
+        world_from_cam = np.asarray(q.world_from_cam, dtype=np.float64)
+        q_cfw = se3_inverse(world_from_cam)
         out = refine_sim3(sim, obs, q.camera, q_cfw, self.options.fix_scale, yaw_axis=up_c)
-        c = np.asarray(q.world_from_cam, dtype=np.float64)[:3, 3][None]
-        moved = float(np.linalg.norm(out.apply(c) - sim.apply(c)))
-        logger.debug("levelled %s -> %s refined on %d reprojections: query camera moved %.3f m",
-                     det.query_key, det.candidate_key, len(obs.xc), moved)  # fmt: skip
+        if logger.isEnabledFor(logging.DEBUG):
+            c = world_from_cam[:3, 3][None]
+            logger.debug("levelled %s -> %s refined on %d reprojections: query camera moved %.3f m",
+                         det.query_key, det.candidate_key, len(obs.xc),
+                         float(np.linalg.norm(out.apply(c) - sim.apply(c))))  # fmt: skip
         return out
 
     def _up_cam(self, m: Any, key: KfKey) -> F64 | None:
@@ -859,10 +861,7 @@ class Backend:
                 for k in pre[1]:
                     if k in index and index[k] not in fixed:
                         initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
-            ups = None
-            if o.pose_graph_sigma_yaw is not None:
-                nan3 = np.full(3, np.nan)
-                ups = np.array([nan3 if (u := m.keyframes[k].up_cam) is None else u for k in snap.keys])
+            ups = _up_rows(m, snap.keys) if o.pose_graph_sigma_yaw is not None else None
             t0 = time.perf_counter()
             sims = await loop.run_in_executor(
                 self._opt_exec,
@@ -1162,10 +1161,7 @@ class Backend:
         links = self._gnss_links(m, keys)
         # the agents' IMU up directions (camera frame = antenna frame's rotation): the attitude factors hold
         # those keyframes to gravity, the others to the map's own roll/pitch
-        up = None
-        if self.options.gnss_agent_up:
-            nan3 = np.full(3, np.nan)
-            up = np.array([nan3 if m.keyframes[k].up_cam is None else m.keyframes[k].up_cam for k in keys])
+        up = _up_rows(m, keys) if self.options.gnss_agent_up else None
         snap = _Snapshot(m.id, self._generation.get(m.id, 0), keys, poses)
         # the chain's stiffness is cross-validated on the fixes (GnssStageOptions.stiffness_scales), again
         # only once enough more have arrived (_cv_due): a round is 20 more solves (0.6 s in all on
@@ -1370,6 +1366,12 @@ def _umeyama(src: F64, dst: F64, with_scale: bool = True) -> Sim3:
 
     R, t, s = umeyama_alignment(src.T, dst.T, with_scale=with_scale)
     return Sim3(np.asarray(R), np.asarray(t).reshape(3), float(s))
+
+
+def _up_rows(m: Any, keys: list[KfKey]) -> F64:
+    """(N, 3): each keyframe's IMU up direction in its camera frame (``Keyframe.up_cam``), NaN where none."""
+    nan3 = np.full(3, np.nan)
+    return np.array([nan3 if (u := m.keyframes[k].up_cam) is None else u for k in keys], dtype=np.float64)
 
 
 def _cv_due(n_fixes: int, n_at_last_cv: int, o: BackendOptions) -> bool:

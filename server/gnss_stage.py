@@ -189,12 +189,10 @@ def fuse_gnss(
         return np.array([res.atPose3(k).matrix() for k in range(n)])
 
     scale = options.stiffness_scales[0] if stiffness_scale is None else stiffness_scale
+    covs = [np.asarray(f.cov, dtype=np.float64) for f in fixes]
     out = solve(used, scale)
     for _ in range(3):
-        res = out[idx, :3, 3] - enu
-        maha = np.array(
-            [float(np.sqrt(r @ np.linalg.solve(f.cov, r))) for r, f in zip(res, fixes, strict=True)]
-        )
+        maha = np.sqrt(_mahalanobis2(out[idx, :3, 3] - enu, covs))
         bad = used & (maha > options.outlier_sigma)
         if not bad.any():
             break
@@ -208,7 +206,7 @@ def fuse_gnss(
         out = solve(used, scale)
     scores = None
     if stiffness_scale is None and len(options.stiffness_scales) > 1 and used.sum() >= options.cv_min_fixes:
-        scores = _cross_validate(solve, used, idx, enu, [f.cov for f in fixes], options)
+        scores = _cross_validate(solve, used, idx, enu, covs, options)
         best = min(scores, key=lambda k: scores[k])
         if best != scale:
             scale = best
@@ -238,18 +236,22 @@ def _cross_validate(
     fold[rows] = np.arange(len(rows)) % options.cv_folds
     scores: dict[float, float] = {}
     for scale in options.stiffness_scales:
-        d2 = []
+        d2: list[F64] = []
         for f in range(options.cv_folds):
             held = fold == f
             if not held.any():
                 continue
             pred = solve(used & ~held, scale)
-            for i in np.flatnonzero(held):
-                r = pred[idx[i], :3, 3] - enu[i]
-                d2.append(float(r @ np.linalg.solve(covs[i], r)))
-        scores[float(scale)] = float(np.mean(d2))
+            rows_f = np.flatnonzero(held)
+            d2.append(_mahalanobis2(pred[idx[rows_f], :3, 3] - enu[rows_f], [covs[i] for i in rows_f]))
+        scores[float(scale)] = float(np.mean(np.concatenate(d2)))
     log.info("GNSS stage stiffness by cross-validation: %s", {k: round(v, 2) for k, v in scores.items()})
     return scores
+
+
+def _mahalanobis2(res: F64, covs: list[F64]) -> F64:
+    """Squared Mahalanobis distance of each residual row (N, 3) under its covariance."""
+    return np.array([float(r @ np.linalg.solve(c, r)) for r, c in zip(res, covs, strict=True)])
 
 
 def _rigid_fit(src: F64, dst: F64, yaw_only: bool) -> tuple[F64, F64]:

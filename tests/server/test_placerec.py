@@ -333,7 +333,7 @@ def test_candidate_whose_points_were_fused_meanwhile_is_skipped_without_error(sc
     """The event loop fuses points while the recognition thread verifies: a point that was in the map
     when the verification checked it and is gone when it reads it (simulated: the map's points answer
     ``in`` but not ``[]`` for half the query keyframe's points) is reported as points_fused_meanwhile;
-    9-12 such verifications per factory01 run were logged as errors with a KeyError traceback."""
+    two factory01 challenged1 runs logged 9 and 12 such KeyError tracebacks as errors."""
     a, b = scene["A"], scene["B"]
     maps = {0: a, 1: b}
     pr = _recognizer(maps)
