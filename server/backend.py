@@ -49,6 +49,7 @@ from hivemap.server.placerec import (
     PlaceRecognizer,
     PlaceRecOptions,
     RecognitionResult,
+    correction_of,
     pair_observations,
     refine_sim3,
 )
@@ -108,6 +109,9 @@ class BackendOptions:
     # metric maps: loop closures asking for a larger correction of the query are refused as false
     loop_max_correction_m: float = 1.0
     loop_max_correction_deg: float = 5.0
+    # ... and place recognition already rejects loop candidates beyond these limits (PlaceRecOptions.
+    # loop_max_correction_*), so a false candidate neither wins a query nor restarts the consistency count
+    gate_loop_candidates: bool = True
     # A loop whose measured relative rotation disagrees with both keyframes' IMU up directions
     # (Keyframe.up_cam) by more than this is refused: its tilt error puts the far keyframe off in height.
     # Factory01 GNSS-challenged at 001a1ea, 81 loops: that disagreement tracked the loops' true rotation
@@ -256,7 +260,12 @@ class Backend:
             from hivemap.maps.vocabulary import default_vocabulary
 
             vocab = self._vocabulary if self._vocabulary is not None else default_vocabulary()
-            self.recognizer = PlaceRecognizer(vocab, KeyframeDatabase(), self.options.placerec)
+            o = self.options
+            pr = o.placerec
+            if o.fix_scale and o.gate_loop_candidates:
+                pr = replace(pr, loop_max_correction_m=o.loop_max_correction_m,
+                             loop_max_correction_deg=o.loop_max_correction_deg)  # fmt: skip
+            self.recognizer = PlaceRecognizer(vocab, KeyframeDatabase(), pr)
 
         await loop.run_in_executor(self._pr_exec, init)
         # keyframes reloaded from the store are indexed by the worker first (no detection on them); the
@@ -666,9 +675,7 @@ class Backend:
             # Metric (stereo-inertial) maps drift by decimetres, not metres: a loop that would move the
             # query farther or turn it more is a false match (factory01: one 57-inlier loop asking for
             # metres bent the map until the GNSS stage rejected every fix).
-            q_new = det.target_from_source.transform_pose(m.keyframes[det.query_key].world_from_cam)
-            move = float(np.linalg.norm(q_new[:3, 3] - Tq.t))
-            turn = rotation_angle_deg(det.target_from_source.R)
+            move, turn = correction_of(det.target_from_source, m.keyframes[det.query_key].world_from_cam)
             if move > o.loop_max_correction_m or turn > o.loop_max_correction_deg:
                 self.server.events.add(
                     "loop",

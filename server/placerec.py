@@ -102,6 +102,16 @@ class PlaceRecOptions:
     feasibility_ratio: float = 0.3
     use_feasibility: bool = True
     max_verifications: int = 64  # budget per query
+    # Loops (query and candidate in one map, whose frame already holds both): a candidate whose transform
+    # would move the query keyframe farther, or turn it more, than this is a false match and is rejected
+    # as "implausible_correction" right after RANSAC and again after refinement, so it neither costs the
+    # guided search nor displaces a true candidate of the same query. 0 disables (the server sets them
+    # from BackendOptions.loop_max_correction_* for metric agents). Factory01, four runs at bb84f09
+    # behaviour: 40-43 % of the queries that had an accepted loop candidate had a best one asking for
+    # more than 1 m (up to 40 m and 13 deg: the rendered site repeats its textures), and each of those
+    # restarted its agent's consistency count.
+    loop_max_correction_m: float = 0.0
+    loop_max_correction_deg: float = 0.0
 
 
 @dataclass
@@ -482,6 +492,12 @@ def refine_sim3(
         fun, np.zeros(n_par), loss="huber", f_scale=huber, x_scale=x_scale, max_nfev=max_nfev, method="trf"
     )
     return make(res.x)
+
+
+def correction_of(sim: Sim3, world_from_cam: Any) -> tuple[float, float]:
+    """How far (m) and how much (deg) the similarity ``sim`` moves and turns a camera pose."""
+    c = np.asarray(world_from_cam, dtype=np.float64)[:3, 3]
+    return float(np.linalg.norm(sim.apply(c) - c)), rotation_angle_deg(sim.R)
 
 
 def pair_observations(
@@ -876,6 +892,8 @@ class PlaceRecognizer:
             rep.reason = "few_ransac_inliers"
             return
         sim_ransac = sim
+        if rep.kind == "loop" and self._implausible_correction(sim, q.world_from_cam, rep):
+            return
 
         # 3. guided search both ways, refine, guided search again, refine again
         q_cfw = se3_inverse(np.asarray(q.world_from_cam, dtype=np.float64))
@@ -917,9 +935,22 @@ class PlaceRecognizer:
         if rep.n_inliers < th.min_projected:
             rep.reason = "few_projected_inliers"
             return
+        if rep.kind == "loop" and self._implausible_correction(sim, q.world_from_cam, rep):
+            return
         rep.accepted = True
         rep.reason = "accepted"
         rep.query_xyz = np.array([mq.points[k].xyz for k in rep.query_points], dtype=np.float64)
+
+    def _implausible_correction(self, sim: Sim3, world_from_cam: Any, rep: CandidateReport) -> bool:
+        """True (and ``rep.reason`` set) when a loop's ``sim`` moves the query keyframe beyond the limits."""
+        o = self.options
+        if o.loop_max_correction_m <= 0 and o.loop_max_correction_deg <= 0:
+            return False
+        move, turn = correction_of(sim, world_from_cam)
+        if (0 < o.loop_max_correction_m < move) or (0 < o.loop_max_correction_deg < turn):
+            rep.reason = "implausible_correction"
+            return True
+        return False
 
     def _guided(
         self,
@@ -1057,6 +1088,7 @@ __all__ = [
     "PlaceRecognizer",
     "RecognitionResult",
     "Thresholds",
+    "correction_of",
     "estimate_sim3_ransac",
     "match_bow",
     "match_projected",

@@ -9,6 +9,8 @@ world under a known Sim(3) (scale 2.5, as a monocular agent's), so place recogni
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -19,6 +21,8 @@ from hivemap.maps.kfdb import KeyframeDatabase
 from hivemap.maps.vocabulary import default_vocabulary, hamming_matrix
 from hivemap.server.placerec import (
     PlaceRecognizer,
+    PlaceRecOptions,
+    correction_of,
     estimate_sim3_ransac,
     match_bow,
     match_projected,
@@ -294,15 +298,23 @@ def test_gnss_retry_with_lowered_thresholds(scene) -> None:
     _check_sim(retry.detection.target_from_source, S_TRUE)
 
 
+LOOP_DRIFT = Sim3(so3_exp(np.array([0.0, 0.03, 0.01])), np.array([0.8, -0.2, 0.3]), 1.04)
+
+
+def _loop_map() -> dict[int, Map]:
+    """One agent passing the same place twice, its second pass (ids from 10000) drifted by LOOP_DRIFT."""
+    rng = np.random.default_rng(11)
+    pts, desc = _world(rng, 2500, (-20, 30))
+    m = _make_map(rng, 0, "uavL", pts, desc, np.linspace(-6, 6, 8), Sim3.identity())
+    _make_map(rng, 0, "uavL", pts, desc, np.linspace(-5, 7, 8), LOOP_DRIFT, into=m, id0=10_000)
+    return {0: m}
+
+
 def test_intra_map_loop_with_drift() -> None:
     """One agent passes the same place twice; its second pass drifted by a small Sim(3) (as monocular
     VO does). A loop is found in its own map, outside the covisible keyframes, with the drift."""
-    rng = np.random.default_rng(11)
-    pts, desc = _world(rng, 2500, (-20, 30))
-    drift = Sim3(so3_exp(np.array([0.0, 0.03, 0.01])), np.array([0.8, -0.2, 0.3]), 1.04)
-    m = _make_map(rng, 0, "uavL", pts, desc, np.linspace(-6, 6, 8), Sim3.identity())
-    _make_map(rng, 0, "uavL", pts, desc, np.linspace(-5, 7, 8), drift, into=m, id0=10_000)
-    maps = {0: m}
+    maps = _loop_map()
+    drift = LOOP_DRIFT
     pr = _recognizer(maps)
     dets = [pr.detect(maps, 0, ("uavL", 10_000 + k), n_agents=1).detection for k in (3, 4, 5)]
     assert all(d is not None and d.is_loop and d.candidate_key[1] < 10_000 for d in dets), dets
@@ -310,6 +322,35 @@ def test_intra_map_loop_with_drift() -> None:
     assert last is not None and last.confirmed
     # query points (second pass, drifted frame) -> candidate points (first pass): the inverse drift
     _check_sim(last.target_from_source, drift.inverse())
+
+
+def test_loop_candidate_asking_for_an_implausible_correction_is_rejected() -> None:
+    """A loop candidate whose transform would move the query keyframe farther (or turn it more) than
+    PlaceRecOptions.loop_max_correction_m/_deg is a false match (the rendered site repeats its textures):
+    it is rejected as implausible_correction, so it cannot win the query. The same loop within the
+    limits is accepted, and correction_of measures its move as the true drift's (5 %)."""
+    maps = _loop_map()
+    q = ("uavL", 10_004)
+    centre = maps[0].keyframes[q].world_from_cam[:3, 3]
+    true_move = float(np.linalg.norm(LOOP_DRIFT.inverse().apply(centre) - centre))
+    assert 0.5 < true_move < 3.0, true_move
+
+    def detect(**limits: float) -> tuple[PlaceRecognizer, Any]:
+        pr = PlaceRecognizer(default_vocabulary(), KeyframeDatabase(), PlaceRecOptions(**limits))  # type: ignore[arg-type]
+        for kf in maps[0].keyframes.values():
+            pr.add_keyframe(0, kf)
+        return pr, pr.detect(maps, 0, q, n_agents=1)
+
+    _, ok = detect(loop_max_correction_m=2 * true_move, loop_max_correction_deg=5.0)
+    assert ok.detection is not None and ok.detection.candidate_key[1] < 10_000
+    move, turn = correction_of(ok.detection.target_from_source, maps[0].keyframes[q].world_from_cam)
+    assert abs(move / true_move - 1) < 0.05 and turn < 5.0, (move, true_move, turn)
+
+    for limits in ({"loop_max_correction_m": 0.5 * true_move}, {"loop_max_correction_deg": 0.5 * turn}):
+        _, res = detect(**limits)
+        assert res.detection is None, limits
+        reasons = [c.reason for c in res.candidates]
+        assert "implausible_correction" in reasons and not any(c.accepted for c in res.candidates), reasons
 
 
 def test_candidate_in_a_map_merged_meanwhile_is_skipped_without_error(scene, caplog) -> None:
