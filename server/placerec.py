@@ -107,7 +107,7 @@ class PlaceRecOptions:
     # as "implausible_correction" right after RANSAC and again after refinement, so it neither costs the
     # guided search nor displaces a true candidate of the same query. 0 disables (the server sets them
     # from BackendOptions.loop_max_correction_* for metric agents). Factory01, four runs at bb84f09
-    # behaviour: 40-43 % of the queries that had an accepted loop candidate had a best one asking for
+    # behaviour: 41-44 % of the queries that had an accepted loop candidate had a best one asking for
     # more than 1 m (up to 40 m and 13 deg: the rendered site repeats its textures), and each of those
     # restarted its agent's consistency count.
     loop_max_correction_m: float = 0.0
