@@ -1187,8 +1187,6 @@ class Backend:
             self.server.events.add("gnss_stage", f"map {m.id}: {exc}", map_id=m.id)
             return
         cv = res.cv_scores
-        if cv is not None:
-            self._gnss_scale[m.id] = (len(fixes), res.stiffness_scale)
         used = int(np.sum(res.used))
         med = float(np.median(res.residuals_m))
         o = self.options
@@ -1207,6 +1205,10 @@ class Backend:
         new_cam = np.asarray(res.world_from_body) @ np.array([se3_inverse(T) for T in cam_from_ant])
         corr = {k: Sim3.from_se3(new_cam[i]) @ Sim3.from_se3(poses[i]).inverse() for i, k in enumerate(keys)}
         self._apply_corrections(cur, corr, {})
+        if cv is not None:
+            # kept only with a result that is applied: a stage refused, or dropped because the map changed
+            # meanwhile (a merge during the solve), leaves the next stage to cross-validate the map it sees
+            self._gnss_scale[cur.id] = (len(fixes), res.stiffness_scale)
         # the bend alone, without the rigid move into ENU: the unbent poses are in the map's (new) frame,
         # like the keyframes of agents that join the map later
         rigid = Sim3.from_se3(np.asarray(res.enu_from_map))

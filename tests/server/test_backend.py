@@ -250,6 +250,43 @@ def test_gnss_stage_moves_merged_map_into_enu(srv: Server) -> None:
     assert all(d["stiffness_scale"] == cvs[-1]["stiffness_scale"] for d in again)
 
 
+def test_gnss_stage_dropped_by_a_map_change_leaves_cross_validation_to_the_next(srv: Server) -> None:
+    """A GNSS stage whose map changes during its solve (a merge, here a bumped generation) is dropped; its
+    cross-validated stiffness must not be kept, or the next stage on the changed map would skip the
+    cross-validation (seen as a flaky ``test_gnss_stage_moves_merged_map_into_enu``: the UGV-only stage at
+    its 10th fix raced the merge, and no stage event carried CV scores)."""
+    rng = np.random.default_rng(4)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    ugv_msgs, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, gnss_sigma=0.05)
+    with stream(srv, "ugv1", "ugv", ugv_msgs):
+        srv.wait_idle()
+    be = srv.backend
+    m = srv.call(lambda: next(iter(srv.hive.stack.maps.values())))
+    srv.call(lambda: be._gnss_scale.pop(m.id, None))  # as if cross-validation were due again
+
+    def stages() -> list[dict]:
+        evs = srv.call(lambda: srv.hive.events.since(0, kind="gnss_stage"))
+        return [e.data for e in evs if e.data and "stiffness_scale" in e.data]
+
+    n0 = len(stages())
+    gate = threading.Event()
+    be._opt_exec.submit(gate.wait, 30)  # the optimiser thread is busy: the stage's solve waits behind it
+    fut = asyncio.run_coroutine_threadsafe(be._gnss_stage(m), srv.hive.loop)
+
+    def change() -> None:
+        be._generation[m.id] = be._generation.get(m.id, 0) + 1
+
+    time.sleep(0.3)
+    srv.call(change)
+    gate.set()
+    fut.result(60)
+    assert len(stages()) == n0 and srv.call(lambda: be._gnss_scale.get(m.id)) is None
+    asyncio.run_coroutine_threadsafe(be._gnss_stage(m), srv.hive.loop).result(60)
+    new = stages()[n0:]
+    assert len(new) == 1 and new[0]["cv_scores"] is not None
+    assert srv.call(lambda: be._gnss_scale.get(m.id)) == (10, new[0]["stiffness_scale"])
+
+
 def test_gnss_guided_retry_merges_two_enu_maps(tmp_path: Path) -> None:
     """Paper 2.5.3: visual place recognition is made to fail (it needs 10^6 inliers), both agents have
     GNSS, so the GNSS stage puts each map into ENU; the GNSS-guided retry then verifies the place where
