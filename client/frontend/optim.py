@@ -94,7 +94,8 @@ def chi2_of(k: Intrinsics, pc: F64, meas: F64, inv_sigma2: F64) -> F64:
     return chi2
 
 
-def _thresholds(meas: F64) -> F64:
+def chi2_thresholds(meas: F64) -> F64:
+    """Per observation: the 95% chi2 gate, 2 DoF (mono) or 3 DoF (with a right-image coordinate)."""
     return np.where(np.isnan(meas[:, 2]), CHI2_MONO, CHI2_STEREO)
 
 
@@ -142,7 +143,7 @@ def optimize_pose(
     X (N,3) world points, meas (N,3) [u, v, uR|NaN], inv_sigma2 (N,).  Returns (T_cw, inliers).
     """
     T = T_cw.copy()
-    th = _thresholds(meas)
+    th = chi2_thresholds(meas)
     inl = np.ones(len(X), bool)
     for rnd in range(rounds):
         for _ in range(iterations):
@@ -196,7 +197,7 @@ def _ba_cost(k: Intrinsics, poses: F64, points: F64, prob: BAProblem, active: ND
     pc = np.einsum("nij,nj->ni", R, points[prob.pt_idx]) + t
     chi2 = chi2_of(k, pc, prob.meas, prob.inv_sigma2)
     chi2 = np.where(np.isfinite(chi2), chi2, 1e6)
-    return _robust_cost(chi2[active], _thresholds(prob.meas)[active])
+    return _robust_cost(chi2[active], chi2_thresholds(prob.meas)[active])
 
 
 def bundle_adjust(
@@ -210,7 +211,7 @@ def bundle_adjust(
     poses = prob.poses.copy()
     points = prob.points.copy()
     act = np.ones(n_obs, bool) if active is None else active.copy()
-    th_all = _thresholds(prob.meas)
+    th_all = chi2_thresholds(prob.meas)
     free_index = -np.ones(C, np.int64)
     free = np.flatnonzero(~prob.fixed)
     free_index[free] = np.arange(len(free))

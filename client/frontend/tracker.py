@@ -14,10 +14,11 @@ from numpy.typing import NDArray
 from hivemap.client.frontend.features import OrbExtractor
 from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore, hamming
 from hivemap.client.frontend.optim import (
-    CHI2_MONO,
     BAProblem,
     Intrinsics,
     bundle_adjust,
+    chi2_of,
+    chi2_thresholds,
     optimize_pose,
     pose_hessian,
     project,
@@ -758,11 +759,16 @@ class Frontend:
             Xh = cv2.triangulatePoints(kf.T_cw[:3], nk.T_cw[:3], x1[:, :2].T, x2[:, :2].T)
             Xw = (Xh[:3] / np.where(np.abs(Xh[3]) > 1e-12, Xh[3], 1e-12)).T
             good = np.isfinite(Xw).all(1)
+            # Each view's reprojection, with the right-image coordinate where the keypoint has one (as
+            # local BA will weigh it): two views alone only check the epipolar line, so a wrong match
+            # along it (repeated posters on a wall, factory01's UGV at t=24-26 s) triangulates at a
+            # wrong depth that its stereo measurement contradicts. Such points entered local BA with
+            # chi2 in the thousands and pulled keyframes seeing mostly far points by 0.4-2 m.
             for T, f, idx in ((kf.T_cw, f1, ia), (nk.T_cw, f2, ib)):
                 pc = Xw @ T[:3, :3].T + T[:3, 3]
-                uvr = project(self.k, pc)
-                e = uvr[:, :2] - f.kpu[idx]
-                good &= (pc[:, 2] > 0.1) & ((e * e).sum(1) * f.inv_sigma2[idx] < CHI2_MONO)
+                meas = f.meas[idx]
+                chi2 = chi2_of(self.k, pc, meas, f.inv_sigma2[idx])
+                good &= (pc[:, 2] > 0.1) & (chi2 < chi2_thresholds(meas))
             if not good.any():
                 continue
             ia, ib, Xw = ia[good], ib[good], Xw[good]

@@ -202,3 +202,46 @@ def test_events_convert_to_maps_model() -> None:
     n_obs = sum(len(p.observations) for p in m.points.values())
     n_refs = sum(int((k.point_ids >= 0).sum()) for k in m.keyframes.values())
     assert n_obs == n_refs > 0
+
+
+def test_triangulation_rejects_a_wrong_match_its_stereo_depth_contradicts() -> None:
+    """Two keyframes 0.5 m apart see 30 points at 20 m (distinct descriptors) and 10 "repeated posters":
+    keyframe A sees poster P, keyframe B sees only its copy 1.5 m to the left, with the same descriptor.
+    That match lies on A's epipolar line, so two-view triangulation puts it at 5 m with zero mono
+    reprojection error; only A's stereo measurement (P at 20 m) contradicts it. The true points are
+    triangulated (within 0.3 m at 20 m), the posters are not (before the stereo check, all 10 were, at
+    5 m: factory01's UGV local BA then pulled keyframes by 0.4-2 m)."""
+    from hivemap.client.frontend.mapdata import Frame, KeyframeData
+
+    seq, _ = _sequence()
+    fe = Frontend(seq.rig, imu_params=None)
+    k = fe.k
+    rng = np.random.default_rng(5)
+    true_pts = np.c_[rng.uniform(-6, 6, 30), rng.uniform(-3, 3, 30), np.full(30, 20.0)]
+    posters = np.c_[rng.uniform(-4, 4, 10), rng.uniform(-3, 3, 10), np.full(10, 20.0)]
+    copies = posters - [1.5, 0.0, 0.0]
+    d_true = rng.integers(0, 256, (30, 32), dtype=np.uint8)
+    d_post = rng.integers(0, 256, (10, 32), dtype=np.uint8)
+    centres = {0: np.zeros(3), 1: np.array([0.5, 0.0, 0.0])}
+    seen = {
+        0: (np.r_[true_pts, posters], np.r_[d_true, d_post]),
+        1: (np.r_[true_pts, copies], np.r_[d_true, d_post]),
+    }
+    for kid in (0, 1):
+        T_cw = se3_inverse(se3(np.eye(3), centres[kid]))
+        X, desc = seen[kid]
+        pc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
+        meas = project(k, pc)
+        n = len(X)
+        frame = Frame(
+            t=float(kid), uv=meas[:, :2].astype(np.float32), octaves=np.zeros(n, np.uint8), desc=desc,
+            kpu=meas[:, :2].copy(), pts_cam=pc, meas=meas, inv_sigma2=np.ones(n),
+            point_ids=-np.ones(n, np.int64), T_cw=T_cw,
+        )  # fmt: skip
+        fe._kfs[kid] = KeyframeData(kid, 0, frame, T_cw)
+    fe._triangulate(fe._kfs[1])
+    ids_b = fe._kfs[1].frame.point_ids
+    made_true, made_post = ids_b[:30], ids_b[30:]
+    assert (made_true >= 0).all()
+    assert np.abs(fe._pts.xyz[made_true] - true_pts).max() < 0.3
+    assert (made_post < 0).all(), fe._pts.xyz[made_post[made_post >= 0]]
