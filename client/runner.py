@@ -464,8 +464,10 @@ class OfflineAgent:
                 self.corrections_refused += 1
                 continue
             priors[node] = (prior, cov)
-        # each correction is a whole snapshot of the server's estimate: it replaces the previous priors
-        self.stage.set_colocations(priors, enu=enu and self.gnss_used > 0)
+        # each correction is a whole snapshot of the server's estimate for one session: it replaces that
+        # session's previous priors (and only those)
+        scope = {n for (s, _), n in self._node_of.items() if s == int(session)}
+        self.stage.set_colocations(priors, enu=enu and self.gnss_used > 0, scope=scope)
         n = len(priors)
         self.corrections_applied += n
         return n

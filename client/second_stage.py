@@ -659,18 +659,26 @@ class SecondStage:
         (h,) = self._commit([factor], {}, remove=[old] if old is not None else None)
         self._colocation_handle[kf_id] = h
 
-    def set_colocations(self, priors: dict[int, tuple[F64, F64]], enu: bool = False) -> None:
-        """Replace every co-location factor by ``priors`` (kf_id -> (local_from_kf, 6x6 cov)) in one update.
+    def set_colocations(
+        self, priors: dict[int, tuple[F64, F64]], enu: bool = False, scope: set[int] | None = None
+    ) -> None:
+        """Replace the co-location factors of the keyframes in ``scope`` (None: every keyframe) by
+        ``priors`` (kf_id -> (local_from_kf, 6x6 cov)) in one update.
 
         A server correction is one consistent snapshot of the server's estimate expressed through one
         ``global_from_local``; priors kept from older corrections were expressed through older transforms
         and pulled against the new ones (factory01, GNSS denied: the agents' local trajectories ended
-        worse than both their VIO and the server's map)."""
+        worse than both their VIO and the server's map). The server sends one correction per front-end
+        session, so an agent that lost tracking gets one for each: ``scope`` is the session's keyframes,
+        and one session's snapshot must leave the other's priors alone (factory06 challenged2, uav1 after
+        its loss at t = 69.5 s: session 1's 1-keyframe correction replaced session 0's 14 priors while
+        session 0 held its own fixes out, session 0 slid off ENU, the next corrections were refused by
+        the agent's 1 m gate and it ended in its VIO frame, 14 m from ENU)."""
         gtsam = self._gtsam
         sig = self.options.colocation_offset_sigma
         factors, owners = [], []
         for kf_id, (pose, cov) in priors.items():
-            if kf_id not in self._kfs:
+            if kf_id not in self._kfs or (scope is not None and kf_id not in scope):
                 continue
             T = gtsam.Pose3(np.asarray(pose, dtype=np.float64).reshape(4, 4))
             noise = _gaussian(np.asarray(cov).reshape(6, 6))
@@ -679,22 +687,21 @@ class SecondStage:
             else:
                 factors.append(gtsam.BetweenFactorPose3(_okey(), _key(kf_id), T, noise))
             owners.append(kf_id)
-        old = list(self._colocation_handle.values())
-        self._colocation_handle.clear()
+        replaced = [k for k in self._colocation_handle if scope is None or k in scope]
+        old = [self._colocation_handle.pop(k) for k in replaced]
         self._colocation_enu = enu
         # this agent's fixes the server already fused (options.colocation_enu_holds_own_fixes)
         restore: list[Any] = []
         if enu and owners and self.options.colocation_enu_holds_own_fixes:
             pos = {k: i for i, k in enumerate(self._order)}
             last = max(pos[k] for k in owners)
-            for kf_id in [k for k in self._gnss_handles if pos[k] <= last]:
+            for kf_id in [k for k in self._gnss_handles if pos[k] <= last and (scope is None or k in scope)]:
                 hs = self._gnss_handles.pop(kf_id)
                 self._gnss_held[kf_id] = [self._factors[h] for h in hs]
                 old += hs
         elif not enu and self._gnss_held:
-            for kf_id, fs in self._gnss_held.items():
-                restore += [(kf_id, f) for f in fs]
-            self._gnss_held.clear()
+            for kf_id in [k for k in self._gnss_held if scope is None or k in scope]:
+                restore += [(kf_id, f) for f in self._gnss_held.pop(kf_id)]
         factors += [f for _, f in restore]
         if not factors and not old:
             return
