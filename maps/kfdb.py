@@ -191,14 +191,17 @@ class KeyframeDatabase:
         only_map: int | None = None,
         exclude_keys: Iterable[KfKey] = (),
         min_score: float = 0.0,
+        scores: NDArray[np.float64] | None = None,
     ) -> list[tuple[KfKey, float]]:
         """Best ``n`` keyframes by L1 score, highest first.
 
         ``exclude_map``: skip keyframes of that map (merge candidates: "only other maps");
         ``only_map``: only that map (loop candidates: pass the query's covisible keyframes and itself in
-        ``exclude_keys``, and ORB-SLAM's lowest covisible score as ``min_score``).
+        ``exclude_keys``, and ORB-SLAM's lowest covisible score as ``min_score``);
+        ``scores``: ``self.scores(bow)`` if the caller has it already (one query's merge, loop and
+        feasibility look-ups share it: the scoring is most of a look-up's time).
         """
-        s = self.scores(bow)
+        s = self.scores(bow) if scores is None else scores
         if len(s) == 0 or n <= 0:
             return []
         ok = self._alive[: len(s)] & (s > max(min_score, 0.0))
@@ -230,13 +233,15 @@ class KeyframeDatabase:
         ratio: float = 0.5,
         min_score: float = 0.01,
         exclude_keys: Iterable[KfKey] = (),
+        scores: NDArray[np.float64] | None = None,
     ) -> Feasibility:
         """Seed 004's cheap "is a merge feasible" check for a keyframe of map ``map_id``.
 
         Finds the best keyframe of another map; feasible when the query scores against it at least
         ``ratio`` times as well as that keyframe scores against its own map (itself excluded).
+        ``scores``: as in :meth:`query`.
         """
-        best = self.query(bow, 1, exclude_map=map_id, exclude_keys=exclude_keys)
+        best = self.query(bow, 1, exclude_map=map_id, exclude_keys=exclude_keys, scores=scores)
         if not best:
             return Feasibility(False, 0.0, 0.0, None, None)
         key, ext = best[0]

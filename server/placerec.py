@@ -621,15 +621,19 @@ class PlaceRecognizer:
         n_cand = max(1, o.candidates_per_agent * max(1, n_agents))
         result = RecognitionResult(query_key, query_map, [])
         todo: list[tuple[KfKey, float, str]] = []
+        scores = self.kfdb.scores(bow)  # shared by the feasibility check, the merge and the loop look-ups
         if merge:
-            feas = self.kfdb.feasibility(bow, query_map, ratio=o.feasibility_ratio)
+            feas = self.kfdb.feasibility(bow, query_map, ratio=o.feasibility_ratio, scores=scores)
             result.feasibility = feas
             if feas.best_key is None:
                 result.reason = "no_other_map_keyframes"
             elif o.use_feasibility and not feas.feasible:
                 result.reason = "bow_infeasible"
             else:
-                todo += [(k, s, "merge") for k, s in self.kfdb.query(bow, n_cand, exclude_map=query_map)]
+                todo += [
+                    (k, s, "merge")
+                    for k, s in self.kfdb.query(bow, n_cand, exclude_map=query_map, scores=scores)
+                ]
         if loop:
             covis = set(_covisible_keys(mq, query_key)) | {query_key}
             # ORB-SLAM: a loop candidate must score above the worst covisible neighbour
@@ -640,7 +644,7 @@ class PlaceRecognizer:
             todo += [
                 (k, s, "loop")
                 for k, s in self.kfdb.query(
-                    bow, n_cand, only_map=query_map, exclude_keys=covis, min_score=min_score
+                    bow, n_cand, only_map=query_map, exclude_keys=covis, min_score=min_score, scores=scores
                 )
             ]
         best: CandidateReport | None = None

@@ -55,6 +55,24 @@ def test_inverted_index_scores_equal_direct_l1_scores() -> None:
     assert [s for _, s in res] == sorted((s for _, s in res), reverse=True)
 
 
+def test_shared_scores_give_the_same_look_ups() -> None:
+    """PlaceRecognizer.detect scores a query once and passes the scores to the feasibility check and the
+    merge and loop look-ups: the results must equal scoring in each call."""
+    rng = np.random.default_rng(2)
+    db = KeyframeDatabase()
+    bows = [_random_bow(rng, 200, 1000) for _ in range(60)]
+    for i, b in enumerate(bows):
+        db.add((f"agent{i % 4}", i), i % 4, b)
+    q = _random_bow(rng, 200, 1000)
+    s = db.scores(q)
+    assert db.query(q, 10, exclude_map=1, scores=s) == db.query(q, 10, exclude_map=1)
+    ex = [("agent1", 1), ("agent1", 5)]
+    assert db.query(q, 10, only_map=1, exclude_keys=ex, min_score=0.05, scores=s) == db.query(
+        q, 10, only_map=1, exclude_keys=ex, min_score=0.05
+    )
+    assert db.feasibility(q, 2, ratio=0.3, scores=s) == db.feasibility(q, 2, ratio=0.3)
+
+
 def test_filters_remove_and_reassign() -> None:
     rng = np.random.default_rng(1)
     db = KeyframeDatabase()
