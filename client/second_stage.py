@@ -676,9 +676,13 @@ class SecondStage:
         the agent's 1 m gate and it ended in its VIO frame, 14 m from ENU)."""
         gtsam = self._gtsam
         sig = self.options.colocation_offset_sigma
+
+        def in_scope(k: int) -> bool:
+            return scope is None or k in scope
+
         factors, owners = [], []
         for kf_id, (pose, cov) in priors.items():
-            if kf_id not in self._kfs or (scope is not None and kf_id not in scope):
+            if kf_id not in self._kfs or not in_scope(kf_id):
                 continue
             T = gtsam.Pose3(np.asarray(pose, dtype=np.float64).reshape(4, 4))
             noise = _gaussian(np.asarray(cov).reshape(6, 6))
@@ -687,20 +691,19 @@ class SecondStage:
             else:
                 factors.append(gtsam.BetweenFactorPose3(_okey(), _key(kf_id), T, noise))
             owners.append(kf_id)
-        replaced = [k for k in self._colocation_handle if scope is None or k in scope]
-        old = [self._colocation_handle.pop(k) for k in replaced]
+        old = [self._colocation_handle.pop(k) for k in list(self._colocation_handle) if in_scope(k)]
         self._colocation_enu = enu
         # this agent's fixes the server already fused (options.colocation_enu_holds_own_fixes)
         restore: list[Any] = []
         if enu and owners and self.options.colocation_enu_holds_own_fixes:
             pos = {k: i for i, k in enumerate(self._order)}
             last = max(pos[k] for k in owners)
-            for kf_id in [k for k in self._gnss_handles if pos[k] <= last and (scope is None or k in scope)]:
+            for kf_id in [k for k in self._gnss_handles if pos[k] <= last and in_scope(k)]:
                 hs = self._gnss_handles.pop(kf_id)
                 self._gnss_held[kf_id] = [self._factors[h] for h in hs]
                 old += hs
         elif not enu and self._gnss_held:
-            for kf_id in [k for k in self._gnss_held if scope is None or k in scope]:
+            for kf_id in [k for k in self._gnss_held if in_scope(k)]:
                 restore += [(kf_id, f) for f in self._gnss_held.pop(kf_id)]
         factors += [f for _, f in restore]
         if not factors and not old:

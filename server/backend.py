@@ -1259,7 +1259,7 @@ class Backend:
             enu = map_id in self._enu_maps
             if chosen or enu:
                 # a whole snapshot of the server's estimate for this agent: every ``correction_stride``-th
-                # keyframe plus the moved ones (the agent replaces all its co-location priors with it)
+                # keyframe plus the moved ones (the agent replaces this session's co-location priors with it)
                 own = sorted(k for k in m.keyframes if k[0] == folded)
                 sample = own[:: o.correction_stride][-o.correction_max_kfs :]
                 in_sample = set(sample)

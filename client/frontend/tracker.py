@@ -763,7 +763,7 @@ class Frontend:
             # local BA will weigh it): two views alone only check the epipolar line, so a wrong match
             # along it (repeated posters on a wall, factory01's UGV at t=24-26 s) triangulates at a
             # wrong depth that its stereo measurement contradicts. Such points entered local BA with
-            # chi2 in the thousands and pulled keyframes seeing mostly far points by 0.4-2 m.
+            # chi2 in the thousands and pulled keyframes seeing mostly far points by 0.4-2.3 m.
             for T, f, idx in ((kf.T_cw, f1, ia), (nk.T_cw, f2, ib)):
                 pc = Xw @ T[:3, :3].T + T[:3, 3]
                 meas = f.meas[idx]
