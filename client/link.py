@@ -1,10 +1,11 @@
 """The agent's link to the server: a resumable WebSocket session over protocol v1.
 
 Every message goes through the durable :class:`~hivemap.client.outbox.Outbox` first. On (re)connect
-the link sends ``hello``; the server's ``welcome(last_seq)`` says what it already stored, so the link
-drops that and resends the rest in order: no loss and no duplicates across agent or server restarts
-and dropped connections. Reconnects use exponential backoff with jitter. A refused hello (bad token)
-stops the link with :class:`LinkRefused` instead of retrying forever.
+the link sends ``hello`` naming the outbox's mission; the server's ``welcome(last_seq)`` says what it
+already stored of that mission, so the link resends the rest in order: no loss and no duplicates across
+agent or server restarts and dropped connections. A server that does not know the mission
+(``mission_known`` false) gets the whole outbox again. Reconnects use exponential backoff with jitter.
+A refused hello (bad token) stops the link with :class:`LinkRefused` instead of retrying forever.
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ class AgentLink:
         kind: str,
         camera: dict[str, object],
         token: str,
-        outbox_path: str | Path,
+        outbox_path: str | Path | Outbox,
         on_correction: Callable[[Correction], None] | None = None,
         session: int = 0,
         options: LinkOptions | None = None,
@@ -87,7 +88,7 @@ class AgentLink:
         self.session = session
         self.on_correction = on_correction
         self.options = options or LinkOptions()
-        self.outbox = Outbox(outbox_path, agent_id)
+        self.outbox = outbox_path if isinstance(outbox_path, Outbox) else Outbox(outbox_path, agent_id)
         self.stats = LinkStats()
         self.connected = asyncio.Event()
         self._new = asyncio.Event()
@@ -179,7 +180,7 @@ class AgentLink:
             self._ws = ws
             hello = Hello(
                 self.agent_id, self.kind, self.camera, self.token, self.outbox.last_acked, self.session,
-                self.cam_from_antenna,
+                self.cam_from_antenna, self.outbox.mission,
             )  # fmt: skip
             await ws.send(encode(hello, 0))
             first = await asyncio.wait_for(ws.recv(), self.options.open_timeout_s)
@@ -190,14 +191,19 @@ class AgentLink:
                 raise LinkRefused(f"server refused agent {self.agent_id!r}: {reply.message} ({reply.field})")
             if not isinstance(reply, Welcome):
                 raise ProtocolError(f"expected welcome, got {type(reply).__name__}", "type")
-            if reply.last_seq < self.outbox.last_acked:
-                log.warning(
-                    "server %s has seq <= %d but acknowledged up to %d before (lost its data?); "
-                    "those messages are gone from the outbox",
-                    self.url,
-                    reply.last_seq,
-                    self.outbox.last_acked,
+            if not reply.mission_known or reply.last_seq < self.outbox.last_acked:
+                # the server lacks (part of) this mission: what it acknowledged before is sent again
+                n = await asyncio.to_thread(
+                    self.outbox.reopen_after, reply.last_seq if reply.mission_known else 0
                 )
+                if n:
+                    log.warning(
+                        "server %s has %s of mission %s; re-sending %d acknowledged messages",
+                        self.url,
+                        f"seq <= {reply.last_seq}" if reply.mission_known else "no record",
+                        self.outbox.mission,
+                        n,
+                    )
             await asyncio.to_thread(self.outbox.ack_through, reply.last_seq)
             self._acked.set()
             self.stats.connects += 1

@@ -113,6 +113,12 @@ def _int(v: Any, path: str, lo: int = -(2**63), hi: int = 2**63 - 1) -> int:
     return v
 
 
+def _bool(v: Any, path: str) -> bool:
+    if not isinstance(v, bool):
+        raise FieldError(f"expected true or false, got {type(v).__name__}", path)
+    return v
+
+
 def _float(v: Any, path: str) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise FieldError(f"expected a number, got {type(v).__name__}", path)
@@ -262,13 +268,25 @@ def _v_hello(b: dict[str, Any], lim: Limits) -> Hello:
             if b.get("cam_from_antenna") is None
             else _arr(b["cam_from_antenna"], "body.cam_from_antenna", "<f8", (3,))
         ),
+        mission=_mission(b.get("mission")),
     )
+
+
+def _mission(v: Any) -> str:
+    """A mission id: 1-64 characters of letters, digits, '-' and '_' (a UUID in hex or canonical form)."""
+    s = _str(v, "body.mission", 64, allow_empty=False) if v is not None else ""
+    if not s:
+        raise FieldError("hello needs a mission id (a UUID created with the agent's outbox)", "body.mission")
+    if not all(c.isascii() and (c.isalnum() or c in "-_") for c in s):
+        raise FieldError("mission id may hold only letters, digits, '-' and '_'", "body.mission")
+    return s
 
 
 def _v_welcome(b: dict[str, Any], lim: Limits) -> Welcome:
     return Welcome(
         last_seq=_int(b["last_seq"], "body.last_seq", 0, lim.max_seq),
         server_version=_str(b["server_version"], "body.server_version", lim.max_string_len),
+        mission_known=_bool(b.get("mission_known", True), "body.mission_known"),
     )
 
 

@@ -37,6 +37,7 @@ def sample_messages(rng: np.random.Generator, n_features: int = 200) -> list[Mes
                 "dist": [0.0, 0.0, 0.0, 0.0],
             },
             "token-uav1",
+            mission="0f8e4c2a9b1d4e6f8a7b6c5d4e3f2a1b",
         ),
         Keyframe(
             kf_id=int(rng.integers(0, 1000)),

@@ -16,8 +16,13 @@ from numpy.typing import NDArray
 
 @dataclass(frozen=True)
 class Hello:
-    """Agent -> server, first message. ``camera``: ``PinholeCamera.to_dict()``; ``session`` increments
-    when the agent resets its map (the server keeps the old session's map and starts a new one)."""
+    """Agent -> server, first message. ``camera``: ``PinholeCamera.to_dict()``.
+
+    ``mission`` names one run of the agent's outbox (a UUID created with the outbox); ``resume_from`` and
+    every seq after the hello count within that mission. ``session`` is the agent's front-end map within
+    the mission: it increments when the agent resets its map (the server keeps the old session's map and
+    starts a new one). A known agent id with a mission the server has not seen starts new sessions of that
+    agent and never touches the data of its earlier missions."""
 
     TYPE: ClassVar[str] = "hello"
     agent_id: str
@@ -29,15 +34,19 @@ class Hello:
     # GNSS antenna position in the cam0 frame, f64 (3,) (None: no GNSS receiver, or at the camera). The
     # server's GNSS stage needs it: a fix is the antenna's position, a keyframe pose the camera's.
     cam_from_antenna: NDArray[np.float64] | None = None
+    mission: str = ""
 
 
 @dataclass(frozen=True)
 class Welcome:
-    """Server -> agent: ``last_seq`` is the highest seq the server durably stored for this agent."""
+    """Server -> agent: ``last_seq`` is the highest seq the server durably stored for the hello's mission.
+    ``mission_known`` is False when the server has no record of that mission (a new outbox, or a server
+    that lost its data): the agent then sends its whole outbox again, from seq 1."""
 
     TYPE: ClassVar[str] = "welcome"
     last_seq: int
     server_version: str
+    mission_known: bool = True
 
 
 @dataclass(frozen=True)

@@ -63,18 +63,21 @@ logger = logging.getLogger(__name__)
 
 KfKey = tuple[str, int]
 KeyframeObserver = Callable[[int, KfKey], Awaitable[None]]
-MAX_SESSIONS_PER_AGENT = 64
+# sessions of one agent id over all its missions (each is one agent map); bounds what one id can hold
+MAX_SESSIONS_PER_AGENT = 256
+# front-end sessions within one mission
+MAX_SESSIONS_PER_MISSION = 64
 
 
 def _with_last_seq(
-    data_op: Callable[[ServerStore], None] | None, agent_id: str, seq: int
+    data_op: Callable[[ServerStore], None] | None, agent_id: str, mission: str, seq: int
 ) -> Callable[[ServerStore], None]:
-    """The message's data writes, then the agent's last seq: both land in the same commit."""
+    """The message's data writes, then the mission's last seq: both land in the same commit."""
 
     def op(store: ServerStore) -> None:
         if data_op is not None:
             data_op(store)
-        store.set_last_seq(agent_id, seq)
+        store.set_last_seq(agent_id, mission, seq)
 
     return op
 
@@ -93,6 +96,7 @@ class Connection(Protocol):
     """What the core needs from a WebSocket connection (implemented in :mod:`hivemap.server.ws`)."""
 
     agent_id: str | None
+    mission: str | None
     replaced: bool
 
     def send(self, msg: Message) -> bool: ...
@@ -108,12 +112,16 @@ class PendingKeyframe:
 
 @dataclass
 class AgentMap:
-    """One (agent, session): the ingest bookkeeping of one agent map (the data lives in the MapStack)."""
+    """One (agent, mission, session): the ingest bookkeeping of one agent map (the data lives in the
+    MapStack). ``session`` is the server's number of it among all the agent's maps (the ``#n`` of its
+    folded id); ``mission`` and ``client_session`` are what the agent calls it."""
 
     agent_id: str
     session: int
     folded: str
     camera: PinholeCamera
+    mission: str = ""
+    client_session: int = 0
     global_from_vio: Sim3 = field(default_factory=Sim3.identity)
     arrived_points: set[int] = field(default_factory=set)
     arrived_kfs: set[int] = field(default_factory=set)
@@ -125,14 +133,24 @@ class AgentMap:
 
 
 @dataclass
+class MissionState:
+    """One mission of an agent (one run of its outbox): its seqs count from 1 within it."""
+
+    mission: str
+    last_seq: int = 0  # durably stored
+    applied_seq: int = 0  # applied in memory (>= last_seq)
+    undelivered: deque[Correction] = field(default_factory=lambda: deque(maxlen=16))
+
+
+@dataclass
 class AgentState:
     agent_id: str
     kind: str = "uav"
     camera: dict[str, Any] = field(default_factory=dict)
-    session: int = 0
-    last_seq: int = 0  # durably stored
-    applied_seq: int = 0  # applied in memory (>= last_seq)
-    maps: dict[int, AgentMap] = field(default_factory=dict)  # by session
+    session: int = 0  # the newest server session (see AgentMap)
+    maps: dict[int, AgentMap] = field(default_factory=dict)  # by server session
+    missions: dict[str, MissionState] = field(default_factory=dict)
+    mission: str | None = None  # the mission of the latest hello
     connection: Connection | None = None
     connected_since: float | None = None
     last_seen: float | None = None
@@ -140,12 +158,23 @@ class AgentState:
     received: Counter[str] = field(default_factory=Counter)
     duplicates: int = 0
     errors: int = 0
-    undelivered: deque[Correction] = field(default_factory=lambda: deque(maxlen=16))
     cam_from_antenna: NDArray[np.float64] | None = None  # GNSS lever arm from the hello (not persisted)
 
     @property
     def state(self) -> str:
         return "connected" if self.connection is not None else "disconnected"
+
+    @property
+    def last_seq(self) -> int:
+        """The last stored seq of the latest mission."""
+        ms = self.missions.get(self.mission) if self.mission is not None else None
+        return ms.last_seq if ms is not None else 0
+
+    def session_of(self, mission: str, client_session: int) -> AgentMap | None:
+        for am in self.maps.values():
+            if am.mission == mission and am.client_session == client_session:
+                return am
+        return None
 
 
 class HiveServer:
@@ -220,19 +249,19 @@ class HiveServer:
         self.stack = loaded.stack
         for rec in loaded.agents:
             agent = AgentState(
-                agent_id=rec["agent_id"],
-                kind=rec["kind"],
-                camera=rec["camera"],
-                session=rec["session"],
-                last_seq=rec["last_seq"],
-                applied_seq=rec["last_seq"],
+                agent_id=rec["agent_id"], kind=rec["kind"], camera=rec["camera"], session=rec["session"]
             )
+            agent.mission = rec.get("mission", "")
             self.agents[agent.agent_id] = agent
+        for agent_id, mission, last_seq in loaded.missions:
+            owner = self.agents.get(agent_id)
+            if owner is not None:
+                owner.missions[mission] = MissionState(mission, last_seq=last_seq, applied_seq=last_seq)
         for folded, rec in loaded.agent_maps.items():
             owner = self.agents.get(rec["agent_id"])
             if owner is None:
                 continue
-            am = self._new_agent_map(owner, rec["session"])
+            am = self._new_agent_map(owner, rec["session"], rec["mission"], rec["client_session"])
             am.global_from_vio = Sim3.from_matrix(np.asarray(rec["global_from_vio"], dtype=np.float64))
             m = self.stack.map_of_agent(folded)
             if m is not None:
@@ -289,48 +318,72 @@ class HiveServer:
                 "disconnect", f"{agent.agent_id}: replaced by a new connection", agent_id=agent.agent_id
             )
             await old.close(1000, "replaced by a new connection of the same agent")
-        if hello.session > agent.session and agent.maps:
+        ms = agent.missions.get(hello.mission)
+        known = ms is not None
+        if ms is None:
+            ms = MissionState(hello.mission)
+            agent.missions[hello.mission] = ms
+            if agent.maps:
+                self.events.add(
+                    "mission",
+                    f"{agent.agent_id}: new mission {hello.mission} (earlier missions' maps kept apart)",
+                    agent_id=agent.agent_id,
+                    data={"mission": hello.mission, "resume_from": hello.resume_from},
+                )
+        elif agent.session_of(hello.mission, hello.session) is None:
             self.events.add(
                 "session",
-                f"{agent.agent_id} started session {hello.session} (map reset)",
+                f"{agent.agent_id} started session {hello.session} of mission {hello.mission} (map reset)",
                 agent_id=agent.agent_id,
+            )
+        if not known and hello.resume_from > 0:
+            logger.warning(
+                "%s resumes mission %s from seq %d, which this server has no record of: it re-sends it all",
+                agent.agent_id,
+                hello.mission,
+                hello.resume_from,
             )
         agent.kind = hello.kind
         agent.camera = camera.to_dict()
+        agent.mission = hello.mission
         if hello.cam_from_antenna is not None:
             agent.cam_from_antenna = np.array(hello.cam_from_antenna, dtype=np.float64)
-        agent.session = max(agent.session, hello.session)
-        if hello.session not in agent.maps:
-            self._new_agent_map(agent, hello.session)
-        self.map_for(agent.maps[hello.session])  # the agent's map exists (maybe empty) from its hello on
-        for am in agent.maps.values():
-            am.camera = camera if am.session == hello.session else am.camera
+        am_now = self._session_map(agent, hello.mission, hello.session, create=True, persist=False)
+        self.map_for(am_now)  # the agent's map exists (maybe empty) from its hello on
+        am_now.camera = camera
         rec = {
             "agent_id": agent.agent_id,
             "kind": agent.kind,
             "camera": agent.camera,
             "session": agent.session,
+            "mission": agent.mission,
         }
         maps = [
-            (am.folded, am.agent_id, am.session, am.global_from_vio.matrix()) for am in agent.maps.values()
+            (am.folded, am.agent_id, am.session, am.global_from_vio.matrix(), am.mission, am.client_session)
+            for am in agent.maps.values()
         ]
+        mission = hello.mission
 
         def op(store: ServerStore) -> None:
             store.put_agent(rec)
-            for folded, agent_id, session, m in maps:
-                store.put_agent_map(folded, agent_id, session, m)
+            store.put_mission(agent.agent_id, mission)
+            for folded, agent_id, session, m, mis, cs in maps:
+                store.put_agent_map(folded, agent_id, session, m, mis, cs)
 
         await self.writer.call(op)  # also flushes everything the old connection had applied
         agent.connection = conn
+        conn.mission = hello.mission
         agent.connected_since = agent.last_seen = time.time()
         self.events.add(
-            "connect", f"{agent.agent_id} connected (last seq {agent.last_seq})", agent_id=agent.agent_id
+            "connect",
+            f"{agent.agent_id} connected (mission {hello.mission}, last seq {ms.last_seq})",
+            agent_id=agent.agent_id,
         )
-        welcome = Welcome(last_seq=agent.last_seq, server_version=__version__)
+        welcome = Welcome(last_seq=ms.last_seq, server_version=__version__, mission_known=known)
         conn.send(welcome)
-        for corr in list(agent.undelivered):
+        for corr in list(ms.undelivered):
             conn.send(corr)
-        agent.undelivered.clear()
+        ms.undelivered.clear()
         return welcome
 
     def detach(self, conn: Connection) -> None:
@@ -345,8 +398,9 @@ class HiveServer:
     # -- ingest -------------------------------------------------------------------------------------
     async def handle(self, conn: Connection, seq: int, msg: Message, received_at: float) -> None:
         """Apply one data message from an authenticated connection; ack it after its commit."""
-        assert conn.agent_id is not None and self._uncommitted is not None
+        assert conn.agent_id is not None and conn.mission is not None and self._uncommitted is not None
         agent = self.agents[conn.agent_id]
+        ms = agent.missions[conn.mission]
         await self._uncommitted.acquire()  # back-pressure: the reader stops reading while commits lag
         released = False
 
@@ -370,12 +424,12 @@ class HiveServer:
                 raise Rejected("bad_field", f"seq must be >= 1 for data messages, got {seq}", "seq")
             store_op: Callable[[ServerStore], None] | None = None
             inserted: list[tuple[int, KfKey]] = []
-            if seq <= agent.applied_seq:
+            if seq <= ms.applied_seq:
                 agent.duplicates += 1  # already applied (maybe not yet committed): ack after the next commit
             else:
-                data_op, inserted = self._apply(agent, msg)
-                agent.applied_seq = seq
-                store_op = _with_last_seq(data_op, agent.agent_id, seq)
+                data_op, inserted = self._apply(agent, ms.mission, msg)
+                ms.applied_seq = seq
+                store_op = _with_last_seq(data_op, agent.agent_id, ms.mission, seq)
         except Rejected:
             release()
             raise
@@ -385,7 +439,7 @@ class HiveServer:
             if exc is not None:
                 conn.send(ErrorMsg(code="storage", message=f"could not store message: {exc}", seq=seq))
                 return
-            agent.last_seq = max(agent.last_seq, seq)
+            ms.last_seq = max(ms.last_seq, seq)
             self.ack_latency.observe(time.monotonic() - received_at)
             if not conn.replaced:
                 from hivemap.protocol import Ack
@@ -401,45 +455,68 @@ class HiveServer:
                     logger.exception("keyframe observer failed")
 
     def _apply(
-        self, agent: AgentState, msg: Message
+        self, agent: AgentState, mission: str, msg: Message
     ) -> tuple[Callable[[ServerStore], None] | None, list[tuple[int, KfKey]]]:
         if isinstance(msg, Keyframe):
-            return self._apply_keyframe(agent, msg)
+            return self._apply_keyframe(agent, mission, msg)
         if isinstance(msg, MapPoints):
-            return self._apply_points(agent, msg)
+            return self._apply_points(agent, mission, msg)
         if isinstance(msg, PoseUpdates):
-            return self._apply_pose_updates(agent, msg), []
+            return self._apply_pose_updates(agent, mission, msg), []
         raise Rejected("unexpected", f"'{type(msg).__name__}' is not a message an agent sends", "type")
 
-    def _session_map(self, agent: AgentState, session: int, create: bool) -> AgentMap:
-        am = agent.maps.get(session)
+    def _session_map(
+        self, agent: AgentState, mission: str, session: int, create: bool, persist: bool = True
+    ) -> AgentMap:
+        """The agent map of the mission's front-end session ``session``; a new one gets the agent's next
+        server session (so a second mission never lands in the first one's maps)."""
+        am = agent.session_of(mission, session)
         if am is not None:
             return am
         if not create:
             raise Rejected(
-                "unknown_id", f"unknown session {session} for agent '{agent.agent_id}'", "body.session"
+                "unknown_id",
+                f"unknown session {session} of mission {mission} for agent '{agent.agent_id}'",
+                "body.session",
             )
-        if session < 0 or len(agent.maps) >= MAX_SESSIONS_PER_AGENT or session < max(agent.maps, default=0):
+        in_mission = [a.client_session for a in agent.maps.values() if a.mission == mission]
+        if (
+            session < 0
+            or len(agent.maps) >= MAX_SESSIONS_PER_AGENT
+            or len(in_mission) >= MAX_SESSIONS_PER_MISSION
+            or session < max(in_mission, default=0)
+        ):
             raise Rejected(
                 "bad_field", f"session {session} not allowed for agent '{agent.agent_id}'", "body.session"
             )
-        am = self._new_agent_map(agent, session)
-        agent.session = max(agent.session, session)
+        # an agent id's first mission keeps its own session numbers; a later one's go above all used
+        first_mission = all(a.mission == mission for a in agent.maps.values())
+        server_session = session if first_mission else max(agent.maps, default=-1) + 1
+        am = self._new_agent_map(agent, server_session, mission, session)
+        agent.session = max(agent.session, server_session)
+        if not persist:
+            return am
         folded, m = am.folded, am.global_from_vio.matrix()
         rec = {
             "agent_id": agent.agent_id,
             "kind": agent.kind,
             "camera": agent.camera,
             "session": agent.session,
+            "mission": agent.mission,
         }
         self.writer.submit(
-            lambda store: (store.put_agent(rec), store.put_agent_map(folded, agent.agent_id, session, m))
+            lambda store: (
+                store.put_agent(rec),
+                store.put_agent_map(folded, agent.agent_id, server_session, m, mission, session),
+            )
         )
         return am
 
-    def _new_agent_map(self, agent: AgentState, session: int) -> AgentMap:
+    def _new_agent_map(self, agent: AgentState, session: int, mission: str, client_session: int) -> AgentMap:
         camera = PinholeCamera.from_dict(agent.camera)
-        am = AgentMap(agent.agent_id, session, fold_agent_id(agent.agent_id, session), camera)
+        am = AgentMap(
+            agent.agent_id, session, fold_agent_id(agent.agent_id, session), camera, mission, client_session
+        )
         agent.maps[session] = am
         return am
 
@@ -464,9 +541,9 @@ class HiveServer:
         return {int(i) for i in ids.tolist() if int(i) not in am.arrived_points}
 
     def _apply_keyframe(
-        self, agent: AgentState, msg: Keyframe
+        self, agent: AgentState, mission: str, msg: Keyframe
     ) -> tuple[Callable[[ServerStore], None] | None, list[tuple[int, KfKey]]]:
-        am = self._session_map(agent, msg.session, create=True)
+        am = self._session_map(agent, mission, msg.session, create=True)
         if msg.kf_id in am.arrived_kfs or msg.kf_id in am.pending:
             agent.duplicates += 1
             return None, []
@@ -501,9 +578,9 @@ class HiveServer:
         return kf
 
     def _apply_points(
-        self, agent: AgentState, msg: MapPoints
+        self, agent: AgentState, mission: str, msg: MapPoints
     ) -> tuple[Callable[[ServerStore], None] | None, list[tuple[int, KfKey]]]:
-        am = self._session_map(agent, msg.session, create=True)
+        am = self._session_map(agent, mission, msg.session, create=True)
         ids = msg.ids.tolist()
         seen: set[int] = set()
         keep: list[int] = []
@@ -550,9 +627,9 @@ class HiveServer:
         return op, [(map_id, kf.key) for kf in released]
 
     def _apply_pose_updates(
-        self, agent: AgentState, msg: PoseUpdates
+        self, agent: AgentState, mission: str, msg: PoseUpdates
     ) -> Callable[[ServerStore], None] | None:
-        am = self._session_map(agent, msg.session, create=False)
+        am = self._session_map(agent, mission, msg.session, create=False)
         kf_ids = msg.kf_ids.tolist()
         point_ids = msg.point_ids.tolist()
         for i, k in enumerate(kf_ids):
@@ -610,19 +687,28 @@ class HiveServer:
 
     # -- hooks for the back-end ---------------------------------------------------------------------
     async def send_correction(self, agent_id: str, correction: Correction) -> bool:
-        """Send a correction to an agent now, or when it next connects. True if sent now."""
+        """Send a correction to an agent now, or when it next connects. ``correction.session`` is the
+        server session of the agent map it corrects; it reaches only that map's mission, under the
+        session number the agent gave it. True if sent now."""
         agent = self.agents.get(agent_id)
         if agent is None:
             raise KeyError(agent_id)
+        am = agent.maps.get(correction.session)
+        if am is None:
+            raise KeyError(f"{agent_id} session {correction.session}")
         self.events.add(
             "correction",
-            f"correction for {agent_id}: {len(correction.kf_ids)} keyframes of map {correction.map_id}",
+            f"correction for {am.folded}: {len(correction.kf_ids)} keyframes of map {correction.map_id}",
             agent_id=agent_id,
             map_id=correction.map_id,
         )
-        if agent.connection is not None and agent.connection.send(correction):
+        out = replace(correction, session=am.client_session)
+        conn = agent.connection
+        if conn is not None and conn.mission == am.mission and conn.send(out):
             return True
-        agent.undelivered.append(correction)
+        ms = agent.missions.get(am.mission)
+        if ms is not None:
+            ms.undelivered.append(out)
         return False
 
     def set_agent_transform(self, folded: str, global_from_vio: Sim3) -> None:
@@ -632,7 +718,11 @@ class HiveServer:
             raise KeyError(folded)
         am.global_from_vio = global_from_vio
         m = global_from_vio.matrix()
-        self.writer.submit(lambda store: store.put_agent_map(am.folded, am.agent_id, am.session, m))
+        self.writer.submit(
+            lambda store: store.put_agent_map(
+                am.folded, am.agent_id, am.session, m, am.mission, am.client_session
+            )
+        )
 
     async def persist(self, fn: Callable[[ServerStore], Any]) -> Any:
         """Run ``fn(store)`` in the writer thread; returns its result after the commit. ``fn`` must not read
@@ -670,13 +760,23 @@ class HiveServer:
             merged = self.stack.merge(target_id, source_id, target_from_source, list(fused_pairs))
             for am in moved:
                 am.global_from_vio = target_from_source @ am.global_from_vio
-            frames = [(am.folded, am.agent_id, am.session, am.global_from_vio.matrix()) for am in moved]
+            frames = [
+                (
+                    am.folded,
+                    am.agent_id,
+                    am.session,
+                    am.global_from_vio.matrix(),
+                    am.mission,
+                    am.client_session,
+                )
+                for am in moved
+            ]
 
             def op(store: ServerStore) -> None:
                 store.maps.delete_map(source_id)
                 store.maps.save_map(merged)
-                for folded, agent_id, session, g in frames:
-                    store.put_agent_map(folded, agent_id, session, g)
+                for folded, agent_id, session, g, mission, cs in frames:
+                    store.put_agent_map(folded, agent_id, session, g, mission, cs)
 
             await self.writer.call(op)
         finally:

@@ -110,8 +110,23 @@ def synthetic_stream(
     return msgs, truth
 
 
-def hello(agent_id: str, token: str, kind: str = "uav", session: int = 0, resume_from: int = 0) -> Hello:
+def mission_of(agent_id: str) -> str:
+    """A fixed mission id per agent id: the load generator's reconnects resume one mission."""
+    import uuid
+
+    return uuid.uuid5(uuid.NAMESPACE_URL, f"hivemap-loadgen/{agent_id}").hex
+
+
+def hello(
+    agent_id: str,
+    token: str,
+    kind: str = "uav",
+    session: int = 0,
+    resume_from: int = 0,
+    mission: str | None = None,
+) -> Hello:
     return Hello(
+        mission=mission or mission_of(agent_id),
         agent_id=agent_id,
         kind=kind,
         camera=CAMERA.to_dict(),

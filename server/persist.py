@@ -26,13 +26,21 @@ SCHEMA = """
 CREATE TABLE IF NOT EXISTS server_agents (
     agent_id TEXT PRIMARY KEY,
     record TEXT NOT NULL,          -- json: kind, camera, session
-    last_seq INTEGER NOT NULL DEFAULT 0
+    last_seq INTEGER NOT NULL DEFAULT 0  -- before missions existed: the agent's one seq counter
+);
+CREATE TABLE IF NOT EXISTS server_missions (
+    agent_id TEXT NOT NULL,
+    mission TEXT NOT NULL,         -- the agent outbox's UUID, from its hello
+    last_seq INTEGER NOT NULL DEFAULT 0,
+    PRIMARY KEY (agent_id, mission)
 );
 CREATE TABLE IF NOT EXISTS server_agent_maps (
-    folded TEXT PRIMARY KEY,       -- agent id with the session folded in ("uav1", "uav1#1")
+    folded TEXT PRIMARY KEY,       -- agent id with the server session folded in ("uav1", "uav1#1")
     agent_id TEXT NOT NULL,
-    session INTEGER NOT NULL,
-    global_from_vio BLOB NOT NULL  -- 16 float64, row-major Sim(3) matrix
+    session INTEGER NOT NULL,      -- the server's number of this map among the agent's maps
+    global_from_vio BLOB NOT NULL, -- 16 float64, row-major Sim(3) matrix
+    mission TEXT NOT NULL DEFAULT '',
+    client_session INTEGER         -- the session number the agent gave it within its mission
 );
 CREATE TABLE IF NOT EXISTS server_pending (
     folded TEXT NOT NULL,
@@ -47,6 +55,7 @@ CREATE TABLE IF NOT EXISTS server_pending (
 class Loaded:
     stack: MapStack
     agents: list[dict[str, Any]] = field(default_factory=list)
+    missions: list[tuple[str, str, int]] = field(default_factory=list)  # (agent id, mission, last seq)
     agent_maps: dict[str, dict[str, Any]] = field(default_factory=dict)
     pending: list[tuple[str, int, Keyframe]] = field(default_factory=list)
 
@@ -79,7 +88,20 @@ class ServerStore:
         self.maps = MapStore(self.path, autocommit=False, synchronous=synchronous)
         self.conn = self.maps.conn
         self.conn.executescript(SCHEMA)
+        self._upgrade()
         self.conn.commit()
+
+    def _upgrade(self) -> None:
+        """Stores written before missions: their agent maps and seqs belong to one unnamed mission ''."""
+        cols = {r[1] for r in self.conn.execute("PRAGMA table_info(server_agent_maps)")}
+        if "mission" not in cols:
+            self.conn.execute("ALTER TABLE server_agent_maps ADD COLUMN mission TEXT NOT NULL DEFAULT ''")
+            self.conn.execute("ALTER TABLE server_agent_maps ADD COLUMN client_session INTEGER")
+            self.conn.execute("UPDATE server_agent_maps SET client_session = session")
+            self.conn.execute(
+                "INSERT OR IGNORE INTO server_missions (agent_id, mission, last_seq) "
+                "SELECT agent_id, '', last_seq FROM server_agents"
+            )
 
     # -- transactions (driven by the writer) ---------------------------------------------------------
     def commit(self) -> None:
@@ -102,17 +124,31 @@ class ServerStore:
             (record["agent_id"], json.dumps(record)),
         )
 
-    def set_last_seq(self, agent_id: str, seq: int) -> None:
+    def put_mission(self, agent_id: str, mission: str) -> None:
         self.conn.execute(
-            "UPDATE server_agents SET last_seq = MAX(last_seq, ?) WHERE agent_id = ?", (int(seq), agent_id)
+            "INSERT OR IGNORE INTO server_missions (agent_id, mission) VALUES (?, ?)", (agent_id, mission)
         )
 
-    def put_agent_map(self, folded: str, agent_id: str, session: int, global_from_vio: np.ndarray) -> None:
+    def set_last_seq(self, agent_id: str, mission: str, seq: int) -> None:
+        self.conn.execute(
+            "UPDATE server_missions SET last_seq = MAX(last_seq, ?) WHERE agent_id = ? AND mission = ?",
+            (int(seq), agent_id, mission),
+        )
+
+    def put_agent_map(
+        self,
+        folded: str,
+        agent_id: str,
+        session: int,
+        global_from_vio: np.ndarray,
+        mission: str,
+        client_session: int,
+    ) -> None:
         blob = np.ascontiguousarray(global_from_vio, dtype="<f8").tobytes()
         self.conn.execute(
-            "INSERT OR REPLACE INTO server_agent_maps (folded, agent_id, session, global_from_vio) "
-            "VALUES (?, ?, ?, ?)",
-            (folded, agent_id, int(session), blob),
+            "INSERT OR REPLACE INTO server_agent_maps "
+            "(folded, agent_id, session, global_from_vio, mission, client_session) VALUES (?, ?, ?, ?, ?, ?)",
+            (folded, agent_id, int(session), blob, mission, int(client_session)),
         )
 
     def put_pending(self, folded: str, msg: Keyframe) -> None:
@@ -127,16 +163,21 @@ class ServerStore:
     # -- start-up ------------------------------------------------------------------------------------
     def load_all(self) -> Loaded:
         out = Loaded(stack=self.maps.load_stack())
-        for record, last_seq in self.conn.execute("SELECT record, last_seq FROM server_agents"):
-            rec = json.loads(record)
-            rec["last_seq"] = int(last_seq)
-            out.agents.append(rec)
-        for folded, agent_id, session, blob in self.conn.execute(
-            "SELECT folded, agent_id, session, global_from_vio FROM server_agent_maps"
+        for (record,) in self.conn.execute("SELECT record FROM server_agents"):
+            out.agents.append(json.loads(record))
+        for agent_id, mission, last_seq in self.conn.execute(
+            "SELECT agent_id, mission, last_seq FROM server_missions"
+        ):
+            out.missions.append((agent_id, mission, int(last_seq)))
+        for folded, agent_id, session, blob, mission, client_session in self.conn.execute(
+            "SELECT folded, agent_id, session, global_from_vio, mission, client_session "
+            "FROM server_agent_maps"
         ):
             out.agent_maps[folded] = {
                 "agent_id": agent_id,
                 "session": int(session),
+                "mission": mission,
+                "client_session": int(session if client_session is None else client_session),
                 "global_from_vio": np.frombuffer(blob, dtype="<f8").reshape(4, 4).copy(),
             }
         for folded, kf_id, frame in self.conn.execute("SELECT folded, kf_id, frame FROM server_pending"):

@@ -63,6 +63,7 @@ class AgentConnection:
         self.ws = websocket
         self.server = server
         self.agent_id: str | None = None
+        self.mission: str | None = None  # set by HiveServer.attach once the hello is accepted
         self.replaced = False
         s = server.settings
         self.limits = Limits(max_frame_bytes=s.max_frame_bytes)
@@ -213,6 +214,7 @@ class AgentConnection:
             await self.server.attach(self, msg)  # sends the welcome
         except Rejected as r:
             self.agent_id = None
+            self.mission = None
             self._reply_error(r.code, r.message, r.field, seq)
 
 

@@ -129,8 +129,10 @@ messages = st.one_of(
         st.text(max_size=256),
         seqs,
         st.integers(0, 1000),
+        st.none(),
+        st.text("0123456789abcdef-_", min_size=1, max_size=64),
     ),
-    st.builds(Welcome, seqs, text),
+    st.builds(Welcome, seqs, text, st.booleans()),
     keyframes(),
     map_points(),
     pose_updates(),
@@ -291,11 +293,11 @@ def test_huge_finite_values_are_not_mistaken_for_inf() -> None:
 
 def test_gnss_lever_arm_and_enu_corrections_round_trip_and_are_validated() -> None:
     cam = {"width": 640, "height": 480, "fx": 430.0, "fy": 430.0, "cx": 319.5, "cy": 239.5, "dist": [0.0] * 4}
-    hello = Hello("uav1", "uav", cam, "t", cam_from_antenna=np.array([0.1, -0.05, 0.06]))
+    hello = Hello("uav1", "uav", cam, "t", cam_from_antenna=np.array([0.1, -0.05, 0.06]), mission="m1")
     _, back = decode(encode(hello, 1))
     assert isinstance(back, Hello) and back.cam_from_antenna is not None
     np.testing.assert_array_equal(back.cam_from_antenna, hello.cam_from_antenna)
-    _, plain = decode(encode(Hello("uav1", "uav", cam, "t"), 1))
+    _, plain = decode(encode(Hello("uav1", "uav", cam, "t", mission="m1"), 1))
     assert isinstance(plain, Hello) and plain.cam_from_antenna is None
     corr = Correction(1, np.eye(4), np.arange(1), np.eye(4)[None], global_frame="enu")
     _, c2 = decode(encode(corr, 2))
@@ -306,3 +308,15 @@ def test_gnss_lever_arm_and_enu_corrections_round_trip_and_are_validated() -> No
     with pytest.raises(FieldError) as e:
         decode(encode(replace(hello, cam_from_antenna=np.array([np.nan, 0.0, 0.0])), 4))
     assert e.value.field == "body.cam_from_antenna"
+
+
+def test_hello_needs_a_mission_id_and_welcome_carries_whether_it_is_known() -> None:
+    cam = {"width": 640, "height": 480, "fx": 430.0, "fy": 430.0, "cx": 319.5, "cy": 239.5, "dist": [0.0] * 4}
+    for bad in ("", "a b", "x" * 65, "m\u00e9"):
+        with pytest.raises(FieldError) as e:
+            decode(encode(Hello("uav1", "uav", cam, "t", mission=bad), 0))
+        assert e.value.field == "body.mission"
+    _, ok = decode(encode(Hello("uav1", "uav", cam, "t", mission="3f2b-9c_1"), 0))
+    assert isinstance(ok, Hello) and ok.mission == "3f2b-9c_1"
+    _, w = decode(encode(Welcome(7, "v", mission_known=False), 0))
+    assert isinstance(w, Welcome) and w.last_seq == 7 and w.mission_known is False

@@ -12,11 +12,20 @@ from hivemap.server.loadgen import hello
 
 
 class SyncAgent:
-    def __init__(self, ws_url: str, agent_id: str, token: str, session: int = 0, kind: str = "uav") -> None:
+    def __init__(
+        self,
+        ws_url: str,
+        agent_id: str,
+        token: str,
+        session: int = 0,
+        kind: str = "uav",
+        mission: str | None = None,
+    ) -> None:
         self.ws: ClientConnection = connect(
             ws_url, max_size=None, compression=None, open_timeout=10, legacy=True
         )
         self.agent_id, self.token, self.session, self.kind = agent_id, token, session, kind
+        self.mission = mission  # None: one fixed mission per agent id, so reconnects resume it
         self.bytes_sent = 0
 
     def send_raw(self, frame: bytes) -> None:
@@ -32,7 +41,7 @@ class SyncAgent:
         return decode(frame)[1]
 
     def hello(self, resume_from: int = 0) -> Message:
-        self.send(hello(self.agent_id, self.token, self.kind, self.session, resume_from), 0)
+        self.send(hello(self.agent_id, self.token, self.kind, self.session, resume_from, self.mission), 0)
         return self.recv()
 
     def welcome(self) -> Welcome:
