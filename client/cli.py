@@ -63,7 +63,7 @@ def agent_command(
     if not token:
         raise typer.BadParameter("--token is required with --server", param_hint="--token")
     from hivemap.client.link import LinkRefused
-    from hivemap.client.runner import run_streaming
+    from hivemap.client.streaming import run_streaming
 
     try:
         summary = run_streaming(dataset, out_dir, server or "", agent_id, token, options)

@@ -1,0 +1,272 @@
+"""Streaming agent: dataset replay as an agent that streams to a server over ``AgentLink``.
+
+Split out of ``hivemap.client.runner`` (which keeps the offline replay and re-exports
+:func:`run_streaming` and :func:`health_url`); the processing is the runner's ``OfflineAgent``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hivemap.client.runner import (
+    RunnerOptions,
+    RunSummary,
+    _frame_times,
+    _gnss_table,
+    _imu,
+    _load_pair,
+    _make_agent,
+    _write_outputs,
+)
+
+log = logging.getLogger(__name__)
+
+
+def run_streaming(
+    agent_dir: str | Path,
+    out_dir: str | Path,
+    server: str,
+    agent_id: str | None,
+    token: str,
+    options: RunnerOptions | None = None,
+    frontend_options: object | None = None,
+    second_stage_options: object | None = None,
+) -> RunSummary:
+    """Replay a dataset as an agent streaming to a server (``hivemap.client.link.AgentLink``).
+
+    Same processing and outputs as :func:`run_offline`; in addition every front-end event becomes a
+    protocol message (``map_points`` before the ``keyframe`` that references them, the fix used at
+    that keyframe attached; ``pose_updates`` after local BA), durably queued in ``out/outbox.sqlite``
+    and streamed; server ``correction`` messages become co-location factors of the second stage.
+    """
+    import asyncio
+
+    return asyncio.run(
+        _stream(agent_dir, out_dir, server, agent_id, token, options, frontend_options, second_stage_options)
+    )
+
+
+def health_url(server: str) -> str:
+    """The server's ``/health`` address from its WebSocket address (``ws://HOST:PORT/ws``)."""
+    from urllib.parse import urlsplit, urlunsplit
+
+    u = urlsplit(server)
+    scheme = {"ws": "http", "wss": "https", "http": "http", "https": "https"}.get(u.scheme)
+    if scheme is None or not u.netloc:
+        raise ValueError(f"server address {server!r} is not ws://HOST:PORT/ws")
+    path = u.path[: -len("/ws")] if u.path.endswith("/ws") else u.path.rstrip("/")
+    return urlunsplit((scheme, u.netloc, path + "/health", "", ""))
+
+
+def _backend_idle(url: str) -> bool | None:
+    """The server's ``backend_idle`` (None: the server reports none, i.e. no back-end or an older server).
+
+    Raises ``OSError`` when the server does not answer (the caller retries)."""
+    import urllib.request
+
+    with urllib.request.urlopen(url, timeout=5.0) as r:  # noqa: S310 (http(s) only, see health_url)
+        try:
+            value = json.loads(r.read()).get("backend_idle")
+        except (ValueError, AttributeError) as exc:
+            log.warning("server health %s unreadable: %s", url, exc)
+            return None
+    return value if isinstance(value, bool) else None
+
+
+async def _wait_for_server(
+    server: str, options: RunnerOptions, last_correction: list[float], apply_pending: Callable[[], None]
+) -> None:
+    """After the last frame: wait for the corrections the server still owes (see RunnerOptions)."""
+    import asyncio
+    import time
+
+    t_end = time.monotonic()
+    url = health_url(server)
+    idle_polls, use_health, failures = 0, True, 0
+    while time.monotonic() - t_end < options.corrections_max_wait_s:
+        await asyncio.sleep(0.5)
+        apply_pending()
+        quiet = time.monotonic() - max(last_correction[0], t_end)
+        if use_health:
+            try:
+                idle = await asyncio.to_thread(_backend_idle, url)
+            except OSError as exc:
+                # a busy server can miss one poll's 5 s timeout: retry; the quiet timer only after several
+                failures += 1
+                log.warning("server health %s: no answer (%s), %d in a row", url, exc, failures)
+                if failures >= options.health_max_failures:
+                    log.warning("server health unreachable: waiting until %.0f s without corrections",
+                                options.corrections_quiet_s)  # fmt: skip
+                    use_health = False
+                continue
+            failures = 0
+            if idle is None:
+                log.warning("server reports no back-end state: waiting until %.0f s without corrections",
+                            options.corrections_quiet_s)  # fmt: skip
+                use_health = False
+                continue
+            idle_polls = idle_polls + 1 if idle else 0
+            # idle twice in a row, and the last correction has had time to arrive
+            if idle_polls >= 2 and quiet >= options.corrections_grace_s:
+                break
+        elif quiet >= options.corrections_quiet_s:
+            break
+    else:
+        log.warning("server still busy %.0f s after the last frame: stopping", options.corrections_max_wait_s)
+    apply_pending()
+
+
+async def _stream(
+    agent_dir: str | Path,
+    out_dir: str | Path,
+    server: str,
+    agent_id: str | None,
+    token: str,
+    options: RunnerOptions | None,
+    frontend_options: object | None,
+    second_stage_options: object | None,
+) -> RunSummary:
+    import asyncio
+    import threading
+    import time
+
+    from tqdm import tqdm
+
+    from hivemap.client.dataset import load_dataset
+    from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
+    from hivemap.client.link import AgentLink
+    from hivemap.protocol import Correction, Keyframe, MapPoints, PoseUpdates
+
+    options = options or RunnerOptions()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ds = load_dataset(Path(agent_dir))
+    aid = agent_id or str(getattr(ds, "agent_id", Path(agent_dir).name))
+    times = _frame_times(ds)
+    if options.max_frames is not None:
+        times = times[: options.max_frames]
+    imu = _imu(ds)
+    gnss = _gnss_table(ds)
+    agent = _make_agent(ds, gnss, options, frontend_options, second_stage_options)
+    agent.select(times)
+
+    pending: list[Correction] = []
+    lock = threading.Lock()
+
+    last_correction = [time.monotonic()]
+
+    def on_correction(msg: Correction) -> None:  # called in the event loop; applied between frames
+        with lock:
+            pending.append(msg)
+            last_correction[0] = time.monotonic()
+
+    T_BS = getattr(ds, "T_BS", {}) or {}
+    cam_from_antenna = None
+    if "gnss0" in T_BS and "cam0" in T_BS:
+        cam_from_antenna = (np.linalg.inv(np.asarray(T_BS["cam0"])) @ np.asarray(T_BS["gnss0"]))[:3, 3].copy()
+    link = AgentLink(
+        server, aid, str(getattr(ds, "kind", "uav")), ds.camera.to_dict(), token, out / "outbox.sqlite",
+        on_correction=on_correction, cam_from_antenna=cam_from_antenna,
+    )  # fmt: skip
+    outgoing: list[object] = []
+
+    def on_event(ev: object) -> None:
+        if isinstance(ev, KeyframeEvent):
+            if len(ev.new_point_ids):
+                outgoing.append(
+                    MapPoints(ev.new_point_ids, ev.new_point_xyz, ev.new_point_descriptors, ev.session)
+                )
+            fix = agent.kf_fix.get((ev.session, ev.kf_id))
+            outgoing.append(
+                Keyframe(
+                    ev.kf_id,
+                    ev.timestamp,
+                    ev.world_from_cam,
+                    ev.keypoints,
+                    ev.octaves,
+                    ev.descriptors,
+                    ev.point_ids,
+                    None if fix is None else gnss.enu[fix],
+                    None if fix is None else gnss.cov[fix],
+                    ev.session,
+                    agent.up_in_cam(ev.session, ev.kf_id),
+                )  # fmt: skip
+            )
+        elif isinstance(ev, PoseUpdateEvent):
+            outgoing.append(PoseUpdates(ev.kf_ids, ev.world_from_cam, ev.point_ids, ev.xyz, ev.session))
+
+    agent.on_event = on_event
+
+    def apply_pending() -> None:
+        with lock:
+            todo = list(pending)
+            pending.clear()
+        for c in todo:
+            n = agent.apply_correction(
+                c.session, c.kf_ids, c.world_from_cam, c.global_from_local, enu=c.global_frame == "enu"
+            )
+            log.info(
+                "correction from map %d (%s frame): %d keyframes fused as co-location factors",
+                c.map_id, c.global_frame, n,
+            )  # fmt: skip
+
+    def step(i: int, prev_t: float) -> None:
+        apply_pending()
+        t = float(times[i])
+        left, right = _load_pair(ds, i)
+        sel = (imu[:, 0] > prev_t) & (imu[:, 0] <= t) if len(imu) else None
+        agent.step(t, left, right, imu[sel] if sel is not None else None)
+
+    link_task = asyncio.create_task(link.run())
+    summary = RunSummary(agent_id=aid, gnss_mode=str(options.gnss))
+    summary.gnss_available = int(gnss.valid.sum())
+    summary.gnss_selected = int(agent.selected.sum())
+    wall0 = time.perf_counter()
+    prev_t = -math.inf
+    try:
+        for i in tqdm(range(len(times)), desc=f"agent {aid}", unit="frame", disable=not options.progress):
+            await asyncio.to_thread(step, i, prev_t)
+            prev_t = float(times[i])
+            for msg in outgoing:
+                link.submit_nowait(msg)  # type: ignore[arg-type]
+            outgoing.clear()
+            if link_task.done():
+                link_task.result()  # raises LinkRefused
+        await asyncio.to_thread(agent.finish)
+        for msg in outgoing:
+            link.submit_nowait(msg)  # type: ignore[arg-type]
+        outgoing.clear()
+        try:
+            await link.flush(timeout=options.flush_timeout_s)
+        except TimeoutError:
+            log.warning("server did not acknowledge everything within %.0f s", options.flush_timeout_s)
+        await _wait_for_server(server, options, last_correction, apply_pending)
+    finally:
+        await link.close()
+        link_task.cancel()
+        with contextlib_suppress():
+            await link_task
+    summary.wall_s = time.perf_counter() - wall0
+    _write_outputs(agent, out, summary, len(times))
+    summary.outputs["outbox"] = str(out / "outbox.sqlite")
+    (out / "run.json").write_text(summary.to_json())
+    log.info(
+        "agent %s streamed: %d keyframes, %d corrections applied, up %d B, down %d B, %d poses refused",
+        aid, summary.keyframes, agent.corrections_applied, link.stats.bytes_up, link.stats.bytes_down,
+        agent.corrections_refused,
+    )  # fmt: skip
+    return summary
+
+
+def contextlib_suppress() -> Any:
+    import asyncio
+    import contextlib
+
+    return contextlib.suppress(asyncio.CancelledError, Exception)
