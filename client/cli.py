@@ -26,6 +26,14 @@ def agent_command(
     agent_id: Annotated[str | None, typer.Option("--agent-id", help="Agent id (default: dataset's).")] = None,
     token: Annotated[str | None, typer.Option("--token", help="Agent token for the server.")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    max_connect_attempts: Annotated[
+        int,
+        typer.Option(
+            "--max-connect-attempts",
+            min=1,
+            help="Give up (exit 4) after this many consecutive failed connection attempts.",
+        ),
+    ] = 10,
     no_imu_factors: Annotated[
         bool,
         typer.Option(
@@ -34,7 +42,11 @@ def agent_command(
         ),
     ] = False,
 ) -> None:
-    """Run one agent on a dataset: offline (front-end + second stage) or streaming to a server."""
+    """Run one agent on a dataset: offline (front-end + second stage) or streaming to a server.
+
+    Streaming, SIGTERM/SIGINT stop the replay: unacknowledged messages stay in OUT/outbox.sqlite (sent
+    at the next start with the same --out) and the agent exits 0. Exit 3: the server refused the agent;
+    exit 4: the server could not be reached (--max-connect-attempts)."""
     from hivemap.client.runner import RunnerOptions, parse_gnss_mode
 
     try:
@@ -46,8 +58,9 @@ def agent_command(
     if not dataset.is_dir():
         raise typer.BadParameter(f"{dataset} is not a directory", param_hint="--dataset")
     options = RunnerOptions(
-        gnss=mode, seed=seed, max_frames=max_frames, progress=not no_progress, imu_factors=not no_imu_factors
-    )
+        gnss=mode, seed=seed, max_frames=max_frames, progress=not no_progress, imu_factors=not no_imu_factors,
+        max_connect_attempts=max_connect_attempts,
+    )  # fmt: skip
     out_dir = out if out is not None else Path("out") / (agent_id or dataset.name)
     if offline:
         from hivemap.client.runner import run_offline
@@ -62,15 +75,24 @@ def agent_command(
         return
     if not token:
         raise typer.BadParameter("--token is required with --server", param_hint="--token")
-    from hivemap.client.link import LinkRefused
-    from hivemap.client.streaming import run_streaming
+    from hivemap.client.link import LinkRefused, check_server_url
+    from hivemap.client.streaming import StreamFailed, run_streaming
 
+    if (bad := check_server_url(server or "")) is not None:
+        typer.echo(f"hivemap agent: --server: {bad}", err=True)  # one line, not a usage box
+        raise typer.Exit(2)
     try:
         summary = run_streaming(dataset, out_dir, server or "", agent_id, token, options)
-    except LinkRefused as exc:
-        typer.echo(f"hivemap agent: {exc}", err=True)
-        raise typer.Exit(3) from exc
+    except StreamFailed as exc:
+        # one line: what failed, and what is still waiting to be sent
+        typer.echo(
+            f"hivemap agent: {exc}; {exc.unsent} messages unsent in {exc.outbox} (kept for the next start)",
+            err=True,
+        )
+        raise typer.Exit(3 if isinstance(exc.__cause__, LinkRefused) else 4) from exc
+    stopped = f"stopped by {summary.stopped_by} after" if summary.stopped_by else "streamed"
     typer.echo(
-        f"agent {summary.agent_id}: streamed {summary.keyframes} keyframes of {summary.frames} frames to "
-        f"{server}, {summary.tracking_losses} tracking losses -> {out_dir}"
+        f"agent {summary.agent_id}: {stopped} {summary.keyframes} keyframes of {summary.frames} frames to "
+        f"{server}, {summary.tracking_losses} tracking losses, {summary.unsent} messages unsent "
+        f"in {out_dir / 'outbox.sqlite'} -> {out_dir}"
     )

@@ -34,10 +34,36 @@ class LinkRefused(RuntimeError):
     """The server refused this agent (token, agent id): retrying would not help."""
 
 
+class LinkFailed(RuntimeError):
+    """The server could not be reached (bad address, HTTP refusal, dead port) for
+    ``LinkOptions.max_connect_attempts`` consecutive attempts, or the address is not a WebSocket URL."""
+
+
+def check_server_url(url: str) -> str | None:
+    """None if ``url`` can be a server's WebSocket address (``ws://HOST:PORT/ws``), else why not."""
+    from urllib.parse import urlsplit
+
+    u = urlsplit(url)
+    if u.scheme not in ("ws", "wss"):
+        return f"server address {url!r} needs a ws:// or wss:// scheme, e.g. ws://HOST:8765/ws"
+    if not u.hostname:
+        return f"server address {url!r} has no host, e.g. ws://HOST:8765/ws"
+    return None
+
+
+def _describe(exc: BaseException) -> str:
+    """One line for a failed connection attempt (an HTTP status says which, with a hint for 403/404)."""
+    status = getattr(getattr(exc, "response", None), "status_code", None)
+    if status is not None:
+        hint = " (is the path /ws, e.g. ws://HOST:8765/ws?)" if status in (403, 404) else ""
+        return f"HTTP {status} on the WebSocket handshake{hint}"
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+
+
 # Error codes that say "not now" rather than "never": the message stays in the outbox and the link
 # reconnects, so the server's welcome decides what is resent. Any other error naming a seq is final
 # (the server will never accept that message) and the message is dropped from the outbox.
-TRANSIENT_ERROR_CODES = frozenset({"storage", "busy", "overloaded", "unavailable", "internal"})
+TRANSIENT_ERROR_CODES = frozenset({"storage", "busy", "overloaded", "unavailable", "internal", "rate"})
 
 
 class _Reconnect(Exception):
@@ -51,6 +77,10 @@ class LinkOptions:
     window: int = 64  # unacknowledged messages in flight per connection
     open_timeout_s: float = 10.0
     max_frame_bytes: int = 8 * 1024 * 1024
+    # consecutive connection attempts that fail (no welcome) before run() gives up with LinkFailed; the
+    # count restarts at every welcome, so a link that was up and drops gets as many again. With the
+    # backoff above, 10 attempts span about a minute: a restarting server comes back within that.
+    max_connect_attempts: int = 10
 
 
 @dataclass
@@ -98,6 +128,8 @@ class AgentLink:
         self._ws: websockets.ClientConnection | None = None
         self._run_task: asyncio.Task[None] | None = None
         self.server_errors: list[ErrorMsg] = []
+        self.unsent = 0  # messages left in the outbox at close() (unacknowledged; sent at the next start)
+        self._closed = False
 
     # -- agent side ---------------------------------------------------------------------------------
     def submit_nowait(self, msg: Message) -> int:
@@ -123,6 +155,8 @@ class AgentLink:
 
     async def close(self, reason: str = "done") -> None:
         """Say bye and stop ``run``. Unacknowledged messages stay in the outbox for the next start."""
+        if self._closed:
+            return
         self._stop = True
         self._stopped.set()
         self._new.set()
@@ -130,25 +164,35 @@ class AgentLink:
         if ws is not None:
             with contextlib.suppress(Exception):
                 await ws.send(encode(ByeMsg(reason), 0))
-                await ws.close()
+                # bounded: a stalled server must not hold up a SIGTERM'd agent past its grace period
+                await asyncio.wait_for(ws.close(), 2.0)
         task = self._run_task
         if task is not None and task is not asyncio.current_task() and not task.done():
             # Let run() leave (it may be between reconnect attempts) before the outbox goes away.
             with contextlib.suppress(BaseException):
                 await asyncio.wait_for(asyncio.shield(task), 5.0)
+        self.unsent = len(self.outbox)
+        self._closed = True
         self.outbox.close()
 
     # -- connection loop ----------------------------------------------------------------------------
     async def run(self) -> None:
-        """Connect, resume, stream; reconnect with backoff until ``close``. Raises LinkRefused."""
+        """Connect, resume, stream; reconnect with backoff until ``close``. Raises LinkRefused, and
+        LinkFailed after ``max_connect_attempts`` consecutive attempts that got no welcome."""
         self._run_task = asyncio.current_task()  # type: ignore[assignment]
         delay = self.options.backoff_initial_s
+        failures = 0
+        if (bad := check_server_url(self.url)) is not None:
+            raise LinkFailed(bad)
         while not self._stop:
             try:
                 await self._session()
                 delay = self.options.backoff_initial_s
+                failures = 0
             except LinkRefused:
                 raise
+            except websockets.InvalidURI as e:
+                raise LinkFailed(f"server address {self.url!r} is not a WebSocket URL: {e}") from e
             except (
                 OSError,
                 ConnectionClosed,
@@ -159,7 +203,12 @@ class AgentLink:
             ) as e:
                 if self._stop:
                     break
-                log.warning("link to %s lost (%s); reconnecting in %.1f s", self.url, e, delay)
+                failures = 0 if self.connected.is_set() else failures + 1  # connected: it was up
+                if failures >= self.options.max_connect_attempts:
+                    raise LinkFailed(
+                        f"cannot connect to {self.url} after {failures} attempts: {_describe(e)}"
+                    ) from e
+                log.warning("link to %s lost (%s); reconnecting in %.1f s", self.url, _describe(e), delay)
             finally:
                 self.connected.clear()
                 self._ws = None
@@ -187,6 +236,8 @@ class AgentLink:
             if not isinstance(first, bytes):
                 raise ProtocolError("text frame from the server", "frame")
             _, reply = decode(first)
+            if isinstance(reply, ErrorMsg) and reply.code in TRANSIENT_ERROR_CODES:
+                raise _Reconnect(f"server not ready: {reply.message}")  # e.g. still loading its store
             if isinstance(reply, ErrorMsg):
                 raise LinkRefused(f"server refused agent {self.agent_id!r}: {reply.message} ({reply.field})")
             if not isinstance(reply, Welcome):

@@ -118,6 +118,7 @@ class RunnerOptions:
     colocation_offset: bool = True
     imu_factors: bool = True  # IMU factors in the second stage (loosely coupled VIO) when there is an IMU
     progress: bool = True
+    max_connect_attempts: int = 10  # streaming: see LinkOptions.max_connect_attempts
 
 
 @dataclass
@@ -143,6 +144,8 @@ class RunSummary:
     fps: float = 0.0
     outputs: dict[str, str] = field(default_factory=dict)
     rejected_fixes: list[dict[str, float]] = field(default_factory=list)
+    unsent: int = 0  # streaming: messages left in the outbox (not acknowledged by the server)
+    stopped_by: str = ""  # streaming: the signal that ended the replay early ("SIGTERM", "SIGINT")
 
     def to_json(self) -> str:
         from dataclasses import asdict

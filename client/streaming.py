@@ -141,7 +141,7 @@ async def _stream(
 
     from hivemap.client.dataset import load_dataset
     from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
-    from hivemap.client.link import AgentLink
+    from hivemap.client.link import AgentLink, LinkOptions
     from hivemap.protocol import Correction, Keyframe, MapPoints, PoseUpdates
 
     options = options or RunnerOptions()
@@ -174,6 +174,7 @@ async def _stream(
     link = AgentLink(
         server, aid, str(getattr(ds, "kind", "uav")), ds.camera.to_dict(), token, out / "outbox.sqlite",
         on_correction=on_correction, cam_from_antenna=cam_from_antenna,
+        options=LinkOptions(max_connect_attempts=options.max_connect_attempts),
     )  # fmt: skip
     outgoing: list[object] = []
 
@@ -230,31 +231,51 @@ async def _stream(
     summary.gnss_selected = int(agent.selected.sum())
     wall0 = time.perf_counter()
     prev_t = -math.inf
+    # SIGTERM (docker stop, systemd) and SIGINT end the replay between frames: what was produced is in
+    # the outbox (durable) and goes out at the next start; the agent then exits normally.
+    stopping = asyncio.Event()
+    signals = _on_stop_signals(asyncio.get_running_loop(), stopping, summary)
+    link_task.add_done_callback(lambda _: stopping.set())  # the link gave up (or was refused)
+    n_frames = 0
+    failure: Exception | None = None
     try:
         for i in tqdm(range(len(times)), desc=f"agent {aid}", unit="frame", disable=not options.progress):
+            if stopping.is_set():
+                break
             await asyncio.to_thread(step, i, prev_t)
+            n_frames = i + 1
             prev_t = float(times[i])
             for msg in outgoing:
                 link.submit_nowait(msg)  # type: ignore[arg-type]
             outgoing.clear()
             if link_task.done():
-                link_task.result()  # raises LinkRefused
-        await asyncio.to_thread(agent.finish)
-        for msg in outgoing:
-            link.submit_nowait(msg)  # type: ignore[arg-type]
-        outgoing.clear()
+                link_task.result()  # raises LinkRefused / LinkFailed
+        if not stopping.is_set():
+            await asyncio.to_thread(agent.finish)
+            for msg in outgoing:
+                link.submit_nowait(msg)  # type: ignore[arg-type]
+            outgoing.clear()
         try:
-            await link.flush(timeout=options.flush_timeout_s)
+            await _unless(link.flush(timeout=options.flush_timeout_s), stopping)
         except TimeoutError:
             log.warning("server did not acknowledge everything within %.0f s", options.flush_timeout_s)
-        await _wait_for_server(server, options, last_correction, apply_pending)
+        await _unless(_wait_for_server(server, options, last_correction, apply_pending), stopping)
+        if link_task.done() and not link_task.cancelled():
+            link_task.result()  # the link failed during the flush
+    except Exception as exc:
+        failure = exc
     finally:
         await link.close()
         link_task.cancel()
         with contextlib_suppress():
             await link_task
+        for sig in signals:
+            asyncio.get_running_loop().remove_signal_handler(sig)
+    if failure is not None:
+        raise StreamFailed(str(failure), link.unsent, out / "outbox.sqlite") from failure
+    summary.unsent = link.unsent
     summary.wall_s = time.perf_counter() - wall0
-    _write_outputs(agent, out, summary, len(times))
+    _write_outputs(agent, out, summary, n_frames)
     summary.outputs["outbox"] = str(out / "outbox.sqlite")
     (out / "run.json").write_text(summary.to_json())
     log.info(
@@ -263,6 +284,51 @@ async def _stream(
         agent.corrections_refused,
     )  # fmt: skip
     return summary
+
+
+class StreamFailed(RuntimeError):
+    """The link ended the run (refused, or gave up reconnecting); ``unsent`` messages stay in ``outbox``."""
+
+    def __init__(self, message: str, unsent: int, outbox: Path) -> None:
+        super().__init__(message)
+        self.unsent = unsent
+        self.outbox = outbox
+
+
+def _on_stop_signals(loop: Any, stopping: Any, summary: RunSummary) -> list[int]:
+    """SIGTERM and SIGINT set ``stopping`` (and name the signal in the summary); returns those handled."""
+    import signal
+
+    handled = []
+    for sig in (signal.SIGTERM, signal.SIGINT):
+
+        def on_signal(sig: signal.Signals = sig) -> None:
+            log.warning("%s: stopping the replay; unsent messages stay in the outbox", sig.name)
+            summary.stopped_by = sig.name
+            stopping.set()
+
+        try:
+            loop.add_signal_handler(sig, on_signal)
+            handled.append(int(sig))
+        except (NotImplementedError, RuntimeError, ValueError):  # not the main thread, or no such API
+            pass
+    return handled
+
+
+async def _unless(aw: Any, stopping: Any) -> None:
+    """Await ``aw`` unless ``stopping`` is set first (then ``aw`` is cancelled)."""
+    import asyncio
+
+    task = asyncio.ensure_future(aw)
+    stop = asyncio.ensure_future(stopping.wait())
+    done, _ = await asyncio.wait({task, stop}, return_when=asyncio.FIRST_COMPLETED)
+    stop.cancel()
+    if task in done:
+        task.result()
+        return
+    task.cancel()
+    with contextlib_suppress():
+        await task
 
 
 def contextlib_suppress() -> Any:

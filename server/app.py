@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import importlib
 import logging
+import os
+import signal
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -40,10 +44,18 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        await server.start()
+        # The store loads in the background so that HTTP answers meanwhile (/health: "loading"); a large
+        # store takes tens of seconds and a silent server looks dead.
+        await server.open_store()
+        loading = asyncio.create_task(server.load(), name="hivemap-load")
+        loading.add_done_callback(lambda task: _report_load_failure(app, task))
         try:
             yield
         finally:
+            if not loading.done():
+                loading.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await loading
             await server.stop()
 
     app = FastAPI(
@@ -54,6 +66,7 @@ def create_app(
         lifespan=lifespan,
     )
     app.state.hive = server
+    app.state.load_error = None
     app.state.settings = settings
     app.include_router(router)
     app.add_api_websocket_route("/ws", agent_endpoint)
@@ -65,6 +78,16 @@ def create_app(
     if STATIC_DIR.is_dir():
         app.mount("/viewer", StaticFiles(directory=STATIC_DIR, html=True), name="viewer")
     return app
+
+
+def _report_load_failure(app: FastAPI, task: asyncio.Task[None]) -> None:
+    """A store that cannot be loaded is fatal: say why and shut the server down (``hivemap server`` then
+    exits non-zero, seeing ``app.state.load_error``)."""
+    if task.cancelled() or task.exception() is None:
+        return
+    app.state.load_error = task.exception()
+    logger.error("loading the store failed: %s", task.exception(), exc_info=task.exception())
+    os.kill(os.getpid(), signal.SIGTERM)
 
 
 def default_extensions(settings: ServerSettings) -> list[Callable[[HiveServer], None]]:
@@ -97,4 +120,5 @@ def uvicorn_config_kwargs(settings: ServerSettings) -> dict[str, object]:
         "ws_ping_timeout": settings.ping_interval_s,
         "log_level": settings.log_level,
         "lifespan": "on",
+        "timeout_graceful_shutdown": settings.shutdown_timeout_s,
     }

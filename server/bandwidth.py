@@ -19,6 +19,8 @@ class RateMeter:
     last: float | None = None
     _window_start: float = 0.0
     _window_bytes: int = 0
+    # seconds counted by earlier server runs (restored from the store): their bytes are in ``total``
+    carried_s: int = 0
 
     def add(self, nbytes: int, now: float) -> None:
         window = float(int(now))
@@ -34,9 +36,16 @@ class RateMeter:
         self.last = now
 
     def average(self) -> float:
+        seconds = self.carried_s
+        if self.first is not None and self.last is not None:
+            seconds += int(self.last) - int(self.first) + 1
+        return self.total / seconds if seconds else 0.0
+
+    def seconds(self) -> int:
+        """The 1 s windows the average divides by (this run's and earlier runs')."""
         if self.first is None or self.last is None:
-            return 0.0
-        return self.total / (int(self.last) - int(self.first) + 1)
+            return self.carried_s
+        return self.carried_s + int(self.last) - int(self.first) + 1
 
     def peak_rate(self) -> float:
         """Peak bytes/s, including the window in progress."""
@@ -56,6 +65,24 @@ class Bandwidth:
 
     def sent(self, nbytes: int) -> None:
         self.down.add(nbytes, self._clock())
+
+    def to_record(self) -> dict[str, float]:
+        """What survives a restart (the store's ``server_counters``): totals, peaks, seconds."""
+        return {
+            "up_total": self.up.total,
+            "up_peak": self.up.peak_rate(),
+            "up_seconds": self.up.seconds(),
+            "down_total": self.down.total,
+            "down_peak": self.down.peak_rate(),
+            "down_seconds": self.down.seconds(),
+        }
+
+    def restore(self, rec: dict[str, float]) -> None:
+        """Continue the counts of an earlier run (this run's clock starts afresh)."""
+        for name, meter in (("up", self.up), ("down", self.down)):
+            meter.total += int(rec.get(f"{name}_total", 0))
+            meter.peak = max(meter.peak, float(rec.get(f"{name}_peak", 0.0)))
+            meter.carried_s += int(rec.get(f"{name}_seconds", 0))
 
     def summary(self) -> dict[str, float]:
         return {

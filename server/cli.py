@@ -2,10 +2,40 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
+
+
+def preload_signal_installers() -> None:
+    """Import the native libraries that install their own signal handlers, before the server installs
+    its own. pycolmap installs glog's failure handler for SIGTERM at import; imported lazily by the
+    back-end (after uvicorn's handlers are in place) it took SIGTERM over, so a server that had handled
+    data died with a glog stack dump instead of shutting down. Imported first, uvicorn's handler wins."""
+    with contextlib.suppress(ImportError):
+        import pycolmap  # noqa: F401
+
+
+def make_uvicorn_server(config: Any) -> Any:
+    """A ``uvicorn.Server`` whose graceful shutdown on SIGTERM/SIGINT ends in a normal exit (code 0).
+    Stock uvicorn re-raises the captured signal after shutting down, so the process died by SIGTERM
+    (exit 143) even when every worker was stopped and the store closed."""
+    import uvicorn
+
+    class _Server(uvicorn.Server):
+        @contextlib.contextmanager
+        def capture_signals(self) -> Iterator[None]:
+            with super().capture_signals():
+                yield
+                # shut down cleanly: nothing is left for the default signal action to do
+                captured = getattr(self, "_captured_signals", None)
+                if isinstance(captured, list):
+                    captured.clear()
+
+    return _Server(config)
 
 
 def server_command(
@@ -19,11 +49,16 @@ def server_command(
     config: Annotated[
         Path | None,
         typer.Option(
-            "--config", exists=True, dir_okay=False, help="TOML settings ([tokens] agent = token, ...)."
+            "--config",
+            exists=True,
+            dir_okay=False,
+            help="TOML settings ([tokens] agent = token, ..., [quotas], see the README).",
         ),
     ] = None,
 ) -> None:
-    """Run the server: WebSocket ingest at /ws, REST inspection, viewer at /viewer/. Env: HIVEMAP_*."""
+    """Run the server: WebSocket ingest at /ws, REST inspection, viewer at /viewer/. Env: HIVEMAP_*.
+
+    SIGTERM and SIGINT shut it down cleanly (connections closed, back-end stopped, store closed; exit 0)."""
     import uvicorn
 
     from hivemap.server.app import create_app, uvicorn_config_kwargs
@@ -34,4 +69,12 @@ def server_command(
         typer.echo(
             "warning: no agent tokens configured ([tokens] in --config): every agent is refused", err=True
         )
-    uvicorn.run(create_app(settings), **uvicorn_config_kwargs(settings))  # type: ignore[arg-type]
+    preload_signal_installers()
+    app = create_app(settings)
+    server = make_uvicorn_server(uvicorn.Config(app, **uvicorn_config_kwargs(settings)))  # type: ignore[arg-type]
+    server.run()
+    if not server.started:
+        raise typer.Exit(3)  # could not start (port in use, ...): uvicorn's own exit code
+    if app.state.load_error is not None:
+        typer.echo(f"hivemap server: loading the store failed: {app.state.load_error}", err=True)
+        raise typer.Exit(1)

@@ -25,6 +25,7 @@ Hooks for the collaboration back-end:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import logging
 import time
@@ -56,6 +57,7 @@ from hivemap.server.convert import fold_agent_id, keyframe_from_msg, points_from
 from hivemap.server.events import EventLog
 from hivemap.server.metrics import Histogram
 from hivemap.server.persist import GraphSnapshot, ServerStore
+from hivemap.server.quotas import Quotas
 from hivemap.server.settings import ServerSettings
 from hivemap.server.writer import StoreWriter
 
@@ -197,6 +199,15 @@ class HiveServer:
         self.startup_hooks: list[Callable[[HiveServer], Awaitable[None]]] = []
         self.shutdown_hooks: list[Callable[[HiveServer], Awaitable[None]]] = []
         self._uncommitted: asyncio.Semaphore | None = None
+        self.quotas = Quotas(settings.quotas)
+        # the highest seq that passed the step check, per agent (rejected messages included, so an agent
+        # whose messages are refused for another reason is not then refused for its seq step)
+        self._seen_seq: dict[str, int] = {}
+        #: True from ``open_store`` until the stored maps are loaded (``/health`` says ``loading``)
+        self.loading = False
+        self.loaded = asyncio.Event()
+        self._counters_task: asyncio.Task[None] | None = None
+        self._counters_written: dict[str, Any] = {}
 
     # -- lifecycle ----------------------------------------------------------------------------------
     @property
@@ -210,6 +221,13 @@ class HiveServer:
         return self._writer
 
     async def start(self) -> None:
+        """Open the store and load it (``open_store`` then ``load``)."""
+        await self.open_store()
+        await self.load()
+
+    async def open_store(self) -> None:
+        """Start the writer thread on the store; the maps are not loaded yet (see ``load``)."""
+        self.loading = True
         Path(self.settings.data_dir).mkdir(parents=True, exist_ok=True)
         loop = asyncio.get_running_loop()
         self.loop = loop  # for other threads: asyncio.run_coroutine_threadsafe(coro, server.loop)
@@ -219,8 +237,22 @@ class HiveServer:
             lambda: ServerStore(path, synchronous=sync), loop, self.settings.commit_interval_ms / 1000.0
         )
         await self._writer.start()
-        loaded = await self._writer.call(lambda store: store.load_all())
+
+    async def load(self) -> None:
+        """Load the stored maps and agents, then run the startup hooks. The HTTP server may already serve
+        meanwhile: ``/health`` says ``loading`` and hellos are told to come back (see ``ws``)."""
+        t0 = time.perf_counter()
+        path = self.db_path
+        logger.info("loading the store %s", path)
+        loaded = await self.writer.call(lambda store: store.load_all())
         self._restore(loaded)
+        self._restore_counters(await self.writer.call(lambda store: store.load_counters()))
+        n_kfs = sum(len(m.keyframes) for m in self.stack.maps.values())
+        n_pts = sum(len(m.points) for m in self.stack.maps.values())
+        logger.info(
+            "store loaded in %.1f s: %d maps, %d keyframes, %d map points, %d agents",
+            time.perf_counter() - t0, len(self.stack.maps), n_kfs, n_pts, len(self.agents),
+        )  # fmt: skip
         # Long-lived objects (modules, FastAPI/pydantic internals, the reloaded maps) leave the collector's
         # view: a full collection over them otherwise stalls the loop for tens of ms (measured: 60 ms).
         gc.collect()
@@ -231,8 +263,15 @@ class HiveServer:
         )
         for hook in self.startup_hooks:
             await hook(self)
+        self._counters_task = asyncio.create_task(self._write_counters_periodically())
+        self.loading = False
+        self.loaded.set()
 
     async def stop(self) -> None:
+        if self._counters_task is not None:
+            self._counters_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._counters_task
         for hook in self.shutdown_hooks:
             try:
                 await hook(self)
@@ -242,8 +281,50 @@ class HiveServer:
             if agent.connection is not None:
                 await agent.connection.close(1001, "server shutting down")
         if self._writer is not None:
+            if self.loaded.is_set():  # (a store that never finished loading has no counters to keep)
+                self._submit_counters()
             await self._writer.stop()
             self._writer = None
+            logger.info("store closed: %s", self.db_path)
+
+    # -- counters (persisted apart from the data: a few seconds of them may be lost to a kill -9) -------
+    COUNTERS_INTERVAL_S = 5.0
+
+    @staticmethod
+    def _counters_of(agent: AgentState) -> dict[str, Any]:
+        return {
+            "received": dict(agent.received),
+            "duplicates": agent.duplicates,
+            "errors": agent.errors,
+            "bandwidth": agent.bandwidth.to_record(),
+        }
+
+    def _restore_counters(self, counters: dict[str, dict[str, Any]]) -> None:
+        for agent_id, rec in counters.items():
+            agent = self.agents.get(agent_id)
+            if agent is None:
+                continue
+            agent.received.update({str(k): int(v) for k, v in rec.get("received", {}).items()})
+            agent.duplicates += int(rec.get("duplicates", 0))
+            agent.errors += int(rec.get("errors", 0))
+            agent.bandwidth.restore(rec.get("bandwidth", {}))
+            self._counters_written[agent_id] = self._counters_of(agent)
+
+    def _submit_counters(self) -> None:
+        """Queue a write of the counters that changed since the last one."""
+        changed = []
+        for agent in self.agents.values():
+            rec = self._counters_of(agent)
+            if self._counters_written.get(agent.agent_id) != rec:
+                self._counters_written[agent.agent_id] = rec
+                changed.append((agent.agent_id, rec))
+        if changed and self._writer is not None:
+            self._writer.submit(lambda store: [store.put_counters(a, r) for a, r in changed])
+
+    async def _write_counters_periodically(self) -> None:
+        while True:
+            await asyncio.sleep(self.COUNTERS_INTERVAL_S)
+            self._submit_counters()
 
     def _restore(self, loaded: Any) -> None:
         self.stack = loaded.stack
@@ -394,6 +475,7 @@ class HiveServer:
             agent.connection = None
             agent.last_seen = time.time()
             self.events.add("disconnect", f"{agent.agent_id} disconnected", agent_id=agent.agent_id)
+            self._submit_counters()
 
     # -- ingest -------------------------------------------------------------------------------------
     async def handle(self, conn: Connection, seq: int, msg: Message, received_at: float) -> None:
@@ -422,6 +504,7 @@ class HiveServer:
             agent.received[type(msg).__name__] += 1
             if seq <= 0:
                 raise Rejected("bad_field", f"seq must be >= 1 for data messages, got {seq}", "seq")
+            self._check_seq_step(agent, seq)
             store_op: Callable[[ServerStore], None] | None = None
             inserted: list[tuple[int, KfKey]] = []
             if seq <= ms.applied_seq:
@@ -453,6 +536,32 @@ class HiveServer:
                     await observer(map_id, key)
                 except Exception:
                     logger.exception("keyframe observer failed")
+
+    def _check_seq_step(self, agent: AgentState, seq: int) -> None:
+        """A seq may grow by at most ``max_seq_step``: one frame with seq 2**62 would otherwise make the
+        agent's stored last seq unreachable and lock its id out of ever being stored again."""
+        ref = max(agent.applied_seq, self._seen_seq.get(agent.agent_id, 0))
+        step = self.settings.max_seq_step
+        if seq > ref + step:
+            raise Rejected(
+                "bad_field", f"seq {seq} jumps more than max_seq_step = {step} past seq {ref}", "seq"
+            )
+        if seq > ref:
+            self._seen_seq[agent.agent_id] = seq
+
+    def _check_quota(self, agent: AgentState, kind: str, n: int, field: str) -> None:
+        """Refuse a message that would take the agent over one of its ``[quotas]`` (nothing applied)."""
+        if kind == "points":
+            stored = sum(len(am.arrived_points) for am in agent.maps.values())
+        else:
+            stored = sum(len(am.arrived_kfs) + len(am.pending) for am in agent.maps.values())
+        over = self.quotas.check(agent.agent_id, kind, n, stored)
+        if over is None:
+            return
+        if self.quotas.should_report(agent.agent_id, over.limit):
+            logger.warning("quota: %s", over.message)
+            self.events.add("quota", over.message, agent_id=agent.agent_id, data={"limit": over.limit})
+        raise Rejected(over.code, over.message, field)
 
     def _apply(
         self, agent: AgentState, mission: str, msg: Message
@@ -547,6 +656,7 @@ class HiveServer:
         if msg.kf_id in am.arrived_kfs or msg.kf_id in am.pending:
             agent.duplicates += 1
             return None, []
+        self._check_quota(agent, "keyframes", 1, "body.kf_id")
         missing = self._missing_points(am, msg)
         if missing:
             if len(am.pending) >= self.settings.max_pending_keyframes:
@@ -594,6 +704,7 @@ class HiveServer:
         if not keep:
             agent.duplicates += 1
             return None, []
+        self._check_quota(agent, "points", len(keep), "body.ids")
         m = self.map_for(am)
         points = points_from_msg(am.folded, msg, np.asarray(keep, dtype=np.int64), am.global_from_vio)
         for mp in points:

@@ -160,6 +160,27 @@ class ServerStore:
     def delete_pending(self, folded: str, kf_id: int) -> None:
         self.conn.execute("DELETE FROM server_pending WHERE folded = ? AND kf_id = ?", (folded, int(kf_id)))
 
+    # -- message and bandwidth counters (their own table: written apart from the data, see core) --------
+    COUNTERS_SCHEMA = """
+    CREATE TABLE IF NOT EXISTS server_counters (
+        agent_id TEXT PRIMARY KEY,
+        record TEXT NOT NULL           -- json: received per type, duplicates, errors, bandwidth
+    );
+    """
+
+    def put_counters(self, agent_id: str, record: dict[str, Any]) -> None:
+        self.conn.execute(
+            "INSERT INTO server_counters (agent_id, record) VALUES (?, ?) "
+            "ON CONFLICT(agent_id) DO UPDATE SET record = excluded.record",
+            (agent_id, json.dumps(record)),
+        )
+
+    def load_counters(self) -> dict[str, dict[str, Any]]:
+        """Every agent's counters as last written (creates the table in older stores)."""
+        self.conn.executescript(self.COUNTERS_SCHEMA)
+        rows = self.conn.execute("SELECT agent_id, record FROM server_counters")
+        return {a: json.loads(r) for a, r in rows}
+
     # -- start-up ------------------------------------------------------------------------------------
     def load_all(self) -> Loaded:
         out = Loaded(stack=self.maps.load_stack())

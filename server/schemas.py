@@ -31,7 +31,10 @@ class StoreStats(BaseModel):
 
 
 class Health(BaseModel):
-    status: str = Field(description="'ok', or 'degraded' when the store failed to commit")
+    status: str = Field(
+        description="'ok'; 'loading' while the stored maps load at start-up (agents are told to retry); "
+        "'degraded' when the store failed to commit"
+    )
     version: str
     uptime_s: float
     agents_connected: int

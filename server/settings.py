@@ -11,6 +11,10 @@ Example TOML::
     [tokens]
     uav1 = "secret-uav1"
     ugv1 = "secret-ugv1"
+
+    [quotas]                  # per agent; see QuotaSettings
+    max_points = 500000
+    points_per_s = 5000
 """
 
 from __future__ import annotations
@@ -19,8 +23,26 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class QuotaSettings(BaseModel):
+    """Per-agent limits (the ``[quotas]`` table). The totals bound what one agent can make the server
+    hold in memory: the stack keeps every stored point and keyframe, so ``max_points`` and
+    ``max_keyframes`` times the agent count is the server's memory bound (see the README). The rates
+    are token buckets (``*_per_s`` refill, ``*_burst`` capacity): an agent resending an outage's
+    backlog fits in the burst. Defaults are ~15x what a 90 s factory01 agent stores (~700 keyframes,
+    ~30k points) and ~10x its peak rates."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    max_points: int = Field(default=500_000, ge=1, description="Map points stored per agent, in total.")
+    max_keyframes: int = Field(default=10_000, ge=1, description="Keyframes stored per agent, in total.")
+    points_per_s: float = Field(default=5000.0, gt=0.0, description="Sustained map points per second.")
+    points_burst: int = Field(default=50_000, ge=1, description="Map points accepted at once above the rate.")
+    keyframes_per_s: float = Field(default=50.0, gt=0.0, description="Sustained keyframes per second.")
+    keyframes_burst: int = Field(default=500, ge=1, description="Keyframes accepted at once above the rate.")
 
 
 class ServerSettings(BaseSettings):
@@ -84,6 +106,18 @@ class ServerSettings(BaseSettings):
         default="FULL", description="FULL survives power loss, NORMAL (WAL) survives a process crash."
     )
     per_message_deflate: bool = False
+    quotas: QuotaSettings = Field(default_factory=QuotaSettings)
+    hello_timeout_s: float = Field(
+        default=10.0, gt=0.0, description="A connection that sends no hello within this is closed."
+    )
+    max_seq_step: int = Field(
+        default=10_000,
+        ge=1,
+        description="Largest seq increase per message; a frame jumping further is refused (field 'seq').",
+    )
+    shutdown_timeout_s: float = Field(
+        default=10.0, gt=0.0, description="On SIGTERM/SIGINT: wait this long for connections to finish."
+    )
     backend: bool = Field(default=True, description="Run the collaboration back-end (merging, loops).")
     # Inspection.
     event_buffer: int = Field(default=10000, ge=10, description="Events kept in the /events ring buffer.")

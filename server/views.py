@@ -25,7 +25,7 @@ def health(server: HiveServer) -> schemas.Health:
     w = server.writer
     backend = getattr(server, "backend", None)  # set by hivemap.server.backend.install when it is on
     return schemas.Health(
-        status="degraded" if w.failed else "ok",
+        status="degraded" if w.failed else "loading" if server.loading else "ok",
         version=__version__,
         uptime_s=time.time() - server.started_at,
         agents_connected=sum(a.connection is not None for a in server.agents.values()),

@@ -38,6 +38,7 @@ from hivemap.server.core import AgentState, HiveServer, Rejected
 logger = logging.getLogger(__name__)
 
 POLICY_VIOLATION = 1008
+TRY_AGAIN_LATER = 1013
 
 
 def _error_code(exc: ProtocolError) -> str:
@@ -129,9 +130,15 @@ class AgentConnection:
         await self.ws.accept()
         self._task = asyncio.current_task()
         sender = asyncio.create_task(self._send_loop())
+        hello_deadline = time.monotonic() + self.server.settings.hello_timeout_s
         try:
             while True:
-                event = await self.ws.receive()
+                if self.agent_id is None and not self._closing:
+                    event = await self._receive_before_hello(hello_deadline)
+                    if event is None:
+                        break
+                else:
+                    event = await self.ws.receive()
                 if event["type"] == "websocket.disconnect":
                     break
                 data = event.get("bytes")
@@ -158,6 +165,20 @@ class AgentConnection:
                 # else give the close frame queued by close() a moment to go out
                 with contextlib.suppress(asyncio.CancelledError, TimeoutError, Exception):
                     await asyncio.wait_for(sender, timeout=1.0)
+
+    async def _receive_before_hello(self, deadline: float) -> Any:
+        """The next event, or None (after queueing a close) when no hello came within the hello timeout:
+        a socket that never says who it is must not stay open forever."""
+        try:
+            return await asyncio.wait_for(self.ws.receive(), max(deadline - time.monotonic(), 0.0))
+        except TimeoutError:
+            t = self.server.settings.hello_timeout_s
+            reason = f"no hello within hello_timeout_s = {t:g} s"
+            self.server.events.add("refused", reason, agent_id=None)
+            logger.warning("closing connection: %s", reason)
+            self._reply_error("hello_timeout", reason, "type", None)
+            await self.close(POLICY_VIOLATION, reason)
+            return None
 
     async def _on_frame(self, data: bytes) -> None:
         received_at = time.monotonic()
@@ -190,7 +211,10 @@ class AgentConnection:
         except Rejected as r:
             if agent is not None:
                 agent.errors += 1
-            self.server.events.add("error", f"{self.agent_id} seq {seq}: {r.message}", agent_id=self.agent_id)
+            if r.code not in ("quota", "rate"):  # those publish their own (rate-limited) "quota" event
+                self.server.events.add(
+                    "error", f"{self.agent_id} seq {seq}: {r.message}", agent_id=self.agent_id
+                )
             self._reply_error(r.code, r.message, r.field, seq)
 
     async def _on_hello(self, seq: int, msg: Message) -> None:
@@ -203,6 +227,12 @@ class AgentConnection:
             )
             return
         reason = self.server.authenticate(msg)
+        if reason is None and self.server.loading:
+            # transient for the agent ("unavailable"): it reconnects with backoff until the store is loaded
+            why = "server is loading its store; retry shortly"
+            self._reply_error("unavailable", why, None, seq)
+            await self.close(TRY_AGAIN_LATER, why)
+            return
         if reason is not None:
             self.server.events.add("refused", reason, agent_id=None)
             logger.warning("refused connection: %s", reason)
