@@ -34,6 +34,15 @@ def agent_command(
             help="Give up (exit 4) after this many consecutive failed connection attempts.",
         ),
     ] = 10,
+    wait_corrections: Annotated[
+        float,
+        typer.Option(
+            "--wait-corrections",
+            min=0.0,
+            help="Streaming: after the last frame, wait at most this many seconds for the server's last "
+            "corrections (0: do not wait).",
+        ),
+    ] = 120.0,
     no_imu_factors: Annotated[
         bool,
         typer.Option(
@@ -59,7 +68,7 @@ def agent_command(
         raise typer.BadParameter(f"{dataset} is not a directory", param_hint="--dataset")
     options = RunnerOptions(
         gnss=mode, seed=seed, max_frames=max_frames, progress=not no_progress, imu_factors=not no_imu_factors,
-        max_connect_attempts=max_connect_attempts,
+        max_connect_attempts=max_connect_attempts, corrections_max_wait_s=wait_corrections,
     )  # fmt: skip
     out_dir = out if out is not None else Path("out") / (agent_id or dataset.name)
     if offline:

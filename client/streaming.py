@@ -90,6 +90,9 @@ async def _wait_for_server(
     t_end = time.monotonic()
     url = health_url(server)
     idle_polls, use_health, failures = 0, True, 0
+    if options.corrections_max_wait_s <= 0:
+        apply_pending()
+        return
     while time.monotonic() - t_end < options.corrections_max_wait_s:
         await asyncio.sleep(0.5)
         apply_pending()
@@ -142,6 +145,7 @@ async def _stream(
     from hivemap.client.dataset import load_dataset
     from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
     from hivemap.client.link import AgentLink, LinkOptions
+    from hivemap.client.outbox import open_mission_outbox
     from hivemap.protocol import Correction, Keyframe, MapPoints, PoseUpdates
 
     options = options or RunnerOptions()
@@ -171,18 +175,31 @@ async def _stream(
     cam_from_antenna = None
     if "gnss0" in T_BS and "cam0" in T_BS:
         cam_from_antenna = (np.linalg.inv(np.asarray(T_BS["cam0"])) @ np.asarray(T_BS["gnss0"]))[:3, 3].copy()
+    # One outbox is one mission: an unfinished one is resumed (this front-end then starts in a session
+    # the earlier process never used), a finished one is archived and a new mission begins.
+    box = open_mission_outbox(out, aid)
+    first = box.start_session()
+    if first:
+        log.info("agent %s resumes mission %s in session %d", aid, box.mission, first)
     link = AgentLink(
-        server, aid, str(getattr(ds, "kind", "uav")), ds.camera.to_dict(), token, out / "outbox.sqlite",
-        on_correction=on_correction, cam_from_antenna=cam_from_antenna,
+        server, aid, str(getattr(ds, "kind", "uav")), ds.camera.to_dict(), token, box,
+        on_correction=on_correction, cam_from_antenna=cam_from_antenna, session=first,
         options=LinkOptions(max_connect_attempts=options.max_connect_attempts),
     )  # fmt: skip
     outgoing: list[object] = []
+    sessions_used = {first}
 
     def on_event(ev: object) -> None:
+        # the wire carries the mission's session numbers: this process's front-end sessions shifted by
+        # the first one it was given
+        session = first + int(getattr(ev, "session", 0))
+        if session not in sessions_used:
+            sessions_used.add(session)
+            box.reserve_sessions(session)
         if isinstance(ev, KeyframeEvent):
             if len(ev.new_point_ids):
                 outgoing.append(
-                    MapPoints(ev.new_point_ids, ev.new_point_xyz, ev.new_point_descriptors, ev.session)
+                    MapPoints(ev.new_point_ids, ev.new_point_xyz, ev.new_point_descriptors, session)
                 )
             fix = agent.kf_fix.get((ev.session, ev.kf_id))
             outgoing.append(
@@ -196,12 +213,12 @@ async def _stream(
                     ev.point_ids,
                     None if fix is None else gnss.enu[fix],
                     None if fix is None else gnss.cov[fix],
-                    ev.session,
+                    session,
                     agent.up_in_cam(ev.session, ev.kf_id),
                 )  # fmt: skip
             )
         elif isinstance(ev, PoseUpdateEvent):
-            outgoing.append(PoseUpdates(ev.kf_ids, ev.world_from_cam, ev.point_ids, ev.xyz, ev.session))
+            outgoing.append(PoseUpdates(ev.kf_ids, ev.world_from_cam, ev.point_ids, ev.xyz, session))
 
     agent.on_event = on_event
 
@@ -210,8 +227,12 @@ async def _stream(
             todo = list(pending)
             pending.clear()
         for c in todo:
+            if c.session < first:  # a session of the process that ran this mission before
+                log.debug("correction for session %d of an earlier process: not this front-end's", c.session)
+                continue
+            enu = c.global_frame == "enu"
             n = agent.apply_correction(
-                c.session, c.kf_ids, c.world_from_cam, c.global_from_local, enu=c.global_frame == "enu"
+                c.session - first, c.kf_ids, c.world_from_cam, c.global_from_local, enu=enu
             )
             log.info(
                 "correction from map %d (%s frame): %d keyframes fused as co-location factors",
@@ -262,6 +283,8 @@ async def _stream(
         await _unless(_wait_for_server(server, options, last_correction, apply_pending), stopping)
         if link_task.done() and not link_task.cancelled():
             link_task.result()  # the link failed during the flush
+        if not stopping.is_set() and box.finish():  # all acknowledged: the next run is a new mission
+            log.info("agent %s: mission %s complete", aid, box.mission)
     except Exception as exc:
         failure = exc
     finally:

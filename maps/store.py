@@ -346,6 +346,35 @@ class MapStore:
                 ],
             )
 
+    def put_fusion(
+        self,
+        map_id: int,
+        references: Iterable[tuple[KfKey, NDArray[np.int64], dict[int, str]]],
+        dropped: Iterable[PointKey],
+    ) -> None:
+        """Write a point fusion: the point references (``point_ids``, ``point_agents``) of the keyframes it
+        changed, and the removal of the fused-away points (their redirects go with ``sync_graph``)."""
+        map_id = int(map_id)
+        with self._tx():
+            self.conn.executemany(
+                "UPDATE map_keyframes SET point_ids = ?, point_agents = ? "
+                "WHERE map_id = ? AND agent = ? AND id = ?",
+                [
+                    (
+                        pack_array(ids),
+                        json.dumps({str(i): a for i, a in sorted(agents.items())}) if agents else None,
+                        map_id,
+                        k[0],
+                        k[1],
+                    )
+                    for k, ids, agents in references
+                ],
+            )
+            self.conn.executemany(
+                "DELETE FROM map_points WHERE map_id = ? AND agent = ? AND id = ?",
+                [(map_id, k[0], k[1]) for k in dropped],
+            )
+
     def delete_keyframes(self, map_id: int, keys: Iterable[KfKey]) -> None:
         with self._tx():
             self.conn.executemany(

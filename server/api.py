@@ -84,6 +84,13 @@ async def maps(server: Server) -> schemas.MapList:
     return views.maps(server)
 
 
+@router.get("/maps/digest", response_model=schemas.StackDigest, tags=["maps"])
+async def maps_digest(server: Server) -> schemas.StackDigest:
+    """A SHA-256 of every map's whole content (keyframes, points, graphs, history): equal digests before
+    and after a restart mean the store gave back the same map stack. Reads every map: not for polling."""
+    return views.stack_digest(server)
+
+
 @router.get("/maps/{map_id}", response_model=schemas.MapDetail, responses=NOT_FOUND, tags=["maps"])
 async def map_detail(server: Server, map_id: MapId) -> schemas.MapDetail:
     """Agents, keyframe and point counts, merge history of one map."""

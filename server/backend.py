@@ -44,6 +44,7 @@ from hivemap.maps.geometry import (
 )
 from hivemap.protocol import Correction, encode
 from hivemap.server.convert import split_folded
+from hivemap.server.persist import GraphSnapshot
 from hivemap.server.placerec import (
     Detection,
     PlaceRecognizer,
@@ -905,13 +906,10 @@ class Backend:
                               data={"n_keyframes": len(snap.keys), "ms": pg_ms})  # fmt: skip
         # loop: the two sides' duplicate points become one only now (fused earlier, their covisibility
         # edges would hold the uncorrected relative poses in the pose graph)
+        await server.fuse_points(map_id, fuse)
         m = server.stack.maps.get(map_id)
         if m is None:
             return
-        for keep, drop in fuse:
-            k2, d2 = m.resolve_point(keep), m.resolve_point(drop)
-            if k2 != d2 and k2 in m.points and d2 in m.points:
-                m.fuse_points(k2, d2)
         # 2. global BA (background; keyframes arriving meanwhile follow their parent)
         ba_on = o.global_ba if o.global_ba is not None else not o.fix_scale
         if ba_on and 2 <= len(m.keyframes) <= o.ba_max_keyframes:
@@ -954,7 +952,10 @@ class Backend:
                 self._rebend_map(m, unbend)  # no new stage result: the last one's bend stands
         # 4. persist, 5. corrections
         kfs, pts = list(m.keyframes.values()), list(m.points.values())
-        await server.persist_exclusive(lambda store: store.maps.update_poses(map_id, kfs, pts))
+        graph = GraphSnapshot(m)  # the loop edges this optimisation added go in the same commit
+        await server.persist_exclusive(
+            lambda store: (store.maps.update_poses(map_id, kfs, pts), store.sync_graph(graph))
+        )
         await self._send_corrections(map_id, before, t_det, only_agents=None)
         if map_id in self._enu_maps:
             await self._gnss_retry(map_id)

@@ -64,6 +64,7 @@ from hivemap.server.writer import StoreWriter
 logger = logging.getLogger(__name__)
 
 KfKey = tuple[str, int]
+PointKey = tuple[str, int]
 KeyframeObserver = Callable[[int, KfKey], Awaitable[None]]
 # sessions of one agent id over all its missions (each is one agent map); bounds what one id can hold
 MAX_SESSIONS_PER_AGENT = 256
@@ -202,7 +203,7 @@ class HiveServer:
         self.quotas = Quotas(settings.quotas)
         # the highest seq that passed the step check, per agent (rejected messages included, so an agent
         # whose messages are refused for another reason is not then refused for its seq step)
-        self._seen_seq: dict[str, int] = {}
+        self._seen_seq: dict[tuple[str, str], int] = {}
         #: True from ``open_store`` until the stored maps are loaded (``/health`` says ``loading``)
         self.loading = False
         self.loaded = asyncio.Event()
@@ -504,7 +505,7 @@ class HiveServer:
             agent.received[type(msg).__name__] += 1
             if seq <= 0:
                 raise Rejected("bad_field", f"seq must be >= 1 for data messages, got {seq}", "seq")
-            self._check_seq_step(agent, seq)
+            self._check_seq_step(agent, ms, seq)
             store_op: Callable[[ServerStore], None] | None = None
             inserted: list[tuple[int, KfKey]] = []
             if seq <= ms.applied_seq:
@@ -537,17 +538,18 @@ class HiveServer:
                 except Exception:
                     logger.exception("keyframe observer failed")
 
-    def _check_seq_step(self, agent: AgentState, seq: int) -> None:
+    def _check_seq_step(self, agent: AgentState, ms: MissionState, seq: int) -> None:
         """A seq may grow by at most ``max_seq_step``: one frame with seq 2**62 would otherwise make the
         agent's stored last seq unreachable and lock its id out of ever being stored again."""
-        ref = max(agent.applied_seq, self._seen_seq.get(agent.agent_id, 0))
+        key = (agent.agent_id, ms.mission)
+        ref = max(ms.applied_seq, self._seen_seq.get(key, 0))
         step = self.settings.max_seq_step
         if seq > ref + step:
             raise Rejected(
                 "bad_field", f"seq {seq} jumps more than max_seq_step = {step} past seq {ref}", "seq"
             )
         if seq > ref:
-            self._seen_seq[agent.agent_id] = seq
+            self._seen_seq[key] = seq
 
     def _check_quota(self, agent: AgentState, kind: str, n: int, field: str) -> None:
         """Refuse a message that would take the agent over one of its ``[quotas]`` (nothing applied)."""
@@ -899,6 +901,37 @@ class HiveServer:
             data={"source": source_id, "target": target_id, "scale": target_from_source.s},
         )
         return merged
+
+    async def fuse_points(self, map_id: int, pairs: Iterable[tuple[PointKey, PointKey]]) -> int:
+        """Fuse duplicate map points ``(keep, drop)`` of map ``map_id`` (``Map.fuse_points``; pairs already
+        fused or gone are skipped) and persist the changed point references, the removed points and their
+        redirects in one commit before returning. Returns how many points were fused away."""
+        m = self.stack.maps.get(map_id)
+        if m is None:
+            return 0
+        touched: set[KfKey] = set()
+        dropped: list[PointKey] = []
+        for keep, drop in pairs:
+            k2, d2 = m.resolve_point(keep), m.resolve_point(drop)
+            if k2 != d2 and k2 in m.points and d2 in m.points:
+                touched.update(m.points[d2].observations)
+                m.fuse_points(k2, d2)
+                dropped.append(d2)
+        if not dropped:
+            return 0
+        refs = [
+            (k, m.keyframes[k].point_ids.copy(), dict(m.keyframes[k].point_agents))
+            for k in sorted(touched)
+            if k in m.keyframes
+        ]
+        graph = GraphSnapshot(m)
+
+        def op(store: ServerStore) -> None:
+            store.maps.put_fusion(map_id, refs, dropped)
+            store.sync_graph(graph)
+
+        await self.writer.call(op)
+        return len(dropped)
 
     # -- inspection helpers -------------------------------------------------------------------------
     def agent_maps(self, agent_id: str) -> Iterable[AgentMap]:

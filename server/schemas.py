@@ -57,6 +57,20 @@ class BandwidthInfo(BaseModel):
     down_peak: float
 
 
+class SessionInfo(BaseModel):
+    session: int = Field(description="server session: the n of the agent map's id 'agent#n'")
+    mission: str = Field(description="the mission (agent outbox UUID) it came from")
+    client_session: int = Field(description="the session number the agent gave it within its mission")
+    map_id: int | None = Field(description="stack map holding it")
+    keyframes: int
+    points: int
+
+
+class MissionInfo(BaseModel):
+    mission: str
+    last_seq: int = Field(description="highest seq of this mission durably stored")
+
+
 class AgentInfo(BaseModel):
     agent_id: str
     kind: str | None
@@ -73,6 +87,9 @@ class AgentInfo(BaseModel):
     duplicates: int
     errors: int
     bandwidth: BandwidthInfo
+    mission: str | None = Field(default=None, description="mission of the agent's latest hello")
+    missions: list[MissionInfo] = Field(default_factory=list)
+    sessions: list[SessionInfo] = Field(default_factory=list, description="every agent map, all missions")
 
 
 class AgentList(BaseModel):
@@ -145,3 +162,7 @@ class EventList(BaseModel):
 
 class ErrorBody(BaseModel):
     detail: str
+
+
+class StackDigest(BaseModel):
+    digests: dict[int, str] = Field(description="map id -> SHA-256 of the map's whole content")

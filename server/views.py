@@ -62,7 +62,30 @@ def agent_info(server: HiveServer, agent: AgentState) -> schemas.AgentInfo:
         duplicates=agent.duplicates,
         errors=agent.errors,
         bandwidth=schemas.BandwidthInfo(**agent.bandwidth.summary()),
+        mission=agent.mission,
+        missions=[
+            schemas.MissionInfo(mission=ms.mission, last_seq=ms.last_seq) for ms in agent.missions.values()
+        ],
+        sessions=[_session_info(server, a) for _, a in sorted(agent.maps.items())],
     )
+
+
+def _session_info(server: HiveServer, am: AgentMap) -> schemas.SessionInfo:
+    m = server.stack.map_of_agent(am.folded)
+    return schemas.SessionInfo(
+        session=am.session,
+        mission=am.mission,
+        client_session=am.client_session,
+        map_id=m.id if m is not None else None,
+        keyframes=len(am.arrived_kfs),
+        points=len(am.arrived_points),
+    )
+
+
+def stack_digest(server: HiveServer) -> schemas.StackDigest:
+    from hivemap.maps.digest import stack_digest as digest
+
+    return schemas.StackDigest(digests=digest(server.stack))
 
 
 def agents(server: HiveServer) -> schemas.AgentList:

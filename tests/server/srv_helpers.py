@@ -74,7 +74,9 @@ class ServerProcess:
                     f"server exited with {self.proc.returncode}:\n{self.log.read_text()[-3000:]}"
                 )
             try:
-                if httpx.get(self.url + "/health", timeout=1.0).status_code == 200:
+                r = httpx.get(self.url + "/health", timeout=1.0)
+                # up, and done loading its store (hellos are refused until then)
+                if r.status_code == 200 and r.json().get("status") != "loading":
                     return self
             except httpx.HTTPError:
                 pass
