@@ -16,23 +16,10 @@ import pytest
 from agent_client import SyncAgent
 from mission_records import agent_record, compare, stored_keyframes
 from srv_helpers import TOKENS, ServerProcess, write_config
-from typer.testing import CliRunner
 
-from hivemap.cli.main import app
 from hivemap.client.link import AgentLink, LinkOptions
 from hivemap.protocol import MapPoints
 from hivemap.server.loadgen import CAMERA, synthetic_stream
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("tiny")
-    res = CliRunner().invoke(
-        app, ["sim", "render", "--scenario", "tiny", "--agents", "uav1", "--duration", "6", "--out", str(out),
-              "--no-progress"],
-    )  # fmt: skip
-    assert res.exit_code == 0, res.output
-    return out / "uav1"
 
 
 @pytest.fixture
@@ -56,17 +43,17 @@ def db_of(server: ServerProcess) -> Path:
 
 
 def test_second_mission_with_the_same_out_is_a_new_session_and_leaves_the_first_untouched(
-    dataset: Path, server: ServerProcess, tmp_path: Path
+    tiny_uav: Path, server: ServerProcess, tmp_path: Path
 ) -> None:
     out = tmp_path / "out"
-    a = run_agent(dataset, server, out)
+    a = run_agent(tiny_uav, server, out)
     assert a.returncode == 0, a.stderr[-2000:]
     server.stop()
     rec_a = agent_record(out / "outbox.sqlite", "uav1")
     stored_a, _ = stored_keyframes(db_of(server), "uav1")
     assert rec_a.keyframe_messages > 5 and rec_a.unacked == 0
     server.start()
-    b = run_agent(dataset, server, out)  # the same --out: the finished mission is archived, B is new
+    b = run_agent(tiny_uav, server, out)  # the same --out: the finished mission is archived, B is new
     assert b.returncode == 0, b.stderr[-2000:]
     info = server.json("/agents/uav1")
     server.stop()
@@ -88,11 +75,11 @@ def test_second_mission_with_the_same_out_is_a_new_session_and_leaves_the_first_
 
 
 def test_a_fresh_outbox_for_a_known_agent_is_a_new_mission_not_a_resume(
-    dataset: Path, server: ServerProcess, tmp_path: Path
+    tiny_uav: Path, server: ServerProcess, tmp_path: Path
 ) -> None:
-    a = run_agent(dataset, server, tmp_path / "a")
+    a = run_agent(tiny_uav, server, tmp_path / "a")
     assert a.returncode == 0, a.stderr[-2000:]
-    b = run_agent(dataset, server, tmp_path / "b")  # the server knows uav1 with a high last seq
+    b = run_agent(tiny_uav, server, tmp_path / "b")  # the server knows uav1 with a high last seq
     assert b.returncode == 0, b.stderr[-2000:]
     assert "outbox only assigned" not in b.stderr  # never told to skip ahead
     server.stop()
