@@ -21,12 +21,14 @@ class SyncAgent:
         kind: str = "uav",
         mission: str | None = None,
     ) -> None:
+        self.url = ws_url
         self.ws: ClientConnection = connect(
             ws_url, max_size=None, compression=None, open_timeout=10, legacy=True
         )
         self.agent_id, self.token, self.session, self.kind = agent_id, token, session, kind
         self.mission = mission  # None: one fixed mission per agent id, so reconnects resume it
         self.bytes_sent = 0
+        self.others: list[Message] = []  # what send_all received besides acks and errors (corrections)
 
     def send_raw(self, frame: bytes) -> None:
         self.ws.send(frame)
@@ -45,7 +47,17 @@ class SyncAgent:
         return self.recv()
 
     def welcome(self) -> Welcome:
+        """Hello until welcomed; a server still loading its store says "unavailable" (a real agent
+        reconnects with backoff), so this reconnects for up to 20 s."""
+        import time
+
+        deadline = time.monotonic() + 20.0
         msg = self.hello()
+        while isinstance(msg, ErrorMsg) and msg.code == "unavailable" and time.monotonic() < deadline:
+            time.sleep(0.05)
+            self.ws.close()
+            self.ws = connect(self.url, max_size=None, compression=None, open_timeout=10, legacy=True)
+            msg = self.hello()
         assert isinstance(msg, Welcome), msg
         return msg
 
@@ -61,6 +73,8 @@ class SyncAgent:
                 acks.append(r.seq)
             elif isinstance(r, ErrorMsg):
                 errors.append(r)
+            else:
+                self.others.append(r)
         return acks, errors
 
     def close(self) -> None:

@@ -198,3 +198,51 @@ def test_points_fused_at_a_loop_closure_survive_kill_and_restart(tmp_path: Path)
         assert server.json("/maps/digest")["digests"] == before
     finally:
         server.stop()
+
+
+def test_corrections_reach_only_the_mission_whose_map_they_correct(tmp_path: Path) -> None:
+    """Mission B of an agent id re-visits mission A's place: the back-end merges the two missions' maps
+    and corrects both. B's connection gets only corrections of B's keyframes, under B's own session
+    number; A's corrections wait for A (applied to B's front-end they would move the wrong map)."""
+    import time
+
+    from test_backend import UGV_FROM_WORLD, Server
+
+    from hivemap.maps.geometry import Sim3, so3_exp
+    from hivemap.protocol import Correction
+    from hivemap.server.backend_synth import agent_stream, make_world
+
+    rng = np.random.default_rng(5)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
+    first, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD)
+    second, _, _ = agent_stream(
+        rng, pts, desc, np.linspace(-4, 10, 10), UGV_FROM_WORLD, id0=1000, point_id0=100000, drift=drift
+    )
+    srv = Server(tmp_path / "data")
+    try:
+        with SyncAgent(srv.ws_url, "ugv1", TOKENS["ugv1"], kind="ugv", mission="mission-a") as a:
+            a.welcome()
+            assert a.send_all(first)[1] == []
+        srv.wait_idle()
+        b = SyncAgent(srv.ws_url, "ugv1", TOKENS["ugv1"], kind="ugv", mission="mission-b")
+        b.welcome()
+        assert b.send_all(second)[1] == []
+        srv.wait_idle()
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:  # what is still on the wire
+            try:
+                b.others.append(b.recv(timeout=0.5))
+            except TimeoutError:
+                break
+        b.close()
+        assert srv.call(lambda: len(srv.hive.stack.maps)) == 1, "the two missions' maps did not merge"
+        got = [m for m in b.others if isinstance(m, Correction)]
+        assert got, "mission B received no correction"
+        for c in got:
+            assert c.session == 0  # B's own number for its only session (the server's is 1)
+            assert set(c.kf_ids.tolist()) <= set(range(1000, 1010)), c.kf_ids
+        waiting = srv.call(lambda: len(srv.hive.agents["ugv1"].missions["mission-a"].undelivered))
+        assert waiting > 0  # A's corrections are kept for A
+    finally:
+        srv.stop()
