@@ -89,6 +89,7 @@ def test_server_sigterm_after_streaming_exits_0_with_the_store_closed(tmp_path: 
 
 
 def test_server_sigint_exits_0(tmp_path: Path) -> None:
+    """(Also clean on main: uvicorn re-raises SIGINT as a KeyboardInterrupt that click turns into 0.)"""
     srv = _server(tmp_path).start()
     assert srv.proc is not None
     srv.proc.send_signal(signal.SIGINT)
@@ -97,7 +98,8 @@ def test_server_sigint_exits_0(tmp_path: Path) -> None:
     assert "store closed" in srv.log.read_text()
 
 
-def test_agent_sigterm_keeps_unsent_messages_and_exits_0(tmp_path: Path, tiny: Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_agent_signal_keeps_unsent_messages_and_exits_0(tmp_path: Path, tiny: Path, sig: int) -> None:
     srv = _server(tmp_path).start()
     out = tmp_path / "out"
     agent = _agent(tiny, srv.ws_url, out)
@@ -109,7 +111,7 @@ def test_agent_sigterm_keeps_unsent_messages_and_exits_0(tmp_path: Path, tiny: P
         assert srv.proc is not None
         srv.proc.send_signal(signal.SIGSTOP)  # the server stops acknowledging: messages pile up unsent
         time.sleep(1.5)
-        agent.send_signal(signal.SIGTERM)
+        agent.send_signal(sig)
         stdout, stderr = agent.communicate(timeout=30)
     finally:
         if srv.proc is not None:
@@ -118,7 +120,7 @@ def test_agent_sigterm_keeps_unsent_messages_and_exits_0(tmp_path: Path, tiny: P
             agent.kill()
     assert agent.returncode == 0, stderr[-3000:]
     last = stdout.strip().splitlines()[-1]
-    assert "stopped by SIGTERM" in last, last
+    assert f"stopped by {signal.Signals(sig).name}" in last, last
     unsent = int(last.split(" messages unsent")[0].rsplit(" ", 1)[1])
     assert unsent > 0, last
     box = Outbox(out / "outbox.sqlite", "uav1")  # the agent closed it: it opens again, nothing lost
