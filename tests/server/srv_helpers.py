@@ -58,7 +58,9 @@ class ServerProcess:
     def ws_url(self) -> str:
         return f"ws://127.0.0.1:{self.port}/ws"
 
-    def start(self, timeout: float = 30.0) -> ServerProcess:
+    def start(self, timeout: float = 30.0, wait_loaded: bool = True) -> ServerProcess:
+        """Start and wait for ``/health``; with ``wait_loaded`` until its store is loaded too (the HTTP
+        server answers while the store loads, with status ``loading``)."""
         cmd = [
             sys.executable, "-m", "hivemap.cli.main", "server",
             "--host", "127.0.0.1", "--port", str(self.port),
@@ -74,7 +76,8 @@ class ServerProcess:
                     f"server exited with {self.proc.returncode}:\n{self.log.read_text()[-3000:]}"
                 )
             try:
-                if httpx.get(self.url + "/health", timeout=1.0).status_code == 200:
+                r = httpx.get(self.url + "/health", timeout=1.0)
+                if r.status_code == 200 and not (wait_loaded and r.json().get("status") == "loading"):
                     return self
             except httpx.HTTPError:
                 pass

@@ -289,7 +289,7 @@ def test_health_says_loading_while_a_large_store_loads(tmp_path: Path) -> None:
     store = MapStore(data / "hivemap.sqlite")
     store.put_points(0, [MapPoint("uav1", i, xyz[i], desc[i]) for i in range(n)])
     store.close()
-    srv = _server(tmp_path).start()  # returns at the first /health answer
+    srv = _server(tmp_path).start(wait_loaded=False)  # returns at the first /health answer
     try:
         assert srv.json("/health")["status"] == "loading"
         with SyncAgent(srv.ws_url, "uav1", TOKENS["uav1"]) as a:
