@@ -137,6 +137,37 @@ async def _stream(
     second_stage_options: object | None,
 ) -> RunSummary:
     import asyncio
+
+    options = options or RunnerOptions()
+    # SIGTERM (docker stop, systemd) and SIGINT end the replay between frames: what was produced is in
+    # the outbox (durable) and goes out at the next start; the agent then exits normally. Installed
+    # first, so a signal during the set-up below is handled too (the replay then stops at once).
+    stopping = asyncio.Event()
+    stopped_by: list[str] = []
+    signals = _on_stop_signals(asyncio.get_running_loop(), stopping, stopped_by)
+    try:
+        return await _stream_until(
+            agent_dir, out_dir, server, agent_id, token, options, frontend_options, second_stage_options,
+            stopping, stopped_by,
+        )  # fmt: skip
+    finally:
+        for sig in signals:
+            asyncio.get_running_loop().remove_signal_handler(sig)
+
+
+async def _stream_until(
+    agent_dir: str | Path,
+    out_dir: str | Path,
+    server: str,
+    agent_id: str | None,
+    token: str,
+    options: RunnerOptions,
+    frontend_options: object | None,
+    second_stage_options: object | None,
+    stopping: Any,
+    stopped_by: list[str],
+) -> RunSummary:
+    import asyncio
     import threading
     import time
 
@@ -148,7 +179,6 @@ async def _stream(
     from hivemap.client.outbox import open_mission_outbox
     from hivemap.protocol import Correction, Keyframe, MapPoints, PoseUpdates
 
-    options = options or RunnerOptions()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ds = load_dataset(Path(agent_dir))
@@ -252,10 +282,6 @@ async def _stream(
     summary.gnss_selected = int(agent.selected.sum())
     wall0 = time.perf_counter()
     prev_t = -math.inf
-    # SIGTERM (docker stop, systemd) and SIGINT end the replay between frames: what was produced is in
-    # the outbox (durable) and goes out at the next start; the agent then exits normally.
-    stopping = asyncio.Event()
-    signals = _on_stop_signals(asyncio.get_running_loop(), stopping, summary)
     link_task.add_done_callback(lambda _: stopping.set())  # the link gave up (or was refused)
     n_frames = 0
     failure: Exception | None = None
@@ -292,8 +318,7 @@ async def _stream(
         link_task.cancel()
         with contextlib_suppress():
             await link_task
-        for sig in signals:
-            asyncio.get_running_loop().remove_signal_handler(sig)
+    summary.stopped_by = stopped_by[0] if stopped_by else ""
     if failure is not None:
         raise StreamFailed(str(failure), link.unsent, out / "outbox.sqlite") from failure
     summary.unsent = link.unsent
@@ -318,8 +343,8 @@ class StreamFailed(RuntimeError):
         self.outbox = outbox
 
 
-def _on_stop_signals(loop: Any, stopping: Any, summary: RunSummary) -> list[int]:
-    """SIGTERM and SIGINT set ``stopping`` (and name the signal in the summary); returns those handled."""
+def _on_stop_signals(loop: Any, stopping: Any, stopped_by: list[str]) -> list[int]:
+    """SIGTERM and SIGINT set ``stopping`` (and append the signal's name); returns those handled."""
     import signal
 
     handled = []
@@ -327,7 +352,7 @@ def _on_stop_signals(loop: Any, stopping: Any, summary: RunSummary) -> list[int]
 
         def on_signal(sig: signal.Signals = sig) -> None:
             log.warning("%s: stopping the replay; unsent messages stay in the outbox", sig.name)
-            summary.stopped_by = sig.name
+            stopped_by.append(sig.name)
             stopping.set()
 
         try:

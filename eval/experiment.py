@@ -99,7 +99,9 @@ def wait_health(url: str, proc: subprocess.Popen[bytes], timeout: float = 60.0) 
         if proc.poll() is not None:
             raise RuntimeError(f"server exited with code {proc.returncode}")
         try:
-            if httpx.get(url + "/health", timeout=1.0).status_code == 200:
+            r = httpx.get(url + "/health", timeout=1.0)
+            # "loading": the HTTP server is up but the store is still loading (agents would be told to retry)
+            if r.status_code == 200 and r.json().get("status") != "loading":
                 return
         except httpx.HTTPError:
             pass

@@ -531,9 +531,13 @@ class MapStore:
             "SELECT from_agent, from_id, to_agent, to_id FROM map_redirects WHERE map_id = ?", (mid,)
         ):
             m.point_redirects[(f_a, int(f_i))] = (t_a, int(t_i))
-        for agent, pid, xyz, desc in c.execute(
+        t0 = time.perf_counter()
+        rows = c.execute(
             "SELECT agent, id, xyz, descriptor FROM map_points WHERE map_id = ? ORDER BY seq", (mid,)
-        ):
+        )
+        for n, (agent, pid, xyz, desc) in enumerate(rows):
+            if n and n % 500_000 == 0:
+                logger.info("map %d: %d map points loaded (%.1f s)", mid, n, time.perf_counter() - t0)
             m.add_point(
                 MapPoint(
                     agent,
@@ -589,8 +593,15 @@ class MapStore:
         """Every stored map as a ``MapStack`` (full saves and incremental writes alike)."""
         t0 = time.perf_counter()
         stack = MapStack()
-        for mid in self.map_ids():
-            stack.add_map(self.load_map(mid))
+        ids = self.map_ids()
+        for i, mid in enumerate(ids):
+            m = self.load_map(mid)
+            stack.add_map(m)
+            # progress of a long start-up (a large store takes tens of seconds): one line per map
+            logger.info(
+                "loaded map %d (%d/%d): %d keyframes, %d map points, %.1f s so far",
+                mid, i + 1, len(ids), len(m.keyframes), len(m.points), time.perf_counter() - t0,
+            )  # fmt: skip
         row = self.conn.execute("SELECT value FROM map_state WHERE key = 'next_map_id'").fetchone()
         if row is not None:
             stack.next_map_id = max(stack.next_map_id, int(json.loads(row[0])))

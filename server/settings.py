@@ -13,7 +13,7 @@ Example TOML::
     ugv1 = "secret-ugv1"
 
     [quotas]                  # per agent; see QuotaSettings
-    max_points = 500000
+    max_points = 300000
     points_per_s = 5000
 """
 
@@ -32,13 +32,13 @@ class QuotaSettings(BaseModel):
     hold in memory: the stack keeps every stored point and keyframe, so ``max_points`` and
     ``max_keyframes`` times the agent count is the server's memory bound (see the README). The rates
     are token buckets (``*_per_s`` refill, ``*_burst`` capacity): an agent resending an outage's
-    backlog fits in the burst. Defaults are ~15x what a 90 s factory01 agent stores (~700 keyframes,
-    ~30k points) and ~10x its peak rates."""
+    backlog fits in the burst. Defaults are ~10x what a 90 s factory01 agent stores (~700 keyframes,
+    ~30k points) and ~10x its rates."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    max_points: int = Field(default=500_000, ge=1, description="Map points stored per agent, in total.")
-    max_keyframes: int = Field(default=10_000, ge=1, description="Keyframes stored per agent, in total.")
+    max_points: int = Field(default=300_000, ge=1, description="Map points stored per agent, in total.")
+    max_keyframes: int = Field(default=5_000, ge=1, description="Keyframes stored per agent, in total.")
     points_per_s: float = Field(default=5000.0, gt=0.0, description="Sustained map points per second.")
     points_burst: int = Field(default=50_000, ge=1, description="Map points accepted at once above the rate.")
     keyframes_per_s: float = Field(default=50.0, gt=0.0, description="Sustained keyframes per second.")

@@ -2,7 +2,12 @@
 
 Flow: the first frame must be ``hello`` with the agent's token -> ``welcome(last_seq)``; then data messages,
 each acknowledged after it is durably stored. Bad frames get an ``error`` naming the field and change nothing.
-A refused hello gets an ``error`` and the socket is closed with 1008 (policy violation).
+A refused hello gets an ``error`` and the socket is closed with 1008 (policy violation); so does a socket
+that sends no hello within ``hello_timeout_s`` (code ``hello_timeout``). While the server loads its store a
+hello gets a transient ``unavailable`` error and a 1013 close (the agent retries). Data messages may be
+refused with ``quota`` (a per-agent total; final) or ``rate`` (too fast; transient), see
+:mod:`hivemap.server.quotas`, and a seq more than ``max_seq_step`` past the agent's last is refused naming
+``seq``.
 
 Back-pressure: uvicorn reads one frame at a time (the sans-I/O protocol pauses the socket until the app has
 taken the frame), this handler applies one message at a time and waits when too many are uncommitted, and
@@ -39,6 +44,9 @@ logger = logging.getLogger(__name__)
 
 POLICY_VIOLATION = 1008
 TRY_AGAIN_LATER = 1013
+# after refusing a message for a quota the reader pauses this long, so an agent over its quota is slowed
+# down (TCP back-pressure) instead of keeping the event loop busy with messages that will be refused
+QUOTA_PAUSE_S = 0.02
 
 
 def _error_code(exc: ProtocolError) -> str:
@@ -149,6 +157,10 @@ class AgentConnection:
                 if self._closing:
                     continue
                 await self._on_frame(data)
+                # yield to the other connections: with frames already buffered, receive() returns without
+                # suspending, and one agent sending as fast as it can starved the others (acks took
+                # seconds in bench/flood.py)
+                await asyncio.sleep(0)
         except WebSocketDisconnect:
             pass
         except asyncio.CancelledError:
@@ -216,6 +228,8 @@ class AgentConnection:
                     "error", f"{self.agent_id} seq {seq}: {r.message}", agent_id=self.agent_id
                 )
             self._reply_error(r.code, r.message, r.field, seq)
+            if r.code in ("quota", "rate"):
+                await asyncio.sleep(QUOTA_PAUSE_S)
 
     async def _on_hello(self, seq: int, msg: Message) -> None:
         if not isinstance(msg, Hello):

@@ -391,7 +391,9 @@ def test_backoff_grows_and_is_jittered(tmp_path: Path) -> None:
         return real_connect(*a, **kw)  # type: ignore[arg-type]
 
     async def main() -> None:
-        opts = LinkOptions(backoff_initial_s=0.02, backoff_max_s=0.16, open_timeout_s=1.0)
+        opts = LinkOptions(
+            backoff_initial_s=0.02, backoff_max_s=0.16, open_timeout_s=1.0, max_connect_attempts=1000
+        )
         link = AgentLink(
             f"ws://127.0.0.1:{port}", "uav1", "uav", CAMERA, TOKEN, tmp_path / "b.outbox", options=opts
         )
