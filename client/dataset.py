@@ -22,13 +22,16 @@ import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import yaml
 from numpy.typing import NDArray
 
 from hivemap.maps.camera import PinholeCamera, StereoRig
+
+if TYPE_CHECKING:
+    from hivemap.client.bag import BagSource
 
 log = logging.getLogger(__name__)
 
@@ -175,9 +178,61 @@ def camera_from_sensor_yaml(path: Path) -> tuple[PinholeCamera, F64, float]:
     return cam, matrix_from_yaml(d.get("T_BS", np.eye(4).tolist()), path), rate
 
 
+IMU_NOISE_KEYS = (
+    "gyroscope_noise_density",
+    "gyroscope_random_walk",
+    "accelerometer_noise_density",
+    "accelerometer_random_walk",
+    "gyroscope_bias_correlation_time",
+    "accelerometer_bias_correlation_time",
+    "gyroscope_turn_on_bias_sigma",
+    "accelerometer_turn_on_bias_sigma",
+)
+
+
+def imu_from_sensor_yaml(path: Path) -> tuple[F64, float, dict[str, float]]:
+    """EuRoC IMU sensor.yaml -> (T_BS, rate_hz, noise parameters by their EuRoC/Kalibr names)."""
+    d = read_yaml(path)
+    try:
+        noise = {k: float(d[k]) for k in IMU_NOISE_KEYS if k in d}
+        rate = float(d.get("rate_hz", 0.0))
+    except (ValueError, TypeError) as e:
+        raise DatasetError(f"bad IMU parameter: {e}", path) from e
+    return matrix_from_yaml(d.get("T_BS", np.eye(4).tolist()), path), rate, noise
+
+
+def gnss_from_sensor_yaml(path: Path) -> tuple[F64, float, tuple[float, float, float] | None]:
+    """hivemap GNSS sensor.yaml -> (T_BS, rate_hz, ENU origin (lat, lon, alt) or None)."""
+    d = read_yaml(path)
+    origin = None
+    o = d.get("origin")
+    try:
+        rate = float(d.get("rate_hz", 0.0))
+        if isinstance(o, dict):
+            origin = (float(o["lat"]), float(o["lon"]), float(o["alt"]))
+    except (KeyError, ValueError, TypeError) as e:
+        raise DatasetError(f"bad GNSS origin or rate: {e}", path) from e
+    return matrix_from_yaml(d.get("T_BS", np.eye(4).tolist()), path), rate, origin
+
+
 # ---------------------------------------------------------------------------------------------
 # Data classes
 # ---------------------------------------------------------------------------------------------
+
+
+class FrameSource(Protocol):
+    """What the replay needs of a dataset's frames: ns timestamps and images by index (read in order).
+    Implemented by :class:`FrameList` (image files) and ``hivemap.client.bag.BagFrames`` (a ROS bag)."""
+
+    @property
+    def t_ns(self) -> I64: ...
+
+    @property
+    def timestamps(self) -> F64: ...
+
+    def __len__(self) -> int: ...
+
+    def load(self, i: int) -> tuple[NDArray[np.uint8], NDArray[np.uint8] | None]: ...
 
 
 @dataclass(frozen=True)
@@ -288,7 +343,7 @@ class AgentDataset:
     cameras: dict[str, PinholeCamera]
     T_BS: dict[str, F64]  # sensor -> body_from_sensor 4x4 ("cam0", "cam1", "imu0", "gnss0")
     rates: dict[str, float]
-    frames: FrameList
+    frames: FrameSource
     rig: StereoRig | None
     imu: F64
     imu_t_ns: I64
@@ -327,10 +382,29 @@ def _load_camera(mav0: Path, name: str) -> tuple[PinholeCamera, F64, float, I64,
     cam, T_BS, rate = camera_from_sensor_yaml(mav0 / name / "sensor.yaml")
     t, names = read_image_list(mav0 / name / "data.csv")
     paths = [mav0 / name / "data" / n for n in names]
-    for i, p in enumerate(paths):
-        if not p.is_file():
-            raise DatasetError(f"image listed at row {i + 1} is missing", p)
+    # Real recordings are sometimes copied partially: a listed frame missing on disk is skipped (its
+    # stereo partner goes too), not fatal, as long as some frames remain.
+    present = np.asarray([p.is_file() for p in paths], dtype=bool)
+    if len(paths) and not present.any():
+        raise DatasetError(f"none of the {len(paths)} listed images exist", mav0 / name / "data")
+    if not present.all():
+        first = int(np.flatnonzero(~present)[0])
+        log.warning(
+            "%s: %d of %d listed frames missing on disk, skipped (first: %s, row %d)",
+            mav0 / name / "data.csv", int((~present).sum()), len(paths), paths[first].name, first + 1,
+        )  # fmt: skip
+        t = t[present]
+        paths = [p for p, ok in zip(paths, present, strict=True) if ok]
     return cam, T_BS, rate, t, paths
+
+
+def open_dataset(source: str | Path | BagSource) -> AgentDataset:
+    """A EuRoC/ASL folder (``load_dataset``) or a ROS bag with its calibration (``BagSource``)."""
+    if isinstance(source, str | Path):
+        return load_dataset(source)
+    from hivemap.client.bag import load_bag
+
+    return load_bag(source)
 
 
 def load_dataset(agent_dir: str | Path) -> AgentDataset:
@@ -381,23 +455,7 @@ def load_dataset(agent_dir: str | Path) -> AgentDataset:
         rig = StereoRig(cam0, cam1, T0, T1)
     frames = FrameList(t0, p0, p1)
 
-    imu_yaml = read_yaml(mav0 / "imu0" / "sensor.yaml")
-    T_BS["imu0"] = matrix_from_yaml(imu_yaml.get("T_BS", np.eye(4).tolist()), mav0 / "imu0" / "sensor.yaml")
-    rates["imu0"] = float(imu_yaml.get("rate_hz", 0.0))
-    imu_noise: dict[str, float] = {
-        str(k): float(imu_yaml[k])
-        for k in (
-            "gyroscope_noise_density",
-            "gyroscope_random_walk",
-            "accelerometer_noise_density",
-            "accelerometer_random_walk",
-            "gyroscope_bias_correlation_time",
-            "accelerometer_bias_correlation_time",
-            "gyroscope_turn_on_bias_sigma",
-            "accelerometer_turn_on_bias_sigma",
-        )
-        if k in imu_yaml
-    }
+    T_BS["imu0"], rates["imu0"], imu_noise = imu_from_sensor_yaml(mav0 / "imu0" / "sensor.yaml")
     imu_t, imu_v = read_csv_numeric(mav0 / "imu0" / "data.csv", 7)
     if len(imu_t) == 0:
         raise DatasetError("no IMU samples", mav0 / "imu0" / "data.csv")
@@ -434,15 +492,7 @@ def load_dataset(agent_dir: str | Path) -> AgentDataset:
         sigma = g_v[:, 3:5] if g_v.shape[1] >= 5 else np.full((len(g_t), 2), np.nan)
         origin = None
         if (gdir / "sensor.yaml").is_file():
-            gy = read_yaml(gdir / "sensor.yaml")
-            T_BS["gnss0"] = matrix_from_yaml(gy.get("T_BS", np.eye(4).tolist()), gdir / "sensor.yaml")
-            rates["gnss0"] = float(gy.get("rate_hz", 0.0))
-            o = gy.get("origin")
-            if isinstance(o, dict):
-                try:
-                    origin = (float(o["lat"]), float(o["lon"]), float(o["alt"]))
-                except (KeyError, ValueError, TypeError) as e:
-                    raise DatasetError(f"bad GNSS origin: {e}", gdir / "sensor.yaml") from e
+            T_BS["gnss0"], rates["gnss0"], origin = gnss_from_sensor_yaml(gdir / "sensor.yaml")
         nmea = gdir / "nmea.txt"
         gnss = GnssSeries(g_t, g_v[:, 0:3], sigma, origin, nmea if nmea.is_file() else None)
 
