@@ -14,17 +14,39 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import logging  # noqa: E402
+import sys  # noqa: E402
+import traceback  # noqa: E402
+from typing import Any  # noqa: E402
 
 import typer  # noqa: E402
 
 from hivemap import __version__  # noqa: E402
+from hivemap.cli.errors import EXIT_INPUT, one_line  # noqa: E402
 from hivemap.client.cli import agent_command  # noqa: E402
 from hivemap.eval.cli import app as eval_app  # noqa: E402
 from hivemap.maps.cli import vocab_app  # noqa: E402
 from hivemap.server.cli import server_command  # noqa: E402
 from hivemap.sim.cli import app as sim_app  # noqa: E402
 
-app = typer.Typer(
+
+class _HivemapTyper(typer.Typer):
+    """Known errors (``hivemap.cli.errors.one_line``) end the command with one line on stderr and exit 2;
+    with ``-v`` (DEBUG logging) the traceback comes first. Other exceptions keep Typer's traceback."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        try:
+            return super().__call__(*args, **kwargs)
+        except Exception as exc:
+            line = one_line(exc)
+            if line is None:
+                raise
+            if logging.getLogger().isEnabledFor(logging.DEBUG):
+                traceback.print_exception(exc)
+            typer.echo(f"hivemap: error: {line}", err=True)
+            sys.exit(EXIT_INPUT)
+
+
+app = _HivemapTyper(
     name="hivemap",
     help="hivemap: collaborative visual(-inertial) SLAM for teams of UAVs and UGVs.",
     no_args_is_help=True,

@@ -103,6 +103,21 @@ def _bag_root(path: Path) -> Path:
     return path.parent if path.suffix in (".db3", ".mcap") else path
 
 
+def dataset_source(
+    dataset: Path, calib: Sequence[Path] = (), topics: BagTopics | None = None
+) -> Path | BagSource:
+    """What ``hivemap agent --dataset`` names: a bag (with ``calib`` and ``topics``) or a EuRoC folder."""
+    if is_bag(dataset):
+        return BagSource(dataset, tuple(calib), topics or BagTopics())
+    if not dataset.exists():
+        raise DatasetError("dataset not found (a EuRoC folder, a ROS 1 .bag or a ROS 2 bag folder)", dataset)
+    if dataset.is_file():
+        raise DatasetError("not a dataset: a EuRoC folder, a ROS 1 .bag or a ROS 2 bag folder", dataset)
+    if calib:
+        raise DatasetError("--calib is for ROS bags; a EuRoC folder has its own sensor.yaml files", dataset)
+    return dataset
+
+
 # ---------------------------------------------------------------------------------------------
 # Calibration
 # ---------------------------------------------------------------------------------------------
@@ -126,7 +141,9 @@ def load_calibration(paths: Sequence[Path]) -> Calibration:
         else:
             imu_noise, imu_rate = _kalibr_imu(d, p)
     if camchain is None:
-        raise DatasetError("no camchain among the --calib files (a Kalibr yaml with a 'cam0' entry)", paths[0])
+        raise DatasetError(
+            "no camchain among the --calib files (a Kalibr yaml with a 'cam0' entry)", paths[0]
+        )
     rates = dict(camchain.rates)
     if imu_rate:
         rates["imu0"] = imu_rate
@@ -187,14 +204,16 @@ def _kalibr_camchain(d: dict[str, Any], path: Path) -> Calibration:
         if "T_cam_imu" in c:
             cam_from_imu[name] = matrix_from_yaml(c["T_cam_imu"], path, f"{name}.T_cam_imu")
         elif name == "cam1" and "T_cn_cnm1" in c and "cam0" in cam_from_imu:
-            cam_from_imu[name] = matrix_from_yaml(c["T_cn_cnm1"], path, "cam1.T_cn_cnm1") @ cam_from_imu["cam0"]
+            cam_from_imu[name] = (
+                matrix_from_yaml(c["T_cn_cnm1"], path, "cam1.T_cn_cnm1") @ cam_from_imu["cam0"]
+            )
         elif name == "cam0":
             # a camera-only calibration: the body frame is cam0's, the IMU extrinsics are unknown
             log.warning("%s: no cam0.T_cam_imu, taking the IMU frame as cam0's", path)
             cam_from_imu[name] = np.eye(4)
         else:
             raise DatasetError("cam1 has neither T_cam_imu nor T_cn_cnm1", path)
-        T_BS[name] = np.linalg.inv(cam_from_imu[name])
+        T_BS[name] = np.asarray(np.linalg.inv(cam_from_imu[name]), dtype=np.float64)
         rates[name] = float(c.get("rate_hz", 0.0) or 0.0)
     T_BS["imu0"] = np.eye(4)
     return Calibration(cameras, T_BS, rates, {})
@@ -256,7 +275,9 @@ def decode_image(msg: Any, msgtype: str, topic: str) -> U8:
         dt = np.dtype(">u2" if msg.is_bigendian else "<u2")
         return np.asarray(rows.copy().view(dt) // 256, dtype=np.uint8)
     if enc not in channels:
-        raise DatasetError(f"{topic}: image encoding {enc!r} unsupported (mono8/16, rgb8, bgr8, rgba8, bgra8)")
+        raise DatasetError(
+            f"{topic}: image encoding {enc!r} unsupported (mono8/16, rgb8, bgr8, rgba8, bgra8)"
+        )
     n = channels[enc]
     if data.size < h * step or step < w * n:
         raise DatasetError(f"{topic}: image data ({data.size} bytes) shorter than {h} rows of {step}")
@@ -387,7 +408,8 @@ def load_bag(source: BagSource) -> AgentDataset:
                 if topic not in conns:
                     have = ", ".join(sorted(conns)) or "none"
                     raise DatasetError(
-                        f"topic {topic!r} not in the bag (it has: {have}); choose another with {TOPIC_FLAGS[role]}",
+                        f"topic {topic!r} not in the bag (it has: {have}); "
+                        f"choose another with {TOPIC_FLAGS[role]}",
                         path,
                     )
                 if conns[topic].msgtype not in expected[role]:
@@ -404,7 +426,7 @@ def load_bag(source: BagSource) -> AgentDataset:
             gnss_rows: list[list[float]] = []
             use = [conns[t] for t in wanted.values() if t is not None]
             for conn, bag_t, raw in reader.messages(connections=use):
-                msg = reader.deserialize(raw, conn.msgtype)
+                msg: Any = reader.deserialize(raw, conn.msgtype)
                 t = _stamp_ns(msg, bag_t)
                 if conn.topic in stamps:
                     stamps[conn.topic].append(t)
@@ -417,7 +439,9 @@ def load_bag(source: BagSource) -> AgentDataset:
                         continue
                     cov = np.asarray(msg.position_covariance, dtype=np.float64).reshape(3, 3)
                     gnss_t.append(t)
-                    gnss_rows.append([msg.latitude, msg.longitude, msg.altitude, cov[0, 0], cov[1, 1], cov[2, 2]])
+                    gnss_rows.append(
+                        [msg.latitude, msg.longitude, msg.altitude, cov[0, 0], cov[1, 1], cov[2, 2]]
+                    )
     except AnyReaderError as e:
         raise DatasetError(f"cannot read the bag: {e}", path) from e
 

@@ -9,7 +9,13 @@ import typer
 
 
 def agent_command(
-    dataset: Annotated[Path, typer.Option("--dataset", help="Agent dataset dir (EuRoC layout).")],
+    dataset: Annotated[
+        Path,
+        typer.Option(
+            "--dataset",
+            help="Agent dataset: a EuRoC-layout dir, a ROS 1 .bag or a ROS 2 bag dir (sqlite3/MCAP).",
+        ),
+    ],
     out: Annotated[
         Path | None,
         typer.Option("--out", help="Output dir (default ./out/<id>)."),
@@ -50,6 +56,24 @@ def agent_command(
             help="Second stage without IMU factors between keyframes (the IMU then only aligns gravity).",
         ),
     ] = False,
+    calib: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--calib",
+            help="Bags: calibration, a EuRoC mav0 dir (cam0/cam1/imu0 sensor.yaml) or Kalibr yaml files "
+            "(camchain, then optionally the IMU yaml; repeat --calib).",
+        ),
+    ] = None,
+    cam0_topic: Annotated[
+        str, typer.Option("--cam0-topic", help="Bags: left image topic.")
+    ] = "/cam0/image_raw",
+    cam1_topic: Annotated[
+        str, typer.Option("--cam1-topic", help="Bags: right image topic ('' for none).")
+    ] = "/cam1/image_raw",
+    imu_topic: Annotated[str, typer.Option("--imu-topic", help="Bags: sensor_msgs/Imu topic.")] = "/imu0",
+    gnss_topic: Annotated[
+        str | None, typer.Option("--gnss-topic", help="Bags: sensor_msgs/NavSatFix topic (default: none).")
+    ] = None,
 ) -> None:
     """Run one agent on a dataset: offline (front-end + second stage) or streaming to a server.
 
@@ -64,17 +88,23 @@ def agent_command(
         raise typer.BadParameter(str(exc), param_hint="--gnss") from exc
     if offline == (server is not None):
         raise typer.BadParameter("give exactly one of --offline or --server URL")
-    if not dataset.is_dir():
-        raise typer.BadParameter(f"{dataset} is not a directory", param_hint="--dataset")
+    from hivemap.client.bag import BagTopics, dataset_source
+
+    topics = BagTopics(cam0_topic, cam1_topic or None, imu_topic, gnss_topic or None)
+    source = dataset_source(dataset, calib or [], topics)  # DatasetError: one line (hivemap.cli.errors)
     options = RunnerOptions(
         gnss=mode, seed=seed, max_frames=max_frames, progress=not no_progress, imu_factors=not no_imu_factors,
         max_connect_attempts=max_connect_attempts, corrections_max_wait_s=wait_corrections,
     )  # fmt: skip
-    out_dir = out if out is not None else Path("out") / (agent_id or dataset.name)
+    out_dir = (
+        out
+        if out is not None
+        else Path("out") / (agent_id or (dataset.stem if dataset.is_file() else dataset.name))
+    )
     if offline:
         from hivemap.client.runner import run_offline
 
-        summary = run_offline(dataset, out_dir, options)
+        summary = run_offline(source, out_dir, options)
         typer.echo(
             f"agent {summary.agent_id}: {summary.frames} frames ({summary.tracked_frames} tracked), "
             f"{summary.keyframes} keyframes, {summary.tracking_losses} tracking losses, "
@@ -91,7 +121,7 @@ def agent_command(
         typer.echo(f"hivemap agent: --server: {bad}", err=True)  # one line, not a usage box
         raise typer.Exit(2)
     try:
-        summary = run_streaming(dataset, out_dir, server or "", agent_id, token, options)
+        summary = run_streaming(source, out_dir, server or "", agent_id, token, options)
     except StreamFailed as exc:
         # one line: what failed, and what is still waiting to be sent
         typer.echo(

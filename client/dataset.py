@@ -22,7 +22,7 @@ import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, TypeAlias
 
 import numpy as np
 import yaml
@@ -37,6 +37,8 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+# What the replay accepts as its input: a EuRoC/ASL folder, or a ROS bag with calibration and topics.
+DatasetSource: TypeAlias = "str | Path | BagSource"
 
 
 class DatasetError(Exception):
@@ -398,7 +400,7 @@ def _load_camera(mav0: Path, name: str) -> tuple[PinholeCamera, F64, float, I64,
     return cam, T_BS, rate, t, paths
 
 
-def open_dataset(source: str | Path | BagSource) -> AgentDataset:
+def open_dataset(source: DatasetSource) -> AgentDataset:
     """A EuRoC/ASL folder (``load_dataset``) or a ROS bag with its calibration (``BagSource``)."""
     if isinstance(source, str | Path):
         return load_dataset(source)

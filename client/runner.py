@@ -26,10 +26,13 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from hivemap.client.dataset import DatasetSource
 
 # The GNSS modes, the dataset adapter and the TUM writer live in replay_io; imported here for this
 # module's use and so that ``hivemap.client.runner.<name>`` keeps working.
@@ -410,7 +413,7 @@ def _make_agent(
 
 
 def run_offline(
-    agent_dir: str | Path,
+    agent_dir: DatasetSource,
     out_dir: str | Path,
     options: RunnerOptions | None = None,
     frontend_options: object | None = None,
@@ -421,13 +424,13 @@ def run_offline(
 
     from tqdm import tqdm
 
-    from hivemap.client.dataset import load_dataset
+    from hivemap.client.dataset import open_dataset
 
     options = options or RunnerOptions()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ds = load_dataset(Path(agent_dir))
-    agent_id = str(getattr(ds, "agent_id", Path(agent_dir).name))
+    ds = open_dataset(agent_dir)  # a EuRoC folder or a BagSource
+    agent_id = str(ds.agent_id)
     times = _frame_times(ds)
     if options.max_frames is not None:
         times = times[: options.max_frames]

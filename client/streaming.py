@@ -11,7 +11,7 @@ import logging
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,11 +26,14 @@ from hivemap.client.runner import (
     _write_outputs,
 )
 
+if TYPE_CHECKING:
+    from hivemap.client.dataset import DatasetSource
+
 log = logging.getLogger(__name__)
 
 
 def run_streaming(
-    agent_dir: str | Path,
+    agent_dir: DatasetSource,
     out_dir: str | Path,
     server: str,
     agent_id: str | None,
@@ -127,7 +130,7 @@ async def _wait_for_server(
 
 
 async def _stream(
-    agent_dir: str | Path,
+    agent_dir: DatasetSource,
     out_dir: str | Path,
     server: str,
     agent_id: str | None,
@@ -156,7 +159,7 @@ async def _stream(
 
 
 async def _stream_until(
-    agent_dir: str | Path,
+    agent_dir: DatasetSource,
     out_dir: str | Path,
     server: str,
     agent_id: str | None,
@@ -173,7 +176,7 @@ async def _stream_until(
 
     from tqdm import tqdm
 
-    from hivemap.client.dataset import load_dataset
+    from hivemap.client.dataset import open_dataset
     from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
     from hivemap.client.link import AgentLink, LinkOptions
     from hivemap.client.outbox import open_mission_outbox
@@ -181,8 +184,8 @@ async def _stream_until(
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ds = load_dataset(Path(agent_dir))
-    aid = agent_id or str(getattr(ds, "agent_id", Path(agent_dir).name))
+    ds = open_dataset(agent_dir)  # a EuRoC folder or a BagSource
+    aid = agent_id or str(ds.agent_id)
     times = _frame_times(ds)
     if options.max_frames is not None:
         times = times[: options.max_frames]
