@@ -26,6 +26,7 @@ from hivemap.client.cli import agent_command  # noqa: E402
 from hivemap.eval.cli import app as eval_app  # noqa: E402
 from hivemap.maps.cli import vocab_app  # noqa: E402
 from hivemap.server.cli import server_command  # noqa: E402
+from hivemap.server.export import export_app  # noqa: E402
 from hivemap.sim.cli import app as sim_app  # noqa: E402
 
 
@@ -81,6 +82,7 @@ app.command("agent", help="Run one agent: replay a dataset offline or stream it 
 app.add_typer(sim_app, name="sim", help="Render simulated multi-agent datasets.")
 app.add_typer(vocab_app, name="vocab", help="Train and inspect the ORB vocabulary.")
 app.add_typer(eval_app, name="eval", help="Evaluate trajectories and run the paper's experiments.")
+app.add_typer(export_app, name="export", help="Export a server's maps (MCAP with Foxglove topics).")
 
 if __name__ == "__main__":
     app()

@@ -41,6 +41,10 @@ def create_app(
     server = HiveServer(settings)
     for install in default_extensions(settings) if extensions is None else extensions:
         install(server)
+    if settings.foxglove_port is not None:
+        from hivemap.server.foxglove import FoxgloveOptions, installer
+
+        installer(FoxgloveOptions(host=settings.host, port=settings.foxglove_port))(server)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -55,16 +55,29 @@ def server_command(
             help="TOML settings ([tokens] agent = token, ..., [quotas], see the README).",
         ),
     ] = None,
+    foxglove_port: Annotated[
+        int | None,
+        typer.Option(
+            "--foxglove-port", help="Also publish the mission on a Foxglove WebSocket on this port."
+        ),
+    ] = None,
 ) -> None:
     """Run the server: WebSocket ingest at /ws, REST inspection, viewer at /viewer/. Env: HIVEMAP_*.
 
     SIGTERM and SIGINT shut it down cleanly (connections closed, back-end stopped, store closed; exit 0)."""
-    import uvicorn
+    import tomllib
 
+    import uvicorn
+    from pydantic import ValidationError
+
+    from hivemap.cli.errors import config_error
     from hivemap.server.app import create_app, uvicorn_config_kwargs
     from hivemap.server.settings import load_settings
 
-    settings = load_settings(config, host=host, port=port, data_dir=data_dir)
+    try:
+        settings = load_settings(config, host=host, port=port, data_dir=data_dir, foxglove_port=foxglove_port)
+    except (tomllib.TOMLDecodeError, ValidationError) as exc:
+        raise config_error(config, exc) from exc  # one line naming the file and field
     if not settings.tokens:
         typer.echo(
             "warning: no agent tokens configured ([tokens] in --config): every agent is refused", err=True

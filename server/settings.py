@@ -119,6 +119,9 @@ class ServerSettings(BaseSettings):
         default=10.0, gt=0.0, description="On SIGTERM/SIGINT: wait this long for connections to finish."
     )
     backend: bool = Field(default=True, description="Run the collaboration back-end (merging, loops).")
+    foxglove_port: int | None = Field(
+        default=None, ge=0, le=65535, description="Publish the mission on a Foxglove WebSocket on this port."
+    )
     # Inspection.
     event_buffer: int = Field(default=10000, ge=10, description="Events kept in the /events ring buffer.")
     ping_interval_s: float = Field(default=20.0, gt=0.0)
