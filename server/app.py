@@ -19,6 +19,7 @@ from fastapi.staticfiles import StaticFiles
 from hivemap import __version__
 from hivemap.server.api import router
 from hivemap.server.core import HiveServer
+from hivemap.server.docs import install_offline_docs
 from hivemap.server.settings import ServerSettings
 from hivemap.server.views import NotFound
 from hivemap.server.ws import agent_endpoint
@@ -68,7 +69,10 @@ def create_app(
         description="Collaborative SLAM server: agents stream keyframes over the WebSocket `/ws` "
         "(protocol v1, msgpack); these routes inspect what the server holds.",
         lifespan=lifespan,
+        docs_url=None,  # served offline below, not from a CDN
+        redoc_url=None,
     )
+    install_offline_docs(app)
     app.state.hive = server
     app.state.load_error = None
     app.state.settings = settings

@@ -28,7 +28,7 @@ def server(tmp_path: Path) -> ServerProcess:
     s.stop()
 
 
-def _browser():  # type: ignore[no-untyped-def]
+def _browser(extra_args: list[str] | None = None):  # type: ignore[no-untyped-def]
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -41,6 +41,7 @@ def _browser():  # type: ignore[no-untyped-def]
         "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync",
         "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--window-size=1280,800",
+        *(extra_args or []),
     ):  # fmt: skip
         opts.add_argument(a)
     return webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
