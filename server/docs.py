@@ -1,6 +1,7 @@
 """``/docs`` without the internet: FastAPI's Swagger UI page loads its JavaScript and CSS from a CDN, so
 offline (a field laptop, an air-gapped lab) it is a blank page. Here the page is FastAPI's own, with the
-assets served from the ``swagger-ui-bundle-v2`` package (Swagger UI 5: FastAPI writes OpenAPI 3.1, which Swagger UI 4 cannot render) under ``/docs-assets``."""
+assets served under ``/docs-assets`` from the ``swagger-ui-bundle-v2`` package: Swagger UI 5, since
+FastAPI writes OpenAPI 3.1, which Swagger UI 4 cannot render."""
 
 from __future__ import annotations
 
