@@ -84,5 +84,10 @@ app.add_typer(vocab_app, name="vocab", help="Train and inspect the ORB vocabular
 app.add_typer(eval_app, name="eval", help="Evaluate trajectories and run the paper's experiments.")
 app.add_typer(export_app, name="export", help="Export a server's maps (MCAP with Foxglove topics).")
 
+# Plain help text: in Typer's "rich" markup mode, brackets in help strings are markup, so units such as
+# "[s]" and "[tokens]" vanished from --help; the plain formatter keeps them and shows no "<bool>" for flags.
+for _typer_app in (app, sim_app, vocab_app, eval_app, export_app):
+    _typer_app.rich_markup_mode = None
+
 if __name__ == "__main__":
     app()

@@ -98,3 +98,17 @@ def test_frames_listed_but_missing_on_disk_are_skipped(
     assert loaded.frames.t_ns.tolist() == [int(p.stem) for i, p in enumerate(pngs) if i not in (2, 5)]
     assert any("2 of 21 listed frames missing on disk, skipped" in r.getMessage() for r in caplog.records)
     assert any("cam0 frames without a cam1 partner dropped" in r.getMessage() for r in caplog.records)
+
+
+def test_help_keeps_units_and_has_no_bool_placeholders() -> None:
+    from typer.testing import CliRunner
+
+    from hivemap.cli.main import app
+
+    for cmd in (["agent"], ["server"], ["eval", "ate"], ["export", "mcap"], ["sim", "render"]):
+        res = CliRunner().invoke(app, [*cmd, "--help"], terminal_width=120)
+        assert res.exit_code == 0, res.output
+        assert "<bool>" not in res.output, cmd
+    ate_help = CliRunner().invoke(app, ["eval", "ate", "--help"], terminal_width=120).output
+    assert "association [s]" in ate_help and "RPE distance [m]" in ate_help
+    assert "[tokens]" in CliRunner().invoke(app, ["server", "--help"], terminal_width=120).output
