@@ -240,6 +240,9 @@ class AgentConnection:
             )
             return
         reason = self.server.authenticate(msg)
+        if reason is None and self.server.loading:  # a short start-up is waited out
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.server.loaded.wait(), self.server.settings.hello_loading_wait_s)
         if reason is None and self.server.loading:
             # transient for the agent ("unavailable"): it reconnects with backoff until the store is loaded
             why = "server is loading its store; retry shortly"
