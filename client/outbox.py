@@ -98,14 +98,11 @@ class Outbox:
         self._finished = meta["finished"] == "1"
 
     def _upgrade_v1(self, meta: dict[str, str]) -> dict[str, str]:
-        """A v1 outbox (acked frames deleted, no mission): keep its frames, give it a mission id."""
+        """A v1 outbox (acked frames deleted, no mission id): it resumes as mission ``legacy``, the one a
+        server upgraded from before missions files that agent's data under. v1 did not record the sessions
+        its front-ends used, so the next one starts well above any they could have reached."""
         self._db.execute("ALTER TABLE outbox ADD COLUMN acked INTEGER NOT NULL DEFAULT 0")
-        new = {
-            "schema": str(SCHEMA_VERSION),
-            "mission": uuid.uuid4().hex,
-            "next_session": "1",
-            "finished": "0",
-        }
+        new = {"schema": str(SCHEMA_VERSION), "mission": "legacy", "next_session": "1000", "finished": "0"}
         self._db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", list(new.items()))
         return {**meta, **new}
 

@@ -323,7 +323,13 @@ async def _stream_until(
             await link_task
     summary.stopped_by = stopped_by[0] if stopped_by else ""
     if failure is not None:
-        raise StreamFailed(str(failure), link.unsent, out / "outbox.sqlite") from failure
+        from hivemap.client.link import LinkFailed, LinkRefused
+
+        if isinstance(failure, LinkRefused | LinkFailed):
+            raise StreamFailed(str(failure), link.unsent, out / "outbox.sqlite") from failure
+        log.error("agent %s failed; %d messages unsent in %s (kept for the next start)",
+                  aid, link.unsent, out / "outbox.sqlite")  # fmt: skip
+        raise failure
     summary.unsent = link.unsent
     summary.wall_s = time.perf_counter() - wall0
     _write_outputs(agent, out, summary, n_frames)

@@ -21,6 +21,7 @@ from hivemap.maps.store import MapStore
 from hivemap.protocol import Keyframe, decode, encode
 
 logger = logging.getLogger(__name__)
+LEGACY_MISSION = "legacy"  # the mission of data stored before missions existed
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS server_agents (
@@ -92,15 +93,18 @@ class ServerStore:
         self.conn.commit()
 
     def _upgrade(self) -> None:
-        """Stores written before missions: their agent maps and seqs belong to one unnamed mission ''."""
+        """Stores written before missions: their agent maps and seqs belong to the mission ``legacy``, the
+        mission an outbox written before missions resumes as (``hivemap.client.outbox``)."""
         cols = {r[1] for r in self.conn.execute("PRAGMA table_info(server_agent_maps)")}
         if "mission" not in cols:
-            self.conn.execute("ALTER TABLE server_agent_maps ADD COLUMN mission TEXT NOT NULL DEFAULT ''")
+            self.conn.execute(
+                f"ALTER TABLE server_agent_maps ADD COLUMN mission TEXT NOT NULL DEFAULT '{LEGACY_MISSION}'"
+            )
             self.conn.execute("ALTER TABLE server_agent_maps ADD COLUMN client_session INTEGER")
             self.conn.execute("UPDATE server_agent_maps SET client_session = session")
             self.conn.execute(
                 "INSERT OR IGNORE INTO server_missions (agent_id, mission, last_seq) "
-                "SELECT agent_id, '', last_seq FROM server_agents"
+                f"SELECT agent_id, '{LEGACY_MISSION}', last_seq FROM server_agents"
             )
 
     # -- transactions (driven by the writer) ---------------------------------------------------------

@@ -21,12 +21,12 @@ class TokenBucket:
 
     rate: float
     burst: float
-    tokens: float = -1.0
-    stamp: float = 0.0
+    tokens: float = 0.0
+    stamp: float | None = None  # None: never used (the bucket starts full)
 
     def take(self, n: int, now: float) -> bool:
         """Take ``n`` tokens if there are that many (nothing taken otherwise)."""
-        if self.tokens < 0:
+        if self.stamp is None:
             self.tokens, self.stamp = self.burst, now
         self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
         self.stamp = now

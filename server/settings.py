@@ -110,6 +110,11 @@ class ServerSettings(BaseSettings):
     hello_timeout_s: float = Field(
         default=10.0, gt=0.0, description="A connection that sends no hello within this is closed."
     )
+    hello_loading_wait_s: float = Field(
+        default=3.0,
+        ge=0.0,
+        description="A hello while the store loads waits this long for it, then is told to retry.",
+    )
     max_seq_step: int = Field(
         default=10_000,
         ge=1,

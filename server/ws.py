@@ -4,7 +4,8 @@ Flow: the first frame must be ``hello`` with the agent's token -> ``welcome(last
 each acknowledged after it is durably stored. Bad frames get an ``error`` naming the field and change nothing.
 A refused hello gets an ``error`` and the socket is closed with 1008 (policy violation); so does a socket
 that sends no hello within ``hello_timeout_s`` (code ``hello_timeout``). While the server loads its store a
-hello gets a transient ``unavailable`` error and a 1013 close (the agent retries). Data messages may be
+hello waits up to ``hello_loading_wait_s``, then gets a transient ``unavailable`` error and a 1013 close
+(the agent retries). Data messages may be
 refused with ``quota`` (a per-agent total; final) or ``rate`` (too fast; transient), see
 :mod:`hivemap.server.quotas`, and a seq more than ``max_seq_step`` past the agent's last is refused naming
 ``seq``.
@@ -241,6 +242,9 @@ class AgentConnection:
             )
             return
         reason = self.server.authenticate(msg)
+        if reason is None and self.server.loading:  # a short start-up is waited out
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.server.loaded.wait(), self.server.settings.hello_loading_wait_s)
         if reason is None and self.server.loading:
             # transient for the agent ("unavailable"): it reconnects with backoff until the store is loaded
             why = "server is loading its store; retry shortly"

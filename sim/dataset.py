@@ -458,6 +458,26 @@ def manifest_dict(
     }
 
 
+class RenderMismatch(ValueError):
+    """The output folder already holds agents of another world (scenario, seed or conditions)."""
+
+
+# what makes two renders the same world: resuming into a folder that differs in one of them would mix
+# frames of two worlds in one dataset
+_SAME_WORLD = ("scenario", "seed", "world_size_m", "lighting", "weather", "camera", "start_time_ns")
+
+
+def _check_same_world(path: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
+    if not old.get("agents"):
+        return
+    for key in _SAME_WORLD:
+        if key in old and old[key] != new[key]:
+            raise RenderMismatch(
+                f"{path} holds a render with {key} = {old[key]!r}, not {new[key]!r}; "
+                "render into another --out"
+            )
+
+
 @dataclass
 class RenderResult:
     out_dir: Path
@@ -501,11 +521,16 @@ def render_scenario(
     if man_path.is_file():
         try:
             old = yaml.safe_load(man_path.read_text()) or {}
+        except yaml.YAMLError:
+            old = {}
+            log.warning("ignoring unreadable %s", man_path)
+        _check_same_world(man_path, old, manifest_dict(scenario, {}, scenario.duration_s))
+        try:
             if old.get("scenario") == scenario.name:
                 for a in old.get("agents", []):
                     keep = ("complete", "n_frames", "path_length_m", "duration_s")
                     reports[str(a["id"])] = {k: v for k, v in a.items() if k in keep}
-        except (yaml.YAMLError, KeyError, TypeError):
+        except (KeyError, TypeError, AttributeError):
             log.warning("ignoring unreadable %s", man_path)
     results = []
     for a in wanted:

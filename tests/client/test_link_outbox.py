@@ -39,7 +39,10 @@ from hivemap.protocol import (
 
 CAMERA = PinholeCamera(640, 480, 400.0, 400.0, 320.0, 240.0).to_dict()
 TOKEN = "secret"
-FAST = LinkOptions(backoff_initial_s=0.01, backoff_max_s=0.05, window=16, open_timeout_s=5.0)
+# fast retries: the attempt bound is not what these tests are about (test_link_faults covers it)
+FAST = LinkOptions(
+    backoff_initial_s=0.01, backoff_max_s=0.05, window=16, open_timeout_s=5.0, max_connect_attempts=1000
+)
 
 
 def _msg(i: int) -> MapPoints:

@@ -70,3 +70,24 @@ def test_cli_parser_rejects_a_bad_option() -> None:
     """The check above can fail: an unknown option is a usage error."""
     with pytest.raises(TyperException):
         _parse_cli(["hivemap", "server", "--no-such-option", "1"])
+
+
+def test_compose_is_mission_safe_and_stops_cleanly() -> None:
+    """Each agent's outbox (--out) is on a named volume, its own; every hivemap service gets SIGTERM via an
+    init process and a grace period to close its store or outbox (issue 21)."""
+    cfg = _resolved_config()
+    services = cfg["services"]
+    outs = set()
+    for agent in ("uav1", "uav2", "uav3", "ugv"):
+        svc = services[agent]
+        cmd = [str(c) for c in svc["command"]]
+        out = cmd[cmd.index("--out") + 1]
+        mounts = [v.split(":") for v in svc["volumes"]]
+        on_volume = [dst for src, dst, *_ in mounts if src in cfg["volumes"] and out.startswith(dst + "/")]
+        assert on_volume, (agent, out, mounts)
+        outs.add(out)
+    assert len(outs) == 4  # one outbox per agent
+    for name in ("server", "uav1", "uav2", "uav3", "ugv"):
+        svc = services[name]
+        assert svc.get("init") is True and svc.get("stop_signal", "SIGTERM") == "SIGTERM", name
+        assert int(str(svc["stop_grace_period"]).rstrip("s")) >= 20, name

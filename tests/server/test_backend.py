@@ -45,13 +45,10 @@ class Server:
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
         deadline = time.monotonic() + 20
-        while not self.server.started:
+        while not (self.server.started and self.app.state.hive.loaded.is_set()):  # the store loads after
             assert time.monotonic() < deadline and self.thread.is_alive(), "server did not start"
             time.sleep(0.05)
         self.hive: Any = self.app.state.hive
-        while not self.hive.loaded.is_set():  # the store loads in the background; hellos wait for it
-            assert time.monotonic() < deadline, "server did not load its store"
-            time.sleep(0.02)
         self.backend: Backend = self.hive.backend
         self.ws_url = f"ws://127.0.0.1:{self.port}/ws"
 

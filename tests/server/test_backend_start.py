@@ -36,7 +36,7 @@ def test_start_poses_merge_at_first_keyframe(tmp_path: Path) -> None:
     server = uvicorn.Server(uvicorn.Config(app, **uvicorn_config_kwargs(settings)))  # type: ignore[arg-type]
     th = threading.Thread(target=server.run, daemon=True)
     th.start()
-    while not server.started:
+    while not (server.started and app.state.hive.loaded.is_set()):  # the store loads after start-up
         time.sleep(0.05)
     try:
         url = f"ws://127.0.0.1:{settings.port}/ws"

@@ -33,7 +33,7 @@ class InProcessServer:
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
         deadline = time.monotonic() + 20
-        while not self.server.started:
+        while not (self.server.started and self.app.state.hive.loaded.is_set()):  # the store loads after
             assert time.monotonic() < deadline and self.thread.is_alive(), "server did not start"
             time.sleep(0.05)
         self.hive: HiveServer = self.app.state.hive

@@ -246,3 +246,39 @@ def test_corrections_reach_only_the_mission_whose_map_they_correct(tmp_path: Pat
         assert waiting > 0  # A's corrections are kept for A
     finally:
         srv.stop()
+
+
+def test_a_store_from_before_missions_files_its_data_under_the_legacy_mission(
+    server: ServerProcess,
+) -> None:
+    """A store written before missions (agent maps without a mission, one seq per agent) is upgraded on
+    load: its data belongs to mission ``legacy``, which an upgraded v1 outbox resumes as."""
+    import sqlite3
+
+    with SyncAgent(server.ws_url, "uav1", TOKENS["uav1"], mission="legacy") as a:
+        a.welcome()
+        msgs, _ = synthetic_stream("uav1", 3, seed=2, pose_update_every=0)
+        assert a.send_all(msgs)[1] == []
+    digest = server.json("/maps/digest")["digests"]
+    server.stop()
+    db = sqlite3.connect(db_of(server))  # back to the old layout: what the previous version wrote
+    db.executescript(
+        f"""
+        UPDATE server_agents SET last_seq = {len(msgs)};
+        DELETE FROM server_missions;
+        CREATE TABLE old_maps (folded TEXT PRIMARY KEY, agent_id TEXT NOT NULL, session INTEGER NOT NULL,
+                               global_from_vio BLOB NOT NULL);
+        INSERT INTO old_maps SELECT folded, agent_id, session, global_from_vio FROM server_agent_maps;
+        DROP TABLE server_agent_maps;
+        ALTER TABLE old_maps RENAME TO server_agent_maps;
+        """
+    )
+    db.commit()
+    db.close()
+    server.start()
+    assert server.json("/maps/digest")["digests"] == digest
+    info = server.json("/agents/uav1")
+    assert [(s["mission"], s["client_session"]) for s in info["sessions"]] == [("legacy", 0)]
+    with SyncAgent(server.ws_url, "uav1", TOKENS["uav1"], mission="legacy") as a:
+        w = a.welcome()
+        assert w.mission_known and w.last_seq == len(msgs)

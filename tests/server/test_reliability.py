@@ -289,7 +289,7 @@ def test_health_says_loading_while_a_large_store_loads(tmp_path: Path) -> None:
     store = MapStore(data / "hivemap.sqlite")
     store.put_points(0, [MapPoint("uav1", i, xyz[i], desc[i]) for i in range(n)])
     store.close()
-    srv = _server(tmp_path).start(wait_loaded=False)  # returns at the first /health answer
+    srv = _server(tmp_path, hello_loading_wait_s=0.0).start(wait_loaded=False)  # at the first /health
     try:
         assert srv.json("/health")["status"] == "loading"
         with SyncAgent(srv.ws_url, "uav1", TOKENS["uav1"]) as a:
@@ -309,3 +309,12 @@ def test_health_says_loading_while_a_large_store_loads(tmp_path: Path) -> None:
         srv.stop()
     log = srv.log.read_text()
     assert "store loaded in" in log and f"{n} map points" in log
+
+
+def test_token_bucket_passes_one_oversized_message_when_full_then_refills_at_its_rate() -> None:
+    from hivemap.server.quotas import TokenBucket
+
+    b = TokenBucket(rate=2.0, burst=3.0)
+    assert b.take(4, 0.0)  # larger than the burst: passes only on a full bucket, leaving a debt
+    assert not b.take(1, 0.1) and not b.take(1, 0.5)  # the debt is not forgiven
+    assert b.take(1, 1.0)  # -1 + 2 tokens/s x 1 s = 1
