@@ -71,8 +71,13 @@ def main(
     """Collaborative SLAM: run a server, run agents, render datasets, evaluate."""
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        format="%(asctime)s %(levelname)s %(agent)s%(name)s: %(message)s",
     )
+    from hivemap.client.logtags import AgentTag
+
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, AgentTag) for f in handler.filters):
+            handler.addFilter(AgentTag())  # fills %(agent)s: "[uav1] " in an agent's lines
 
 
 app.command("server", help="Run the hivemap server (WebSocket ingest, back-end, REST, viewer).")(

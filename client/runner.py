@@ -425,12 +425,14 @@ def run_offline(
     from tqdm import tqdm
 
     from hivemap.client.dataset import open_dataset
+    from hivemap.client.logtags import tag_agent
 
     options = options or RunnerOptions()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ds = open_dataset(agent_dir)  # a EuRoC folder or a BagSource
     agent_id = str(ds.agent_id)
+    tag_agent(agent_id)  # log lines say which agent speaks
     times = _frame_times(ds)
     if options.max_frames is not None:
         times = times[: options.max_frames]

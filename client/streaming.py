@@ -179,6 +179,7 @@ async def _stream_until(
     from hivemap.client.dataset import open_dataset
     from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
     from hivemap.client.link import AgentLink, LinkOptions
+    from hivemap.client.logtags import CorrectionSummary, tag_agent
     from hivemap.client.outbox import open_mission_outbox
     from hivemap.protocol import Correction, Keyframe, MapPoints, PoseUpdates
 
@@ -186,6 +187,7 @@ async def _stream_until(
     out.mkdir(parents=True, exist_ok=True)
     ds = open_dataset(agent_dir)  # a EuRoC folder or a BagSource
     aid = agent_id or str(ds.agent_id)
+    tag_agent(aid)  # this task's log lines (and its threads') say which agent speaks
     times = _frame_times(ds)
     if options.max_frames is not None:
         times = times[: options.max_frames]
@@ -255,6 +257,8 @@ async def _stream_until(
 
     agent.on_event = on_event
 
+    corrections_log = CorrectionSummary(log)
+
     def apply_pending() -> None:
         with lock:
             todo = list(pending)
@@ -267,10 +271,7 @@ async def _stream_until(
             n = agent.apply_correction(
                 c.session - first, c.kf_ids, c.world_from_cam, c.global_from_local, enu=enu
             )
-            log.info(
-                "correction from map %d (%s frame): %d keyframes fused as co-location factors",
-                c.map_id, c.global_frame, n,
-            )  # fmt: skip
+            corrections_log.add(c.map_id, c.global_frame, n)  # DEBUG each, INFO every 10 s
 
     def step(i: int, prev_t: float) -> None:
         apply_pending()
@@ -322,6 +323,7 @@ async def _stream_until(
         with contextlib_suppress():
             await link_task
     summary.stopped_by = stopped_by[0] if stopped_by else ""
+    corrections_log.flush()
     if failure is not None:
         from hivemap.client.link import LinkFailed, LinkRefused
 
