@@ -193,12 +193,19 @@ def test_missing_files_are_named(euroc: Path):
         load_dataset(euroc)
 
 
-def test_missing_image_is_named(euroc: Path):
+def test_missing_image_is_skipped_and_no_images_is_named(euroc: Path):
+    # a listed frame missing on disk is skipped with its stereo partner (issue 24: partial copies of
+    # real recordings); a camera with none of its images is an error naming its data folder
     img = euroc / "mav0" / "cam1" / "data" / f"{T0 + 100_000_000}.png"
+    n = len(load_dataset(euroc).frames)
     img.unlink()
-    with pytest.raises(DatasetError) as e:
+    ds = load_dataset(euroc)
+    assert len(ds.frames) == n - 1 and T0 + 100_000_000 not in ds.frames.t_ns
+    for p in (euroc / "mav0" / "cam1" / "data").glob("*.png"):
+        p.unlink()
+    with pytest.raises(DatasetError, match="none of the 5 listed images exist") as e:
         load_dataset(euroc)
-    assert e.value.path == img
+    assert e.value.path == euroc / "mav0" / "cam1" / "data"
 
 
 def test_corrupt_image_is_named_on_load(euroc: Path):
