@@ -178,6 +178,18 @@ class OfflineAgent:
             if abs(frame_times[j] - self.gnss.t[i]) <= self.options.gnss_max_dt_s:
                 self._fix_by_time[float(frame_times[j])] = int(i)
 
+    def attach_fix(self, frame_t: float, t: float, enu: F64, cov: F64) -> int:
+        """Live input: a fix (ENU, 3x3 covariance) taken at ``t``, used at the frame at ``frame_t`` (not yet
+        stepped); returns its index in ``gnss``. Replays choose theirs up front with :meth:`select`."""
+        g = self.gnss
+        self.gnss = _Gnss(
+            np.append(g.t, t), np.vstack([g.enu, np.reshape(enu, (1, 3))]),
+            np.concatenate([g.cov, np.reshape(cov, (1, 3, 3))]), np.append(g.valid, True),
+        )  # fmt: skip
+        self.selected = np.append(self.selected, True)
+        self._fix_by_time[float(frame_t)] = len(g.t)
+        return len(g.t)
+
     def step(self, t: float, left: NDArray[np.uint8], right: NDArray[np.uint8], imu: F64 | None) -> object:
         import time
 
@@ -438,20 +450,29 @@ def run_offline(
         times = times[: options.max_frames]
     imu = _imu(ds)
     gnss = _gnss_table(ds)
-    agent = _make_agent(ds, gnss, options, frontend_options, second_stage_options)
-    agent.select(times)
+    # the replay drives the live-input API (hivemap.client.Agent), as a camera driver would
+    from hivemap.client.agent import Agent, AgentOptions
+
+    live = Agent.from_dataset(ds, options=AgentOptions(options, frontend_options, second_stage_options))
+    selected = np.flatnonzero(select_gnss(gnss.t, gnss.valid, options.gnss, options.seed))
     summary = RunSummary(agent_id=agent_id, gnss_mode=str(options.gnss))
     summary.gnss_available = int(gnss.valid.sum())
-    summary.gnss_selected = int(agent.selected.sum())
+    summary.gnss_selected = len(selected)
     wall0 = time.perf_counter()
-    prev_t = -math.inf
+    prev_t, next_fix = -math.inf, 0
     for i in tqdm(range(len(times)), desc=f"agent {agent_id}", unit="frame", disable=not options.progress):
         t = float(times[i])
         left, right = _load_pair(ds, i)
-        sel = (imu[:, 0] > prev_t) & (imu[:, 0] <= t) if len(imu) else None
-        agent.step(t, left, right, imu[sel] if sel is not None else None)
+        if len(imu):
+            live.feed_imu_batch(imu[(imu[:, 0] > prev_t) & (imu[:, 0] <= t)])
+        while next_fix < len(selected) and gnss.t[selected[next_fix]] <= t + options.gnss_max_dt_s:
+            k = selected[next_fix]
+            live.feed_gnss_cov(float(gnss.t[k]), gnss.enu[k], gnss.cov[k])
+            next_fix += 1
+        live.feed_stereo(t, left, right)
         prev_t = t
-    agent.finish()
+    live.close()
+    agent = live.core
     summary.wall_s = time.perf_counter() - wall0
     _write_outputs(agent, out, summary, len(times))
     log.info(

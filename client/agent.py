@@ -1,0 +1,385 @@
+"""Live input: drive a hivemap agent from a camera driver, a ROS node or any loop of your own.
+
+::
+
+    from hivemap.client import Agent
+
+    agent = Agent.from_calibration(["mav0/"], agent_id="uav1")          # or Agent(rig, imu_noise=..., ...)
+    agent.on_correction(lambda c: print("moved", c.keyframes, "keyframes into map", c.map_id))
+    agent.connect("ws://server:8765/ws", token="secret", out_dir="agent-uav1")   # optional: stream
+    for each IMU sample:   agent.feed_imu(t, gyro_xyz, accel_xyz)                # rad/s, m/s^2, body frame
+    for each GNSS fix:     agent.feed_gnss(t, enu_xyz, sigma_h, sigma_v)        # metres, ENU
+    for each stereo pair:  result = agent.feed_stereo(t, left, right)           # uint8 gray images
+    agent.pose()           # latest world_from_body 4x4 in the local frame (None before tracking)
+    agent.close()          # flush the front-end, wait for the server's acks, stop the link
+
+Times are seconds on one clock for all sensors. IMU samples must arrive before the frame they lead up
+to (each frame takes the samples after the previous frame up to its own time). A fix is used at the
+first frame within ``RunnerOptions.gnss_max_dt_s`` of it (that frame becomes a keyframe); a fix that
+arrives after its frame is dropped. ``world_from_body`` poses are of the IMU (body) frame, as in EuRoC.
+
+The offline replay (``hivemap agent --offline``) feeds datasets through this class, so what a live agent
+computes is what the replays are tested on. Corrections from the server are applied between frames (on
+the thread that calls ``feed_stereo``), then the callbacks run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.client.replay_io import _Gnss
+from hivemap.client.runner import OfflineAgent, RunnerOptions, _make_agent
+from hivemap.maps.camera import PinholeCamera, StereoRig
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+U8 = NDArray[np.uint8]
+
+
+@dataclass(frozen=True)
+class AgentOptions:
+    """Tuning of a live agent: the replay's options (GNSS association, co-location priors, IMU
+    factors), the front-end's and the second stage's (None: their defaults)."""
+
+    runner: RunnerOptions = field(default_factory=lambda: RunnerOptions(progress=False))
+    frontend: object | None = None
+    second_stage: object | None = None
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What one stereo frame gave: tracking state, whether it became a keyframe, its VIO pose."""
+
+    t: float
+    state: str  # "ok", "relocalized", "new_map", "lost", ...
+    tracked: bool
+    keyframe_id: int | None
+    world_from_body: F64 | None  # VIO frame; ``Agent.pose()`` gives the local frame
+
+
+@dataclass(frozen=True)
+class CorrectionInfo:
+    """A server correction after it was applied (see ``Agent.on_correction``)."""
+
+    map_id: int
+    frame: str  # "map" or "enu"
+    session: int
+    keyframes: int  # keyframes that became co-location factors
+    global_from_local: F64  # (4, 4) Sim(3) matrix of the frame the keyframes were sent in
+
+
+@dataclass(frozen=True)
+class _Sensors:
+    """What ``runner._make_agent`` reads of a dataset."""
+
+    rig: StereoRig
+    T_BS: dict[str, F64]
+    imu_noise: dict[str, float] | None
+    imu: F64
+
+
+class Agent:
+    """One agent fed live (see the module docstring)."""
+
+    def __init__(
+        self,
+        rig: StereoRig,
+        *,
+        agent_id: str = "agent",
+        kind: str = "uav",
+        imu_noise: dict[str, float] | None = None,
+        T_BS: dict[str, F64] | None = None,
+        use_imu: bool = True,
+        options: AgentOptions | None = None,
+    ) -> None:
+        """``rig``: the stereo pair (``T_BS`` of cam0/cam1 inside); ``imu_noise``: EuRoC/Kalibr IMU noise
+        names (defaults when empty); ``T_BS``: body_from_sensor for ``imu0`` and ``gnss0`` (lever arm);
+        ``use_imu=False``: a camera-only agent (no IMU samples expected)."""
+        self.agent_id, self.kind = agent_id, kind
+        self.options = options or AgentOptions()
+        self.rig = rig
+        self.use_imu = use_imu
+        T = {"cam0": rig.body_from_left, "cam1": rig.body_from_right, **(T_BS or {})}
+        self.T_BS = T
+        noise = (imu_noise or {}) if use_imu else None
+        sensors = _Sensors(rig, T, noise, np.zeros((1 if use_imu else 0, 7)))
+        empty = _Gnss(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, bool))
+        self.core: OfflineAgent = _make_agent(
+            sensors, empty, self.options.runner, self.options.frontend, self.options.second_stage
+        )
+        self._imu: list[tuple[float, float, float, float, float, float, float]] = []
+        self._prev_t = -np.inf
+        self._fixes: list[tuple[float, F64, F64]] = []
+        self._lock = threading.RLock()
+        self._pending: list[Any] = []  # protocol Correction messages, applied between frames
+        self._callbacks: list[Callable[[CorrectionInfo], None]] = []
+        self._stream: _Stream | None = None
+        self.frames = 0
+
+    # -- construction ---------------------------------------------------------------------------------
+    @classmethod
+    def from_calibration(cls, paths: Sequence[str | Path], **kwargs: Any) -> Agent:
+        """From a EuRoC ``mav0`` folder or Kalibr yaml files (as ``hivemap agent --calib``)."""
+        from hivemap.client.bag import load_calibration
+
+        calib = load_calibration([Path(p) for p in paths])
+        if "cam1" not in calib.cameras:
+            raise ValueError("the built-in front-end needs a stereo calibration (cam0 and cam1)")
+        rig = StereoRig(calib.cameras["cam0"], calib.cameras["cam1"], calib.T_BS["cam0"], calib.T_BS["cam1"])
+        kwargs.setdefault("agent_id", calib.agent_id or "agent")
+        kwargs.setdefault("kind", calib.kind or "uav")
+        return cls(rig, imu_noise=calib.imu_noise, T_BS=calib.T_BS, **kwargs)
+
+    @classmethod
+    def from_dataset(cls, ds: Any, **kwargs: Any) -> Agent:
+        """With a dataset's calibration (``hivemap.client.dataset.AgentDataset``), e.g. to replay it."""
+        if ds.rig is None:
+            raise ValueError("the dataset has no stereo pair (cam1): the built-in front-end needs stereo")
+        kwargs.setdefault("agent_id", ds.agent_id)
+        kwargs.setdefault("kind", ds.kind)
+        kwargs.setdefault("use_imu", len(ds.imu) > 0)
+        return cls(ds.rig, imu_noise=dict(ds.imu_noise), T_BS=dict(ds.T_BS), **kwargs)
+
+    @property
+    def camera(self) -> PinholeCamera:
+        cam: PinholeCamera = self.rig.left
+        return cam
+
+    # -- input ----------------------------------------------------------------------------------------
+    def feed_imu(self, t: float, gyro: Sequence[float] | F64, accel: Sequence[float] | F64) -> None:
+        """One IMU sample: angular rate [rad/s] and specific force [m/s^2] in the IMU (body) frame."""
+        g, a = np.asarray(gyro, dtype=np.float64).reshape(3), np.asarray(accel, dtype=np.float64).reshape(3)
+        with self._lock:
+            if self._imu and t <= self._imu[-1][0]:
+                log.warning("IMU sample at %.6f s not after the previous one: dropped", t)
+                return
+            self._imu.append((float(t), *g.tolist(), *a.tolist()))  # type: ignore[arg-type]
+
+    def feed_imu_batch(self, rows: F64) -> None:
+        """IMU samples (N, 7): ``[t, w_x, w_y, w_z, a_x, a_y, a_z]``, increasing in time."""
+        for r in np.asarray(rows, dtype=np.float64).reshape(-1, 7):
+            self.feed_imu(float(r[0]), r[1:4], r[4:7])
+
+    def feed_gnss(self, t: float, enu: Sequence[float] | F64, sigma_h: float, sigma_v: float) -> None:
+        """One GNSS fix in ENU metres (around the mission's origin) with its horizontal/vertical sigma."""
+        self.feed_gnss_cov(t, enu, np.diag([sigma_h**2, sigma_h**2, sigma_v**2]).astype(np.float64))
+
+    def feed_gnss_cov(self, t: float, enu: Sequence[float] | F64, cov: F64) -> None:
+        """One GNSS fix in ENU metres with its full 3x3 covariance [m^2]."""
+        with self._lock:
+            self._fixes.append(
+                (
+                    float(t),
+                    np.asarray(enu, dtype=np.float64).reshape(3),
+                    np.asarray(cov, np.float64).reshape(3, 3),
+                )
+            )
+
+    def feed_stereo(self, t: float, left: U8, right: U8) -> FrameResult:
+        """One rectification-free stereo pair (gray uint8, the calibration's distortion is modelled)."""
+        from hivemap.client.frontend.tracker import TrackingState
+
+        with self._lock:
+            applied = self._apply_pending()
+            imu = self._take_imu(t)
+            max_dt = self.options.runner.gnss_max_dt_s
+            keep = []
+            for tf, enu, cov in self._fixes:
+                if abs(tf - t) <= max_dt:
+                    self.core.attach_fix(t, tf, enu, cov)
+                elif tf > t:
+                    keep.append((tf, enu, cov))
+                # else: its frame has passed
+            self._fixes = keep
+            res: Any = self.core.step(t, left, right, imu)
+            self._prev_t = t
+            self.frames += 1
+            tracked = res.state in (TrackingState.OK, TrackingState.RELOCALIZED, TrackingState.NEW_MAP)
+            out = FrameResult(
+                float(t), str(res.state.value), tracked,
+                None if res.new_keyframe_id is None else int(res.new_keyframe_id),
+                np.asarray(res.world_from_body, dtype=np.float64) if tracked else None,
+            )  # fmt: skip
+        for info in applied:
+            for cb in list(self._callbacks):
+                cb(info)
+        return out
+
+    def _take_imu(self, t: float) -> F64 | None:
+        if not self.use_imu:
+            return None
+        n = 0
+        while n < len(self._imu) and self._imu[n][0] <= t:
+            n += 1
+        rows = [r for r in self._imu[:n] if r[0] > self._prev_t]
+        del self._imu[:n]
+        return np.asarray(rows, dtype=np.float64).reshape(-1, 7)
+
+    # -- output ---------------------------------------------------------------------------------------
+    def pose(self, frame: str = "local") -> F64 | None:
+        """The latest tracked frame's world_from_body, in the ``local`` frame (after GNSS and the server's
+        co-location factors) or the front-end's ``vio`` frame; None before tracking starts."""
+        with self._lock:
+            c = self.core
+            if not c.vio_t:
+                return None
+            T = np.asarray(c.vio_poses[-1], dtype=np.float64)
+            if frame == "vio":
+                return T
+            if frame != "local":
+                raise ValueError(f"frame must be 'local' or 'vio', not {frame!r}")
+            seg = c._sess_segment.get(c.vio_session[-1])
+            return T if seg is None else np.asarray(c.stage.local_from_frame(c.vio_t[-1], T, segment=seg))
+
+    def on_correction(self, callback: Callable[[CorrectionInfo], None]) -> None:
+        """Call ``callback(CorrectionInfo)`` after each server correction is applied."""
+        self._callbacks.append(callback)
+
+    def submit_correction(self, msg: Any) -> None:
+        """A server ``Correction`` (``hivemap.protocol``), applied before the next frame. ``connect`` does
+        this itself; call it when you run your own link. Thread-safe."""
+        with self._lock:
+            self._pending.append(msg)
+
+    def _apply_pending(self) -> list[CorrectionInfo]:
+        todo, self._pending = self._pending, []
+        first = self._stream.first_session if self._stream is not None else 0
+        out = []
+        for c in todo:
+            if c.session < first:  # a session of an earlier process of this mission
+                continue
+            n = self.core.apply_correction(
+                c.session - first,
+                c.kf_ids,
+                c.world_from_cam,
+                c.global_from_local,
+                enu=c.global_frame == "enu",
+            )
+            log.debug("correction from map %d (%s frame): %d keyframes", c.map_id, c.global_frame, n)
+            out.append(CorrectionInfo(int(c.map_id), str(c.global_frame), int(c.session), n,
+                                      np.asarray(c.global_from_local, dtype=np.float64)))  # fmt: skip
+        return out
+
+    # -- streaming ------------------------------------------------------------------------------------
+    def connect(self, server: str, token: str, out_dir: str | Path, max_connect_attempts: int = 10) -> None:
+        """Stream keyframes and map points to ``server`` (``ws://HOST:PORT/ws``) from a background thread;
+        ``out_dir`` holds the durable outbox (unsent messages survive a restart). Call before the first
+        frame."""
+        from hivemap.client.link import check_server_url
+
+        if (bad := check_server_url(server)) is not None:
+            raise ValueError(f"server URL: {bad}")
+        if self.frames:
+            raise RuntimeError("connect() before the first frame: the server needs every keyframe")
+        self._stream = _Stream(self, server, token, Path(out_dir), max_connect_attempts)
+        self.core.on_event = self._stream.on_event
+
+    def close(self, timeout: float = 60.0) -> int:
+        """Flush the front-end (its last keyframes), then, when connected, wait up to ``timeout`` s for the
+        server's acks and stop the link. Returns the messages left unsent (kept in the outbox)."""
+        with self._lock:
+            self.core.finish()
+        if self._stream is None:
+            return 0
+        unsent = self._stream.close(timeout)
+        self._stream = None
+        return unsent
+
+
+class _Stream:
+    """The link of a connected :class:`Agent`: its own event loop in a thread, fed thread-safely."""
+
+    def __init__(self, agent: Agent, server: str, token: str, out: Path, max_attempts: int) -> None:
+        from hivemap.client.link import AgentLink, LinkOptions
+        from hivemap.client.outbox import open_mission_outbox
+
+        out.mkdir(parents=True, exist_ok=True)
+        self.agent = agent
+        self.box = open_mission_outbox(out, agent.agent_id)
+        self.first_session = self.box.start_session()
+        self._sessions = {self.first_session}
+        T = agent.T_BS
+        lever = None
+        if "gnss0" in T and "cam0" in T:
+            lever = (np.linalg.inv(np.asarray(T["cam0"])) @ np.asarray(T["gnss0"]))[:3, 3].copy()
+        self.loop = asyncio.new_event_loop()
+        self.link = AgentLink(
+            server, agent.agent_id, agent.kind, agent.camera.to_dict(), token, self.box,
+            on_correction=agent.submit_correction, cam_from_antenna=lever, session=self.first_session,
+            options=LinkOptions(max_connect_attempts=max_attempts),
+        )  # fmt: skip
+        self._thread = threading.Thread(target=self._run, name=f"hivemap-link-{agent.agent_id}", daemon=True)
+        self._thread.start()
+        self._task: concurrent.futures.Future[Any] = asyncio.run_coroutine_threadsafe(
+            self.link.run(), self.loop
+        )
+
+    def _run(self) -> None:
+        asyncio.set_event_loop(self.loop)
+        self.loop.run_forever()
+        # the link's helper tasks (waits on its events) end with the loop
+        pending = [t for t in asyncio.all_tasks(self.loop) if not t.done()]
+        for t in pending:
+            t.cancel()
+        self.loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+        self.loop.close()
+
+    def _submit(self, msg: Any) -> None:
+        # the outbox is written on the link's loop, like everything else the link does
+        self.loop.call_soon_threadsafe(self.link.submit_nowait, msg)
+
+    def on_event(self, ev: object) -> None:
+        """Front-end events -> protocol messages (as ``hivemap.client.streaming`` sends them)."""
+        from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
+        from hivemap.protocol import Keyframe, MapPoints, PoseUpdates
+
+        core = self.agent.core
+        session = self.first_session + int(getattr(ev, "session", 0))
+        if session not in self._sessions:
+            self._sessions.add(session)
+            self.box.reserve_sessions(session)
+        if isinstance(ev, KeyframeEvent):
+            if len(ev.new_point_ids):
+                self._submit(MapPoints(ev.new_point_ids, ev.new_point_xyz, ev.new_point_descriptors, session))
+            fix = core.kf_fix.get((ev.session, ev.kf_id))
+            g = core.gnss
+            self._submit(
+                Keyframe(
+                    ev.kf_id, ev.timestamp, ev.world_from_cam, ev.keypoints, ev.octaves, ev.descriptors,
+                    ev.point_ids, None if fix is None else g.enu[fix], None if fix is None else g.cov[fix],
+                    session, core.up_in_cam(ev.session, ev.kf_id),
+                )
+            )  # fmt: skip
+        elif isinstance(ev, PoseUpdateEvent):
+            self._submit(PoseUpdates(ev.kf_ids, ev.world_from_cam, ev.point_ids, ev.xyz, session))
+
+    def close(self, timeout: float) -> int:
+        async def finish() -> None:
+            try:
+                await asyncio.wait_for(self.link.flush(timeout=timeout), timeout + 5.0)
+            except TimeoutError:
+                log.warning("server did not acknowledge everything within %.0f s", timeout)
+            # all acknowledged: the next start on this outbox is a new mission (before close shuts it)
+            if not self._task.done() and self.box.finish():
+                log.info("agent %s: mission %s complete", self.agent.agent_id, self.box.mission)
+            await self.link.close()
+
+        asyncio.run_coroutine_threadsafe(finish(), self.loop).result()
+        try:
+            self._task.result(timeout=10.0)
+        except Exception as exc:  # refused or unreachable: what is left stays in the outbox
+            log.warning("link ended: %s", exc)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(10.0)
+        return int(self.link.unsent)
