@@ -124,6 +124,22 @@ def team_command(
             )
 
 
+def _world_seeds(text: str) -> list[int | None]:
+    out: list[int | None] = []
+    for tok in (t.strip() for t in text.split(",")):
+        if not tok:
+            continue
+        if tok == "default":
+            out.append(None)
+            continue
+        try:
+            out.append(int(tok))
+        except ValueError:
+            msg = f"{tok!r} is not a seed (an integer or 'default')"
+            raise typer.BadParameter(msg, param_hint="--seeds") from None
+    return out
+
+
 @app.command("experiment")
 def experiment_command(
     scenarios: Annotated[str, typer.Option("--scenarios", help="Comma-separated scenario names.")],
@@ -140,6 +156,14 @@ def experiment_command(
     ] = None,
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Frames per agent (tests).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the random GNSS mode.")] = 0,
+    seeds: Annotated[
+        str | None,
+        typer.Option(
+            "--seeds",
+            help="World seeds, comma-separated (e.g. default,1,2,3; 'default' is the preset's own world): "
+            "every scenario x mode runs on each; the report adds mean and worst per agent over them.",
+        ),
+    ] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
     start_poses: Annotated[
         bool,
@@ -171,6 +195,7 @@ def experiment_command(
         agents=split(agents) if agents else None,
         max_frames=max_frames,
         seed=seed,
+        seeds=_world_seeds(seeds) if seeds else None,
         progress=not no_progress,
         start_poses=start_poses,
         report_only=report_only,

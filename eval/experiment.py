@@ -78,6 +78,18 @@ class ExperimentOptions:
     start_poses: bool = True  # co-location: the server knows the agents' start configuration
     agent_timeout_s: float = 6 * 3600.0
     report_only: bool = False  # run nothing: write the report from the results already in ``out``
+    # world seeds: each scenario runs once per seed (None in the list: the preset's own seed); None: once
+    seeds: Sequence[int | None] | None = None
+
+    def worlds(self) -> list[tuple[str, str, int | None]]:
+        """(results key, scenario, world seed) of every world to run: ``factory01-s7`` for seed 7."""
+        seeds = list(self.seeds) if self.seeds else [None]
+        return [(world_key(n, s), n, s) for n in self.scenarios for s in seeds]
+
+
+def world_key(scenario: str, seed: int | None) -> str:
+    """The name of one world of a scenario: its data and results folders (``factory01``, ``factory01-s7``)."""
+    return scenario if seed is None else f"{scenario}-s{seed}"
 
 
 # ------------------------------------------------------------------------------------ process helpers
@@ -119,12 +131,21 @@ def stop(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
             proc.wait()
 
 
-def ensure_scenario(name: str, data: Path) -> Path:
-    """The rendered scenario directory (``hivemap sim render``, resumable; reused when complete)."""
-    scen = data / name
-    if not (scen / "manifest.yaml").exists():
-        log.info("rendering scenario %s into %s", name, scen)
-        subprocess.run([*HIVEMAP, "sim", "render", "--scenario", name, "--out", str(scen)], check=True)
+def ensure_scenario(name: str, data: Path, seed: int | None = None) -> Path:
+    """The rendered directory of scenario ``name`` with world ``seed`` (``hivemap sim render``, resumable;
+    reused when every agent is complete)."""
+    import yaml
+
+    scen = data / world_key(name, seed)
+    man = scen / "manifest.yaml"
+    done = False
+    if man.exists():
+        m = yaml.safe_load(man.read_text()) or {}
+        done = bool(m.get("agents")) and all(a.get("complete") for a in m["agents"])
+    if not done:
+        log.info("rendering scenario %s (seed %s) into %s", name, "preset" if seed is None else seed, scen)
+        cmd = [*HIVEMAP, "sim", "render", "--scenario", name, "--out", str(scen), "--no-progress"]
+        subprocess.run(cmd + ([] if seed is None else ["--seed", str(seed)]), check=True)
     return scen
 
 
@@ -399,17 +420,20 @@ def run_experiment(opts: ExperimentOptions) -> Path:
         if m not in MODES:
             raise ValueError(f"unknown mode {m!r}; expected one of {', '.join(MODES)}")
     out = Path(opts.out)
+    worlds = opts.worlds()
+    keys = [k for k, _, _ in worlds]
     todo = []
-    for name in opts.scenarios:
+    for key, _, _ in worlds:
         for mode in opts.modes:
-            if not (out / "results" / name / f"{mode}.json").exists():
-                todo.append((name, mode))
+            if not (out / "results" / key / f"{mode}.json").exists():
+                todo.append((key, mode))
     if opts.report_only:
-        if not any((out / "results" / n / f"{m}.json").exists() for n in opts.scenarios for m in opts.modes):
-            raise FileNotFoundError(f"no results of {', '.join(opts.scenarios)} in {out / 'results'}")
-        return write_report(out, list(opts.scenarios), list(opts.modes))
+        if not any((out / "results" / k / f"{m}.json").exists() for k in keys for m in opts.modes):
+            raise FileNotFoundError(f"no results of {', '.join(keys)} in {out / 'results'}")
+        return write_report(out, keys, list(opts.modes))
     out.mkdir(parents=True, exist_ok=True)
-    scen_dirs = {name: ensure_scenario(name, Path(opts.data)) for name in {n for n, _ in todo}}
+    needed = {k for k, _ in todo}
+    scen_dirs = {k: ensure_scenario(n, Path(opts.data), s) for k, n, s in worlds if k in needed}
     n_runs = 0
     plan = []
     for name, mode in todo:
@@ -445,4 +469,4 @@ def run_experiment(opts: ExperimentOptions) -> Path:
             tmp = out / "results" / name / f"{mode}.json.tmp"
             tmp.write_text(json.dumps(data, indent=1, default=str))
             tmp.replace(out / "results" / name / f"{mode}.json")  # atomic: a crash leaves no half JSON
-    return write_report(out, list(opts.scenarios), list(opts.modes))
+    return write_report(out, keys, list(opts.modes))

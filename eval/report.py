@@ -14,6 +14,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from hivemap.eval.seeds import seeds_section
+
 log = logging.getLogger(__name__)
 
 # Paper 003_f6f3990b0874b823 (Xu et al., air-ground co-location), Table 8 "The accuracy of each agent
@@ -476,6 +478,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
         if merges:
             md.append("")
     md.append("")
+    md += seeds_section(table8)
     md += team_section(out, results)
     md += table67(results)
     # ---------------------------------------------------------------- plots
