@@ -127,15 +127,24 @@ async def map_points(
     format: Annotated[schemas.PointsFormat, Query(description="ply (binary little-endian) or json")] = (
         schemas.PointsFormat.ply
     ),
+    max_points: Annotated[
+        int | None, Query(ge=1, le=100_000_000, description="ply: an even subsample of at most this many")
+    ] = None,
 ) -> StreamingResponse:
     """The map points, streamed."""
     if format == schemas.PointsFormat.ply:
         return StreamingResponse(
-            views.points_ply(server, map_id),
+            views.points_ply(server, map_id, max_points),
             media_type="application/octet-stream",
             headers={"Content-Disposition": f'attachment; filename="map{map_id}.ply"'},
         )
     return StreamingResponse(views.points_json(server, map_id), media_type="application/json")
+
+
+@router.get("/maps/{map_id}/edges", response_model=schemas.MapEdges, responses=NOT_FOUND, tags=["maps"])
+async def map_edges(server: Server, map_id: MapId) -> schemas.MapEdges:
+    """Loop edges (within and across agents) with the two keyframes' camera centres."""
+    return views.map_edges(server, map_id)
 
 
 @router.get("/events", response_model=schemas.EventList, tags=["server"])

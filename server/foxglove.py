@@ -28,7 +28,6 @@ import asyncio
 import contextlib
 import logging
 import time
-import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -48,14 +47,13 @@ LOGGED_EVENTS = (
 )  # fmt: skip
 WARNING_EVENTS = ("error", "refused")
 
-# 16 well-separated colours (Tableau 10 + 6), picked by a hash of the agent id: stable across restarts and
-# page loads, and distinct for up to 16 agents in the common case.
-PALETTE = (
-    (0.12, 0.47, 0.71), (1.00, 0.50, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16),
-    (0.58, 0.40, 0.74), (0.55, 0.34, 0.29), (0.89, 0.47, 0.76), (0.50, 0.50, 0.50),
-    (0.74, 0.74, 0.13), (0.09, 0.75, 0.81), (0.00, 0.30, 0.30), (0.60, 0.80, 0.20),
-    (0.40, 0.00, 0.60), (1.00, 0.80, 0.00), (0.00, 0.00, 0.55), (0.80, 0.40, 0.40),
+# 16 well-separated colours, picked by a hash of the agent id: stable across restarts and page loads, and
+# the same as the web viewer's (viewer/src/main.js PALETTE and hashId).
+PALETTE_HEX = (
+    0x1F77B4, 0xFF7F0E, 0x2CA02C, 0xD62728, 0x9467BD, 0x8C564B, 0xE377C2, 0x7F7F7F,
+    0xBCBD22, 0x17BECF, 0x004D4D, 0x99CC33, 0x660099, 0xFFCC00, 0x00008C, 0xCC6666,
 )  # fmt: skip
+PALETTE = tuple(((c >> 16) / 255.0, ((c >> 8) & 0xFF) / 255.0, (c & 0xFF) / 255.0) for c in PALETTE_HEX)
 
 
 @dataclass(frozen=True)
@@ -75,9 +73,16 @@ class FoxgloveOptions:
 
 
 def agent_color(agent_id: str) -> tuple[float, float, float]:
-    """The agent's colour: a stable hash of its id (session suffix ``#n`` ignored) into ``PALETTE``."""
-    base = agent_id.split("#", 1)[0]
-    return PALETTE[zlib.crc32(base.encode()) % len(PALETTE)]
+    """The agent's colour (r, g, b in 0..1): a hash of its id (session suffix ``#n`` ignored)."""
+    return PALETTE[hash_id(agent_id.split("#", 1)[0]) % len(PALETTE)]
+
+
+def hash_id(agent_id: str) -> int:
+    """FNV-1a (32 bit) of the id's UTF-8 bytes: the viewer's ``hashId``."""
+    h = 0x811C9DC5
+    for b in agent_id.encode():
+        h = ((h ^ b) * 0x01000193) & 0xFFFFFFFF
+    return h
 
 
 # ---------------------------------------------------------------------------------------------

@@ -166,3 +166,11 @@ class ErrorBody(BaseModel):
 
 class StackDigest(BaseModel):
     digests: dict[int, str] = Field(description="map id -> SHA-256 of the map's whole content")
+
+
+class MapEdges(BaseModel):
+    """Loop edges of a map (within and across agents) as keyframe pairs with their camera centres."""
+
+    map_id: int
+    loops: list[tuple[str, int, str, int]] = Field(description="(agent, kf id, agent, kf id) per edge")
+    segments: list[list[list[float]]] = Field(description="[[x, y, z], [x, y, z]] per edge, map frame")

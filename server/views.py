@@ -240,17 +240,22 @@ PLY_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("observations",
 CHUNK_POINTS = 20000
 
 
-def _point_snapshot(server: HiveServer, map_id: int) -> tuple[list[Any], np.ndarray]:
-    """The map's points (copied list, so ingest may go on while we stream) and their xyz (N, 3)."""
+def _point_snapshot(
+    server: HiveServer, map_id: int, max_points: int | None = None
+) -> tuple[list[Any], np.ndarray]:
+    """The map's points (copied list, so ingest may go on while we stream) and their xyz (N, 3); with
+    ``max_points`` an even subsample of at most that many (a viewer's first, coarse level of detail)."""
     m = get_map(server, map_id)
     pts = sorted(m.points.values(), key=lambda p: (p.agent_id, p.id))
+    if max_points is not None and len(pts) > max_points:
+        pts = pts[:: -(-len(pts) // max_points)]
     xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
     return pts, xyz
 
 
-def points_ply(server: HiveServer, map_id: int) -> Iterator[bytes]:
+def points_ply(server: HiveServer, map_id: int, max_points: int | None = None) -> Iterator[bytes]:
     """Binary little-endian PLY: ``double x, y, z`` and ``uint observations`` per vertex."""
-    pts, xyz = _point_snapshot(server, map_id)
+    pts, xyz = _point_snapshot(server, map_id, max_points)
 
     def gen() -> Iterator[bytes]:
         header = (
@@ -293,6 +298,20 @@ def points_json(server: HiveServer, map_id: int) -> Iterator[bytes]:
         yield b"]}"
 
     return gen()
+
+
+def map_edges(server: HiveServer, map_id: int) -> schemas.MapEdges:
+    m = get_map(server, map_id)
+    loops, segs = [], []
+    for a, b in m.loop_edges():
+        ka, kb = m.keyframes.get(a), m.keyframes.get(b)
+        if ka is None or kb is None:
+            continue
+        loops.append((str(a[0]), int(a[1]), str(b[0]), int(b[1])))
+        segs.append(
+            [np.asarray(ka.world_from_cam)[:3, 3].tolist(), np.asarray(kb.world_from_cam)[:3, 3].tolist()]
+        )
+    return schemas.MapEdges(map_id=map_id, loops=loops, segments=segs)
 
 
 def events(server: HiveServer, since: int, kind: str | None, limit: int) -> schemas.EventList:

@@ -1,11 +1,21 @@
-// hivemap live map viewer: points of every map, keyframe trajectories per agent, current agent
-// positions, merge/loop events, and a side panel (agents, maps, bandwidth). Polls the REST API.
+// hivemap live map viewer: points of every map (coarse first, then full), keyframe trajectories and
+// frustums per agent, current agent positions, loop edges, filtered events, and a side panel (agents,
+// maps, bandwidth). Polls the REST API.
 import * as THREE from "three";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
 
 const POLL_MS = 1000;
-const PALETTE = [0xe6194b, 0x3cb44b, 0x4363d8, 0xf58231, 0x911eb4, 0x42d4f4, 0xf032e6, 0xbfef45];
-const state = { maps: [], agents: [], events: [], pointCounts: {}, colors: {}, drawnPoints: 0 };
+// 16 well-separated colours; an agent's is a hash of its id (session suffix "#n" ignored), so it is the
+// same on every page load and in Foxglove (hivemap.server.foxglove.agent_color uses this hash too).
+export const PALETTE = [0x1f77b4, 0xff7f0e, 0x2ca02c, 0xd62728, 0x9467bd, 0x8c564b, 0xe377c2, 0x7f7f7f,
+  0xbcbd22, 0x17becf, 0x004d4d, 0x99cc33, 0x660099, 0xffcc00, 0x00008c, 0xcc6666];
+const COARSE_POINTS = 150000; // first level of detail per map, drawn before the full cloud arrives
+const LOOP_COLOR = 0xff00ff;
+// events shown by default; the rest (candidates, BA and consistency details, info) with "all events"
+const DEFAULT_EVENTS = new Set(["merge", "loop", "correction", "gnss_stage", "session", "error", "refused",
+  "connect", "disconnect", "mission", "start_anchor"]);
+const state = { maps: [], agents: [], events: [], colors: {}, drawnPoints: 0, allEvents: false,
+  kfCounts: "", fullLoaded: {} };
 
 const canvas = document.getElementById("view");
 const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
@@ -25,14 +35,21 @@ scene.add(grid);
 const pointGroup = new THREE.Group();
 const trajGroup = new THREE.Group();
 const agentGroup = new THREE.Group();
-const eventGroup = new THREE.Group();
-scene.add(pointGroup, trajGroup, agentGroup, eventGroup);
+const frustumGroup = new THREE.Group();
+const edgeGroup = new THREE.Group();
+scene.add(pointGroup, trajGroup, agentGroup, frustumGroup, edgeGroup);
+
+// FNV-1a, 32 bit, over the UTF-8 bytes of the id
+export function hashId(id) {
+  let h = 0x811c9dc5;
+  for (const b of new TextEncoder().encode(id)) { h ^= b; h = Math.imul(h, 0x01000193) >>> 0; }
+  return h >>> 0;
+}
 
 function colorOf(agentId) {
-  if (!(agentId in state.colors)) {
-    state.colors[agentId] = PALETTE[Object.keys(state.colors).length % PALETTE.length];
-  }
-  return state.colors[agentId];
+  const base = String(agentId).split("#")[0];
+  if (!(base in state.colors)) state.colors[base] = PALETTE[hashId(base) % PALETTE.length];
+  return state.colors[base];
 }
 
 function resize() {
@@ -80,12 +97,15 @@ export function parsePly(buffer) {
   return xyz;
 }
 
-async function refreshPoints() {
+async function refreshPoints(full) {
   const children = [];
   let total = 0;
+  let subsampled = false;
   for (const m of state.maps) {
-    const r = await fetch(`/maps/${m.id}/points?format=ply`);
-    if (!r.ok) continue;
+    const lod = full || m.points <= COARSE_POINTS ? "" : `&max_points=${COARSE_POINTS}`;
+    if (lod) subsampled = true;
+    const r = await fetch(`/maps/${m.id}/points?format=ply${lod}`);
+    if (!r.ok) continue; // merged away since /maps was read
     const xyz = parsePly(await r.arrayBuffer());
     const geom = new THREE.BufferGeometry();
     geom.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
@@ -110,6 +130,7 @@ async function refreshPoints() {
     }
     const center = new THREE.Vector3((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2);
     const size = Math.max(10, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
+    state.sceneSize = size;
     controls.target.copy(center);
     camera.position.set(center.x - 0.5 * size, center.y - 0.7 * size, center.z + 0.8 * size);
     controls.update();
@@ -117,6 +138,62 @@ async function refreshPoints() {
   }
   state.drawnPoints = total;
   document.body.dataset.points = String(total);
+  document.body.dataset.pointsLevel = subsampled ? "coarse" : "full";
+}
+
+// A pyramid per keyframe (apex at the camera centre, 60 x 45 degree field of view), as line segments.
+function frustumSegments(T, depth) {
+  const hx = Math.tan(Math.PI / 6) * depth, hy = Math.tan(Math.PI / 8) * depth;
+  const c = [[-hx, -hy, depth], [hx, -hy, depth], [hx, hy, depth], [-hx, hy, depth]].map(([x, y, z]) =>
+    [T[0][0] * x + T[0][1] * y + T[0][2] * z + T[0][3], T[1][0] * x + T[1][1] * y + T[1][2] * z + T[1][3],
+      T[2][0] * x + T[2][1] * y + T[2][2] * z + T[2][3]]);
+  const o = [T[0][3], T[1][3], T[2][3]];
+  const out = [];
+  for (let i = 0; i < 4; i++) out.push(o, c[i], c[i], c[(i + 1) % 4]);
+  return out;
+}
+
+async function refreshKeyframes() {
+  const counts = JSON.stringify(state.maps.map((m) => [m.id, m.keyframes]));
+  if (counts === state.kfCounts) return;
+  const byAgent = {};
+  const loops = [];
+  for (const m of state.maps) {
+    let kfs, edges;
+    try {
+      [kfs, edges] = await Promise.all([getJSON(`/maps/${m.id}/keyframes?limit=10000`), getJSON(`/maps/${m.id}/edges`)]);
+    } catch { continue; }
+    for (const k of kfs.keyframes) (byAgent[k.agent_id] ??= []).push(k.world_from_cam);
+    loops.push(...edges.segments);
+  }
+  frustumGroup.clear();
+  let n = 0;
+  for (const [agent, poses] of Object.entries(byAgent)) {
+    const pts = poses.flatMap((T) => frustumSegments(T, 0.6)).flat();
+    const geom = new THREE.BufferGeometry();
+    geom.setAttribute("position", new THREE.BufferAttribute(new Float32Array(pts), 3));
+    frustumGroup.add(new THREE.LineSegments(geom, new THREE.LineBasicMaterial({ color: colorOf(agent), transparent: true, opacity: 0.7 })));
+    n += poses.length;
+  }
+  edgeGroup.clear();
+  if (loops.length) {
+    // each loop edge as an arc raised above its two keyframes: a loop joins places that are close in the
+    // corrected map, so a straight segment would hide under the trajectory
+    const pts = [];
+    for (const [a, b] of loops) {
+      const lift = 0.05 * (state.sceneSize ?? 20) + 0.5 * Math.hypot(b[0] - a[0], b[1] - a[1], b[2] - a[2]);
+      const curve = new THREE.QuadraticBezierCurve3(new THREE.Vector3(...a),
+        new THREE.Vector3((a[0] + b[0]) / 2, (a[1] + b[1]) / 2, (a[2] + b[2]) / 2 + 2 * lift), new THREE.Vector3(...b));
+      const c = curve.getPoints(12);
+      for (let i = 0; i < c.length - 1; i++) pts.push(c[i].x, c[i].y, c[i].z, c[i + 1].x, c[i + 1].y, c[i + 1].z);
+    }
+    const geom = new THREE.BufferGeometry();
+    geom.setAttribute("position", new THREE.BufferAttribute(new Float32Array(pts), 3));
+    edgeGroup.add(new THREE.LineSegments(geom, new THREE.LineBasicMaterial({ color: LOOP_COLOR })));
+  }
+  state.kfCounts = counts;
+  document.body.dataset.frustums = String(n);
+  document.body.dataset.loopEdges = String(loops.length);
 }
 
 async function refreshTrajectories() {
@@ -140,6 +217,8 @@ async function refreshTrajectories() {
     agentGroup.add(head);
   }
   document.body.dataset.agentsDrawn = String(agentGroup.children.length);
+  document.body.dataset.colors = JSON.stringify(Object.fromEntries(
+    state.agents.map((a) => [a.agent_id, "#" + colorOf(a.agent_id).toString(16).padStart(6, "0")])));
 }
 
 function fmtRate(b) { return b > 1024 ? `${(b / 1024).toFixed(1)} KB/s` : `${Math.round(b)} B/s`; }
@@ -154,7 +233,8 @@ function renderPanel() {
   }).join("");
   const maps = state.maps.map((m) => `<tr><td>${m.id}</td><td>${(m.agents || []).join(", ")}</td>` +
     `<td>${m.keyframes ?? ""}</td><td>${m.points ?? ""}</td></tr>`).join("");
-  const events = state.events.slice(-12).reverse().map((e) => `<li>${e.kind ?? e.type}: ${e.message ?? ""}</li>`).join("");
+  const shown = state.events.filter((e) => state.allEvents || DEFAULT_EVENTS.has(e.kind));
+  const events = shown.slice(-12).reverse().map((e) => `<li data-kind="${e.kind}">${e.kind}: ${e.message ?? ""}</li>`).join("");
   document.getElementById("agents").innerHTML = agents;
   document.getElementById("maps").innerHTML = maps;
   document.getElementById("events").innerHTML = events;
@@ -173,9 +253,16 @@ async function poll() {
     if (counts !== state.lastCounts && now - lastPointsFetch > 2000) {
       state.lastCounts = counts;
       lastPointsFetch = now;
-      await refreshPoints();
+      // level of detail: a coarse cloud shows within seconds even for millions of points, the full one
+      // replaces it on the next poll
+      await refreshPoints(state.coarseDrawn === counts);
+      state.coarseDrawn = counts;
+      if (document.body.dataset.pointsLevel === "coarse") state.lastCounts = "";
+    } else if (counts === state.coarseDrawn && document.body.dataset.pointsLevel === "coarse") {
+      await refreshPoints(true);
     }
     await refreshTrajectories();
+    await refreshKeyframes();
     renderPanel();
     document.body.dataset.ready = "1";
   } catch (err) {
@@ -191,5 +278,6 @@ function animate() {
   requestAnimationFrame(animate);
 }
 
+document.getElementById("all-events").addEventListener("change", (e) => { state.allEvents = e.target.checked; renderPanel(); });
 animate();
 poll();
