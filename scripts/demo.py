@@ -35,7 +35,7 @@ def main() -> int:
 
     from hivemap.client.dataset import load_scenario
     from hivemap.eval.experiment import clean_env, stop, wait_health, write_server_config
-    from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum
+    from hivemap.eval.trajectory import AgentRun, ate, evaluate_team, groundtruth_trajectory, read_tum
 
     work: Path = args.work
     scen_dir = work / args.scenario
@@ -98,12 +98,14 @@ def main() -> int:
         time.sleep(2.0)  # let the back-end finish its last optimisation
         maps = httpx.get(url + "/maps").json()["maps"]
         agent_map = {a["agent_id"]: a["map_id"] for a in httpx.get(url + "/agents").json()["agents"]}
-        print()
-        print(f"{'agent':<8}{'map':>5}{'keyframes':>11}{'path m':>9}{'ATE RMSE m':>12}{'ATE % path':>12}")
+        # Per agent: aligned on its own (as a single-agent run would be). Team: one SE(3) per server map for
+        # all its agents together, so the figures are only as good when the maps really merged.
+        rows: list[tuple[str, object, int, float, float]] = []
+        runs = []
         for a in agents:
             r = httpx.get(url + f"/agents/{a}/trajectory", params={"frame": "global", "format": "tum"})
             if r.status_code != 200 or not r.text.strip():
-                print(f"{a:<8}{'-':>5}{0:>11}   (no keyframes on the server)")
+                rows.append((a, None, 0, 0.0, float("nan")))
                 continue
             tum = work / "agents" / f"{a}.server.tum"
             tum.parent.mkdir(parents=True, exist_ok=True)
@@ -113,9 +115,23 @@ def main() -> int:
             res = ate(est, gt, "se3", max_diff=0.02)
             xyz = np.asarray(gt.positions_xyz)
             path = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum())
-            n = len(est.timestamps)
-            pct = 100 * res.stats.rmse / max(path, 1e-9)
-            print(f"{a:<8}{agent_map.get(a)!s:>5}{n:>11}{path:>9.1f}{res.stats.rmse:>12.3f}{pct:>11.2f}%")
+            rows.append((a, agent_map.get(a), len(est.timestamps), path, res.stats.rmse))
+            runs.append(AgentRun(a, est, gt, [(-np.inf, f"map{agent_map.get(a)}")]))
+        team = evaluate_team(runs, "se3", max_diff=0.02, rpe_delta=None) if runs else None
+        print()
+        print(f"{'agent':<8}{'map':>5}{'keyframes':>11}{'path m':>9}{'ATE RMSE m':>12}{'ATE % path':>12}"
+              f"{'team-aligned m':>16}")  # fmt: skip
+        for a, map_id, n, path, rmse in rows:
+            if n == 0:
+                print(f"{a:<8}{'-':>5}{0:>11}   (no keyframes on the server)")
+                continue
+            pct = 100 * rmse / max(path, 1e-9)
+            team_rmse = team.agents[a].ate.rmse if team is not None else float("nan")
+            print(f"{a:<8}{map_id!s:>5}{n:>11}{path:>9.1f}{rmse:>12.3f}{pct:>11.2f}%{team_rmse:>16.3f}")
+        if team is not None:
+            per_map = ", ".join(f"{fid}: {', '.join(fa.agents)}" for fid, fa in sorted(team.frames.items()))
+            print(f"{'team':<8}{'':>5}{'':>11}{'':>9}{'':>12}{'':>12}{team.team.rmse:>16.3f}"
+                  f"   (one SE(3) per server map: {per_map})")  # fmt: skip
         print(f"\nmaps on the server: {len(maps)} " + ", ".join(f"#{m['id']} {m['agents']}" for m in maps))
         print(f"viewer: {url}/   REST: {url}/docs")
         if not args.exit:
