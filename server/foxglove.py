@@ -51,7 +51,7 @@ WARNING_EVENTS = ("error", "refused")
 # the same as the web viewer's (viewer/src/main.js PALETTE and hashId).
 PALETTE_HEX = (
     0x1F77B4, 0xFF7F0E, 0x2CA02C, 0xD62728, 0x9467BD, 0x8C564B, 0xE377C2, 0x7F7F7F,
-    0xBCBD22, 0x17BECF, 0x004D4D, 0x99CC33, 0x660099, 0xFFCC00, 0x00008C, 0xCC6666,
+    0xBCBD22, 0x17BECF, 0x66FFCC, 0x99CC33, 0xB266FF, 0xFFCC00, 0x4DA6FF, 0xCC6666,
 )  # fmt: skip
 PALETTE = tuple(((c >> 16) / 255.0, ((c >> 8) & 0xFF) / 255.0, (c & 0xFF) / 255.0) for c in PALETTE_HEX)
 

@@ -5,10 +5,10 @@ import * as THREE from "three";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
 
 const POLL_MS = 1000;
-// 16 well-separated colours; an agent's is a hash of its id (session suffix "#n" ignored), so it is the
+// 16 well-separated colours, all readable on the dark background; an agent's is a hash of its id (session suffix "#n" ignored), so it is the
 // same on every page load and in Foxglove (hivemap.server.foxglove.agent_color uses this hash too).
 export const PALETTE = [0x1f77b4, 0xff7f0e, 0x2ca02c, 0xd62728, 0x9467bd, 0x8c564b, 0xe377c2, 0x7f7f7f,
-  0xbcbd22, 0x17becf, 0x004d4d, 0x99cc33, 0x660099, 0xffcc00, 0x00008c, 0xcc6666];
+  0xbcbd22, 0x17becf, 0x66ffcc, 0x99cc33, 0xb266ff, 0xffcc00, 0x4da6ff, 0xcc6666];
 const COARSE_POINTS = 150000; // first level of detail per map, drawn before the full cloud arrives
 const LOOP_COLOR = 0xff00ff;
 // events shown by default; the rest (candidates, BA and consistency details, info) with "all events"
