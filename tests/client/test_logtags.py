@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import logging
 
 import pytest
@@ -33,9 +34,13 @@ def test_lines_carry_the_agent_of_their_context() -> None:
     async def both() -> None:
         await asyncio.gather(agent("uav1"), agent("ugv1"))
 
-    try:
+    def main() -> None:
         asyncio.run(both())
         log.info("outside")
+
+    try:
+        # an empty context: earlier in-process replays in this test session tagged the main context
+        contextvars.Context().run(main)
     finally:
         log.removeHandler(handler)
     assert sorted(records) == sorted(
