@@ -69,7 +69,7 @@ def create_app(
 
 def default_extensions(settings: ServerSettings) -> list[Callable[[HiveServer], None]]:
     """``hivemap.server.backend.install`` if the back-end module exists (and is enabled)."""
-    if not settings.backend:
+    if not settings.backend.enabled:
         return []
     try:
         backend = importlib.import_module("hivemap.server.backend")

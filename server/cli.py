@@ -22,14 +22,27 @@ def server_command(
             "--config", exists=True, dir_okay=False, help="TOML settings ([tokens] agent = token, ...)."
         ),
     ] = None,
+    print_config: Annotated[
+        bool, typer.Option("--print-config", help="Print the effective settings as TOML and exit.")
+    ] = False,
 ) -> None:
     """Run the server: WebSocket ingest at /ws, REST inspection, viewer at /viewer/. Env: HIVEMAP_*."""
     import uvicorn
+    from pydantic import ValidationError
 
     from hivemap.server.app import create_app, uvicorn_config_kwargs
+    from hivemap.server.config_toml import one_line_errors, settings_toml
     from hivemap.server.settings import load_settings
 
-    settings = load_settings(config, host=host, port=port, data_dir=data_dir)
+    try:
+        settings = load_settings(config, host=host, port=port, data_dir=data_dir)
+    except ValidationError as exc:
+        for line in one_line_errors(exc):
+            typer.echo(f"error: {line}", err=True)
+        raise typer.Exit(2) from None
+    if print_config:
+        typer.echo(settings_toml(settings), nl=False)
+        return
     if not settings.tokens:
         typer.echo(
             "warning: no agent tokens configured ([tokens] in --config): every agent is refused", err=True

@@ -22,6 +22,9 @@ from typing import Any, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from hivemap.server.backend.options import BackendOptions
+from hivemap.server.backend.options import from_table as backend_options_from_table
+
 
 class ServerSettings(BaseSettings):
     """Everything the server needs; built once and handed to :func:`hivemap.server.app.create_app`."""
@@ -84,7 +87,15 @@ class ServerSettings(BaseSettings):
         default="FULL", description="FULL survives power loss, NORMAL (WAL) survives a process crash."
     )
     per_message_deflate: bool = False
-    backend: bool = Field(default=True, description="Run the collaboration back-end (merging, loops).")
+    backend: BackendOptions = Field(
+        default_factory=BackendOptions,
+        description="The collaboration back-end (merging, loops): [backend] enabled, preset, stage tables.",
+    )
+
+    @field_validator("backend", mode="before")
+    @classmethod
+    def _backend_options(cls, v: Any) -> BackendOptions:
+        return backend_options_from_table(v)  # ConfigError (a ValueError) names an unknown key
     # Inspection.
     event_buffer: int = Field(default=10000, ge=10, description="Events kept in the /events ring buffer.")
     ping_interval_s: float = Field(default=20.0, gt=0.0)
