@@ -91,15 +91,15 @@ class ServerSettings(BaseSettings):
         default_factory=BackendOptions,
         description="The collaboration back-end (merging, loops): [backend] enabled, preset, stage tables.",
     )
+    # Inspection.
+    event_buffer: int = Field(default=10000, ge=10, description="Events kept in the /events ring buffer.")
+    ping_interval_s: float = Field(default=20.0, gt=0.0)
+    log_level: str = "info"
 
     @field_validator("backend", mode="before")
     @classmethod
     def _backend_options(cls, v: Any) -> BackendOptions:
         return backend_options_from_table(v)  # ConfigError (a ValueError) names an unknown key
-    # Inspection.
-    event_buffer: int = Field(default=10000, ge=10, description="Events kept in the /events ring buffer.")
-    ping_interval_s: float = Field(default=20.0, gt=0.0)
-    log_level: str = "info"
 
 
 def load_settings(config: Path | None = None, **overrides: Any) -> ServerSettings:

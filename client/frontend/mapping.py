@@ -158,9 +158,8 @@ def triangulate(fe: Frontend, kf: KeyframeData) -> None:
         good = np.isfinite(Xw).all(1)
         # Each view's reprojection, with the right-image coordinate where the keypoint has one (as
         # local BA will weigh it): two views alone only check the epipolar line, so a wrong match
-        # along it (repeated posters on a wall, factory01's UGV at t=24-26 s) triangulates at a
-        # wrong depth that its stereo measurement contradicts. Such points entered local BA with
-        # chi2 in the thousands and pulled keyframes seeing mostly far points by 0.4-2.3 m.
+        # along it (repeated posters on a wall) triangulates at a wrong depth that its stereo
+        # measurement contradicts, and such points pull local BA's keyframes (docs/decisions.md).
         for T, f, idx in ((kf.T_cw, f1, ia), (nk.T_cw, f2, ib)):
             pc = Xw @ T[:3, :3].T + T[:3, 3]
             meas = f.meas[idx]

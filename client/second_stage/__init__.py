@@ -18,8 +18,7 @@ whatever frame the caller's keyframe poses use, normally the left camera as in t
   keyframe, bias random walk between keyframes): loosely coupled VIO. The front-end uses the IMU
   for gravity alignment and rotation prediction only, so its roll/pitch drifts with the visual
   rotation error; the IMU factors observe gravity through the velocity change between keyframes and
-  hold the tilt (factory01 uav1, every:20s, every frame against ground truth: tilt p90 0.61 -> 0.15
-  degrees, worst frame 1.52 -> 1.15; GNSS denied: p90 1.27 -> 0.15).
+  hold the tilt (docs/decisions.md).
 
 The **local frame** equals the VIO frame until GNSS or co-location factors move it.  When GNSS
 arrives, the estimate is re-initialised once (translation after the first fix, yaw + translation

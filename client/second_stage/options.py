@@ -23,10 +23,8 @@ class ImuOptions:
     accelerometer_random_walk: float = 3.0e-3  # m/s^3/sqrt(Hz)
     gyroscope_noise_scale: float = 1.0
     """The IMU factor's gyro noise is the density times this. Above 1 the front-end's relative rotation
-    outweighs the gyro (whose turn-on bias, 0.5 deg/s in paper Table 2, must otherwise be estimated). On
-    factory01 (every:20s, the same front-end events replayed) 1 was best for all four agents: ATE in ENU
-    0.120 / 0.072 / 0.106 / 0.103 m, with 3: 0.124 / 0.078 / 0.110 / 0.109, with 10: 0.131 / 0.088 /
-    0.114 / 0.122 (without IMU factors 0.154 / 0.116 / 0.135 / 0.138)."""
+    outweighs the gyro (whose turn-on bias must otherwise be estimated); 1 was best for every agent in a
+    replay (docs/decisions.md)."""
     gravity: float = 9.81
     kf_from_imu: tuple[float, ...] = _IDENTITY16
     """The IMU's pose in the keyframe frame, row-major 4x4 (``body_P_sensor`` of gtsam)."""
@@ -84,22 +82,15 @@ class SecondStageOptions:
     """(tilt rad, yaw rad, translation m): co-location priors take the server's shape, placed by one
     free transform ``O`` per agent (``local_from_kf ~ O @ prior``) with a prior of these sigmas at
     identity, instead of pinning every keyframe absolutely. A server map's common tilt or ENU offset
-    (the visual tilt drift it keeps; 0.2-1 m of height in factory01's GNSS runs) then yields to the
-    agent's own IMU and GNSS. None: plain priors."""
+    (the visual tilt drift it keeps) then yields to the agent's own IMU and GNSS. None: plain priors."""
     colocation_offset_sigma_enu: tuple[float, float, float] | None = None
     """O's prior while the co-location priors are absolute ENU poses (a server map the GNSS stage put
     into ENU with every agent's fixes): a tighter translation lets the team's pooled fixes place this
-    agent instead of its own few (factory01 GNSS-challenged 1: each agent's local trajectory sat off
-    by the mean error of its own 5 fixes, e.g. uav3 (-0.04, -0.03, -0.07) m; the 19 fixes of the team
-    average (0.00, 0.01, -0.03) m). None: ``colocation_offset_sigma`` in both frames. Online on
-    factory01 (average gain over single + GNSS, one run per figure) the effect is not resolved:
-    challenged1 with it -32% and +27% (two runs of the code of 001a1ea), -1% (1bce6f3), +15% and -14%
-    (d77be1f); without it -5% (d61a6fb with the agents' up directions); challenged2 with it +11%, +5%,
-    +21%."""
+    agent instead of its own few (each agent's local trajectory otherwise sits off by the mean error of
+    its own fixes). None: ``colocation_offset_sigma`` in both frames. Its online effect is not resolved
+    (docs/decisions.md)."""
     colocation_enu_holds_own_fixes: bool = True
     """While the co-location priors are ENU poses, this agent's own fixes on the keyframes they cover (up
     to the latest one) leave the graph: the server's GNSS stage already fused them with the team's, and
-    counting them twice pulls the agent back toward its own few fixes' mean error (factory01
-    challenged1 at 13eeb44: uav1's five fixes average +0.057 m north, its local trajectory sat +0.05 m
-    north, the server's keyframes +0.008 m; with this (ef503a1, one run) +0.001 m, and every agent's
-    mean offset within 2 cm of the server's). They come back if the priors stop being ENU."""
+    counting them twice pulls the agent back toward its own few fixes' mean error (docs/decisions.md).
+    They come back if the priors stop being ENU."""

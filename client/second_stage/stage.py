@@ -285,10 +285,8 @@ class SecondStage:
     def update_vio_poses(self, updates: dict[int, F64], min_change_m: float = 1e-3) -> None:
         """The front-end's local BA moved already added keyframes: keep their VIO poses current and
         replace the relative-pose factors that touch them by the refined relative poses (same
-        covariance). Keyframes are emitted before the local BA window has settled; measured on
-        factory01's UGV at a sharp turn, the emission-time relative poses were off by up to 0.4 m
-        while the refined VIO keyframes were within a few centimetres, so without this the local
-        trajectory (GNSS denied) was worse than the VIO's."""
+        covariance). Keyframes are emitted before the local BA window has settled, so their emission-time
+        relative poses can be decimetres off at sharp turns (docs/decisions.md)."""
         touched: set[int] = set()
         for kf_id, T in updates.items():
             if kf_id in self._kfs:
@@ -359,8 +357,7 @@ class SecondStage:
         # Before the yaw is anchored (by GNSS spread or a co-location) the linearised prediction is
         # meaningless (a 30 degree yaw error is far from linear), so the gate only runs afterwards.
         # Map-frame co-location priors tie the local frame to the VIO frame, not to ENU: only absolute
-        # (ENU) ones anchor it (factory01 challenged2: the UAVs' four random fixes, the first at 23.6 s
-        # after map-frame corrections, were all rejected as 14 m outliers).
+        # (ENU) ones anchor it (else fixes after map-frame corrections are rejected as outliers).
         anchored = self._gnss_stage >= 2 or (self._colocation_enu and bool(self._colocation_handle))
         if anchored and d > o.gnss_gate_sigma:
             if 0 < o.gnss_max_consecutive_rejections <= self._consecutive_rejections:
@@ -416,13 +413,9 @@ class SecondStage:
 
         A server correction is one consistent snapshot of the server's estimate expressed through one
         ``global_from_local``; priors kept from older corrections were expressed through older transforms
-        and pulled against the new ones (factory01, GNSS denied: the agents' local trajectories ended
-        worse than both their VIO and the server's map). The server sends one correction per front-end
-        session, so an agent that lost tracking gets one for each: ``scope`` is the session's keyframes,
-        and one session's snapshot must leave the other's priors alone (factory06 challenged2, uav1 after
-        its loss at t = 69.5 s: session 1's 1-keyframe correction replaced session 0's 14 priors while
-        session 0 held its own fixes out, session 0 slid off ENU, the next corrections were refused by
-        the agent's 1 m gate and it ended in its VIO frame, 14 m from ENU)."""
+        and pulled against the new ones. The server sends one correction per front-end session, so an
+        agent that lost tracking gets one for each: ``scope`` is the session's keyframes, and one
+        session's snapshot must leave the other's priors alone (docs/decisions.md)."""
         colocation.set_colocations(self, priors, enu, scope)
 
     def add_correction(self, kf_id: int, global_from_kf: F64, global_from_local: F64, cov: F64) -> None:

@@ -300,8 +300,8 @@ class PlaceRecognizer:
         try:
             self._verify_inner(maps, query_map, query_key, cand_map, cand_key, fix_scale, th, rep)
         except KeyError as e:
-            # a point or keyframe the verification reads was fused away by the event loop meanwhile (9 and
-            # 12 such errors logged in two factory01 challenged1 runs): skipped, as a merged-away map is
+            # a point or keyframe the verification reads was fused away by the event loop meanwhile (about
+            # ten per factory run): skipped, as a merged-away map is
             log.debug("verification of %s against %s: %r fused meanwhile", query_key, cand_key, e)
             rep.accepted = False
             rep.reason = "points_fused_meanwhile"

@@ -69,13 +69,10 @@ class PlaceRecOptions:
     use_feasibility: bool = True
     max_verifications: int = 64  # budget per query
     # Loops (query and candidate in one map, whose frame already holds both): a candidate whose transform
-    # would move the query keyframe farther, or turn it more, than this is a false match and is rejected
-    # as "implausible_correction" right after RANSAC and again after refinement, so it neither costs the
-    # guided search nor displaces a true candidate of the same query. 0 disables (the server sets them
-    # from BackendOptions.loop_max_correction_* for metric agents). Factory01, four runs at bb84f09
-    # behaviour: 41-44 % of the queries that had an accepted loop candidate had a best one asking for
-    # more than 1 m (up to 40 m and 13 deg: the rendered site repeats its textures), and each of those
-    # restarted its agent's consistency count.
+    # would move the query keyframe farther, or turn it more, than this is a false match, rejected as
+    # "implausible_correction" right after RANSAC and again after refinement, so it neither costs the
+    # guided search nor displaces a true candidate of the same query. 0 disables; the back-end sets them
+    # from ``AcceptOptions.loop_max_correction_*`` for metric agents (docs/decisions.md).
     loop_max_correction_m: float = 0.0
     loop_max_correction_deg: float = 0.0
 
