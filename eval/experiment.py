@@ -78,6 +78,7 @@ class ExperimentOptions:
     start_poses: bool = True  # co-location: the server knows the agents' start configuration
     agent_timeout_s: float = 6 * 3600.0
     report_only: bool = False  # run nothing: write the report from the results already in ``out``
+    report_dir: Path | None = None  # where the report goes (default ``out``)
 
 
 # ------------------------------------------------------------------------------------ process helpers
@@ -405,7 +406,7 @@ def run_experiment(opts: ExperimentOptions) -> Path:
     if opts.report_only:
         if not any((out / "results" / n / f"{m}.json").exists() for n in opts.scenarios for m in opts.modes):
             raise FileNotFoundError(f"no results of {', '.join(opts.scenarios)} in {out / 'results'}")
-        return write_report(out, list(opts.scenarios), list(opts.modes))
+        return write_report(out, list(opts.scenarios), list(opts.modes), opts.report_dir)
     out.mkdir(parents=True, exist_ok=True)
     scen_dirs = {name: ensure_scenario(name, Path(opts.data)) for name in {n for n, _ in todo}}
     n_runs = 0
@@ -443,4 +444,4 @@ def run_experiment(opts: ExperimentOptions) -> Path:
             tmp = out / "results" / name / f"{mode}.json.tmp"
             tmp.write_text(json.dumps(data, indent=1, default=str))
             tmp.replace(out / "results" / name / f"{mode}.json")  # atomic: a crash leaves no half JSON
-    return write_report(out, list(opts.scenarios), list(opts.modes))
+    return write_report(out, list(opts.scenarios), list(opts.modes), opts.report_dir)
