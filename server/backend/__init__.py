@@ -2,7 +2,8 @@
 corrections; one module per stage.
 
 * :mod:`.options`: the stages' options and presets (``[backend]`` in the server's TOML);
-* :mod:`.scheduler`: :class:`Backend`, which only decides what runs when and applies results on the loop;
+* :mod:`.scheduler`: :class:`Backend`, which only decides what runs when and applies results on the loop
+  (the place-recognition worker, merges, loops); :mod:`.pipeline`: its optimisation pipeline;
 * :mod:`.detect`: place recognition (BoW look-up + verification, :mod:`hivemap.server.placerec`);
 * :mod:`.accept`: consistency of detections and the loops' sanity gates;
 * :mod:`.fit`: a detection's transform (trimmed Umeyama, levelled by gravity, refined, its spread);
