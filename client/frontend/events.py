@@ -1,11 +1,10 @@
 """What the front-end reports: tracking states, per-frame results, keyframe / pose-update / new-session
-events, statistics; and its IMU preintegration state."""
+events and statistics."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -93,34 +92,3 @@ class FrontendStats:
     relocalizations: int = 0
     sessions: int = 1
     timing: dict[str, float] = field(default_factory=dict)
-
-
-class _ImuState:
-    """Gyro preintegration (gtsam) between frames + accelerometer buffer for gravity alignment."""
-
-    def __init__(self, params: dict[str, float] | None) -> None:
-        import gtsam
-
-        p = params or {}
-        self.gtsam = gtsam
-        self.pp = gtsam.PreintegrationParams.MakeSharedU(9.81)
-        self.pp.setGyroscopeCovariance(np.eye(3) * float(p.get("gyroscope_noise_density", 1.7e-4)) ** 2)
-        self.pp.setAccelerometerCovariance(np.eye(3) * float(p.get("accelerometer_noise_density", 2e-3)) ** 2)
-        self.pp.setIntegrationCovariance(np.eye(3) * 1e-8)
-        self.bias = gtsam.imuBias.ConstantBias()
-        self.last_t: float | None = None
-        self.acc_log: list[tuple[float, F64]] = []
-
-    def preintegrate(self, samples: F64) -> Any:
-        """samples (K,7) [t_s, wx, wy, wz, ax, ay, az] -> gtsam PreintegratedImuMeasurements or None."""
-        pim = self.gtsam.PreintegratedImuMeasurements(self.pp, self.bias)
-        n = 0
-        for row in samples:
-            t = float(row[0])
-            if self.last_t is not None and t > self.last_t:
-                dt = t - self.last_t
-                if dt < 0.5:
-                    pim.integrateMeasurement(row[4:7], row[1:4], dt)
-                    n += 1
-            self.last_t = t
-        return pim if n else None

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.client.frontend import mapping
+from hivemap.client.frontend import imu, mapping
 from hivemap.client.frontend.events import (
     Event,
     FrameResult,
@@ -19,9 +19,9 @@ from hivemap.client.frontend.events import (
     NewSessionEvent,
     PoseUpdateEvent,
     TrackingState,
-    _ImuState,
 )
 from hivemap.client.frontend.features import OrbExtractor
+from hivemap.client.frontend.imu import _ImuState
 from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore, hamming
 from hivemap.client.frontend.optim import (
     Intrinsics,
@@ -31,7 +31,7 @@ from hivemap.client.frontend.optim import (
 from hivemap.client.frontend.options import FrontendOptions
 from hivemap.client.frontend.stereo import StereoMatcher
 from hivemap.maps.camera import StereoRig
-from hivemap.maps.geometry import se3, se3_inverse, so3_exp
+from hivemap.maps.geometry import se3, se3_inverse
 
 log = logging.getLogger(__name__)
 
@@ -274,7 +274,7 @@ class Frontend:
         self._last_tracked = tracked
         if not self._gravity_aligned and acc_mean is not None and self._kfs:
             self._align_buffer.append((frame.t, frame.T_wc @ self.cam_from_body, acc_mean))
-            self._try_gravity_alignment()
+            imu.try_gravity_alignment(self)
 
     # ------------------------------------------------------------------ map lifecycle
     def _reset_map(self) -> None:
@@ -296,64 +296,7 @@ class Frontend:
 
     # ------------------------------------------------------------------ prediction / IMU
     def _predict(self, pim: Any) -> F64:
-        assert self._last is not None
-        motion = self._motion.copy()
-        if pim is not None:
-            dR_body = pim.deltaRij().matrix()
-            R_cb = self.cam_from_body[:3, :3]
-            motion[:3, :3] = R_cb @ dR_body @ R_cb.T
-            if self._gravity_aligned and self.imu is not None:
-                import gtsam
-
-                T_wb = self._last.T_wc @ self.cam_from_body
-                nav = gtsam.NavState(gtsam.Pose3(T_wb), self._velocity_w)
-                pred = pim.predict(nav, self.imu.bias)
-                T_wb_pred = pred.pose().matrix()
-                return se3_inverse(T_wb_pred @ self.body_from_cam)
-        return se3_inverse(self._last.T_wc @ motion)
-
-    def _try_gravity_alignment(self) -> None:
-        buf = self._align_buffer
-        if len(buf) < 3 or buf[-1][0] - buf[0][0] < self.options.gravity_init_s:
-            return
-        # specific force in the world: R_wb a = acc_w + g_up  ->  g_up = mean(R_wb a) - (v1 - v0) / T
-        ts = np.array([b[0] for b in buf])
-        ps = np.array([b[1][:3, 3] for b in buf])
-        f_w = np.array([b[1][:3, :3] @ b[2] for b in buf])
-        k = max(1, len(buf) // 5)
-        v0 = (ps[k] - ps[0]) / (ts[k] - ts[0])
-        v1 = (ps[-1] - ps[-1 - k]) / (ts[-1] - ts[-1 - k])
-        g_up = f_w.mean(0) - (v1 - v0) / ((ts[-1] + ts[-1 - k]) / 2 - (ts[k] + ts[0]) / 2)
-        if not 8.0 < np.linalg.norm(g_up) < 11.6:
-            self._align_failures += 1
-            if self._align_failures < 5:
-                log.warning("gravity estimate %.2f m/s^2 implausible; retrying", np.linalg.norm(g_up))
-                self._align_buffer = buf[len(buf) // 2 :]
-                return
-            g_up = f_w.mean(0)  # give up on the motion correction: assume a small mean acceleration
-            log.warning("gravity from the mean specific force only (%.2f m/s^2)", np.linalg.norm(g_up))
-        a = g_up / np.linalg.norm(g_up)
-        z = np.array([0.0, 0.0, 1.0])
-        axis = np.cross(a, z)
-        s = np.linalg.norm(axis)
-        ang = np.arctan2(s, float(a @ z))
-        R = so3_exp(axis / s * ang) if s > 1e-9 else np.eye(3)
-        A = se3(R, np.zeros(3))
-        self._apply_world_transform(A)
-        self._gravity_aligned = True
-        self._align_buffer = []
-        log.info("VIO frame gravity-aligned (%.2f deg correction)", np.degrees(ang))
-
-    def _apply_world_transform(self, A: F64) -> None:
-        Ainv = se3_inverse(A)
-        for kf in self._kfs.values():
-            kf.T_cw = kf.T_cw @ Ainv
-            kf.frame.T_cw = kf.T_cw
-        n = self._pts.n
-        self._pts.xyz[:n] = self._pts.xyz[:n] @ A[:3, :3].T + A[:3, 3]
-        if self._last is not None and not any(kf.frame is self._last for kf in self._kfs.values()):
-            self._last.T_cw = self._last.T_cw @ Ainv
-        self._velocity_w = A[:3, :3] @ self._velocity_w
+        return imu.predict(self, pim)
 
     # ------------------------------------------------------------------ matching
     def _match_projection(
