@@ -1,7 +1,7 @@
 """Front-end throughput, memory and accuracy on one core.
 
     .venv/bin/python bench/frontend.py                          # synthetic scene (self-contained)
-    .venv/bin/python bench/frontend.py --dataset /work/data/factory01/uav1 [--max-frames N] [--no-imu]
+    .venv/bin/python bench/frontend.py --dataset DATA/factory01/uav1 [--max-frames N] [--no-imu]
 
 Prints frames/s of ``Frontend.process`` alone (images are pre-loaded / pre-rendered outside the
 timed region), peak RSS over the run, and ATE (evo, SE(3) alignment) when ground truth exists.

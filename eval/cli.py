@@ -180,6 +180,10 @@ def experiment_command(
             "left out of Table 8).",
         ),
     ] = False,
+    report_dir: Annotated[
+        Path | None,
+        typer.Option("--report-dir", help="Write report.md/html/json and img/ here (default: --out)."),
+    ] = None,
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment
@@ -199,6 +203,7 @@ def experiment_command(
         progress=not no_progress,
         start_poses=start_poses,
         report_only=report_only,
+        report_dir=report_dir,
     )
     try:
         report = run_experiment(opts)

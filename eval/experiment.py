@@ -78,6 +78,7 @@ class ExperimentOptions:
     start_poses: bool = True  # co-location: the server knows the agents' start configuration
     agent_timeout_s: float = 6 * 3600.0
     report_only: bool = False  # run nothing: write the report from the results already in ``out``
+    report_dir: Path | None = None  # where the report goes (default ``out``)
     # world seeds: each scenario runs once per seed (None in the list: the preset's own seed); None: once
     seeds: Sequence[int | None] | None = None
 
@@ -430,7 +431,7 @@ def run_experiment(opts: ExperimentOptions) -> Path:
     if opts.report_only:
         if not any((out / "results" / k / f"{m}.json").exists() for k in keys for m in opts.modes):
             raise FileNotFoundError(f"no results of {', '.join(keys)} in {out / 'results'}")
-        return write_report(out, keys, list(opts.modes))
+        return write_report(out, keys, list(opts.modes), opts.report_dir)
     out.mkdir(parents=True, exist_ok=True)
     needed = {k for k, _ in todo}
     scen_dirs = {k: ensure_scenario(n, Path(opts.data), s) for k, n, s in worlds if k in needed}
@@ -469,4 +470,4 @@ def run_experiment(opts: ExperimentOptions) -> Path:
             tmp = out / "results" / name / f"{mode}.json.tmp"
             tmp.write_text(json.dumps(data, indent=1, default=str))
             tmp.replace(out / "results" / name / f"{mode}.json")  # atomic: a crash leaves no half JSON
-    return write_report(out, keys, list(opts.modes))
+    return write_report(out, keys, list(opts.modes), opts.report_dir)

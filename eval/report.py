@@ -180,8 +180,9 @@ def _impr(base: float | None, x: float | None) -> str:
     return f"{100.0 * (base - x) / base:+.1f}%"
 
 
-def _plot(out: Path, s: str, m: str, data: dict[str, Any]) -> str | None:
-    """Top view per agent: estimate (SE(3)-aligned like the ATE) vs ground truth, merge/loop events."""
+def _plot(out: Path, s: str, m: str, data: dict[str, Any], dest: Path | None = None) -> str | None:
+    """Top view per agent: estimate (SE(3)-aligned like the ATE) vs ground truth, merge/loop events;
+    saved under ``dest`` (default ``out``) / img, returns its path relative to ``dest``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -223,11 +224,12 @@ def _plot(out: Path, s: str, m: str, data: dict[str, Any]) -> str | None:
         ax.legend(fontsize=7, loc="best")
     fig.suptitle(f"{s} - {MODE_NAMES.get(m, m)}")
     fig.tight_layout()
-    img = out / "img" / f"traj_{s}_{m.replace('+', '_')}.png"
+    dest = out if dest is None else dest
+    img = dest / "img" / f"traj_{s}_{m.replace('+', '_')}.png"
     img.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(img, dpi=90)
     plt.close(fig)
-    return str(img.relative_to(out))
+    return str(img.relative_to(dest))
 
 
 PAPER_TABLE6 = {  # (camera-angle pair, lighting) -> (successful relocations, average matched pairs)
@@ -319,10 +321,18 @@ def table67(results: dict[tuple[str, str], dict[str, Any]]) -> list[str]:
     return md
 
 
-def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
-    """Write report.md and report.html into ``out``; returns the report.md path."""
+def write_report(out: Path, scenarios: list[str], modes: list[str], report_dir: Path | None = None) -> Path:
+    """Write report.md, report.html, report.json and img/ into ``report_dir`` (default ``out``) from the
+    results in ``out``; returns the report.md path."""
     results = load_results(out, scenarios, modes)
+    dest = out if report_dir is None else Path(report_dir)
+    dest.mkdir(parents=True, exist_ok=True)
     md: list[str] = ["# hivemap experiment report (paper Tables 5-8)", ""]
+    revisions = sorted({str(d.get("git")) for d in results.values()})
+    if len(revisions) == 1:
+        md += [f"Every result below comes from revision {revisions[0]}.", ""]
+    else:
+        md += [f"The results below come from {len(revisions)} revisions: {', '.join(revisions)}.", ""]
     md.append(
         "Paper: 003_f6f3990b0874b823 (air-ground co-location). Our numbers come from hivemap's own rendered "
         "scenarios, not the paper's AirSim data; the paper's Table 8 figures are typed in beside ours. "
@@ -490,7 +500,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
     )
     md.append("")
     for (s, m), data in results.items():
-        img = _plot(out, s, m, data)
+        img = _plot(out, s, m, data, dest)
         if img:
             md += [f"![{s} {m}]({img})", ""]
     # ---------------------------------------------------------------- reproducibility
@@ -527,10 +537,10 @@ def write_report(out: Path, scenarios: list[str], modes: list[str]) -> Path:
         for (s, m), d in results.items() if s == (scenarios[0] if scenarios else s)
     ))  # fmt: skip
     md.append("")
-    report = out / "report.md"
-    (out / "report.json").write_text(json.dumps({"table8": table8}, indent=1))
+    report = dest / "report.md"
+    (dest / "report.json").write_text(json.dumps({"table8": table8, "revisions": revisions}, indent=1))
     report.write_text("\n".join(md))
-    (out / "report.html").write_text(_to_html("\n".join(md), out))
+    (dest / "report.html").write_text(_to_html("\n".join(md), dest))
     return report
 
 

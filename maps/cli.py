@@ -3,7 +3,7 @@
 The vocabulary is hand-written (``hivemap.maps.vocabulary``) because no maintained Python DBoW
 package installs here (DESIGN.md). Training data: scikit-image's bundled photos, each warped by random
 homographies (viewpoint, scale, rotation changes: every warp is one document for the idf), plus
-rendered frames from ``--images`` folders (``*.png`` found recursively, e.g. a dataset under /work/data).
+rendered frames from ``--images`` folders (``*.png`` found recursively, e.g. a rendered dataset folder).
 """
 
 from __future__ import annotations

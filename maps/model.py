@@ -27,218 +27,19 @@ Not thread-safe: callers serialise access (e.g. one asyncio task or a lock).
 from __future__ import annotations
 
 import logging
-import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
 
-from hivemap.maps.camera import PinholeCamera
-from hivemap.maps.geometry import Sim3, se3_inverse
+from hivemap.maps.checks import map_differences
+from hivemap.maps.elements import F64, Keyframe, KfKey, MapPoint, PointKey, _key
+from hivemap.maps.geometry import Sim3
 
 logger = logging.getLogger(__name__)
 
-KfKey = tuple[str, int]
-PointKey = tuple[str, int]
-F64 = NDArray[np.float64]
-
 #: Covisibility weight from which an edge belongs to the essential graph (ORB-SLAM uses 100).
 STRONG_COVISIBILITY = 100
-
-
-def _key(k: Sequence[Any]) -> tuple[str, int]:
-    return (str(k[0]), int(k[1]))
-
-
-class MapPoint:
-    """A 3D landmark.
-
-    ``xyz``: f64 (3,) position in the map's frame; ``descriptor``: u8 (32,) representative ORB descriptor;
-    ``observations``: keyframe key -> keypoint index (maintained by the ``Map`` once the point is in one).
-    """
-
-    __slots__ = ("agent_id", "id", "xyz", "descriptor", "observations")
-
-    def __init__(
-        self,
-        agent_id: str,
-        id: int,
-        xyz: ArrayLike,
-        descriptor: ArrayLike | None = None,
-        observations: dict[KfKey, int] | None = None,
-    ) -> None:
-        self.agent_id = str(agent_id)
-        self.id = int(id)
-        self.xyz: F64 = np.array(xyz, dtype=np.float64).reshape(3)
-        d = np.zeros(32, np.uint8) if descriptor is None else np.array(descriptor, dtype=np.uint8)
-        if d.shape != (32,):
-            raise ValueError(f"MapPoint descriptor must have shape (32,), got {d.shape}")
-        self.descriptor: NDArray[np.uint8] = d
-        self.observations: dict[KfKey, int] = {_key(k): int(v) for k, v in (observations or {}).items()}
-
-    @property
-    def key(self) -> PointKey:
-        return (self.agent_id, self.id)
-
-    def __repr__(self) -> str:
-        n_obs = len(self.observations)
-        return f"MapPoint({self.agent_id!r}, {self.id}, xyz={self.xyz.tolist()}, obs={n_obs})"
-
-
-class Keyframe:
-    """A keyframe: pose, camera, ORB features and the map point referenced by each keypoint.
-
-    Arrays: ``world_from_cam`` f64 (4, 4); ``keypoints`` f32 (N, 2) distorted pixels; ``octaves`` u8 (N,);
-    ``descriptors`` u8 (N, 32); ``point_ids`` i64 (N,) (-1 = no point); ``gnss_enu`` f64 (3,) or None;
-    ``gnss_cov`` f64 (3, 3) or None; ``up_cam`` f64 (3,) or None (the agent's IMU up direction in the
-    camera frame).
-
-    Point references: keypoint ``i`` references point ``(agent, point_ids[i])`` where ``agent`` is
-    ``point_agents.get(i, agent_id)`` (``point_agents`` only lists keypoints that reference another agent's
-    point, which happens after fusions). Either pass ``point_ids`` (points of this agent) or ``point_keys``
-    (a per-keypoint list of ``(agent, id)`` or None). Inside a ``Map`` change references only through the
-    map (``add_observation``, ``remove_observation``, ``fuse_points``) so its indices stay consistent.
-
-    ``parent`` is the spanning-tree parent, maintained by the ``Map`` (None for a root).
-    """
-
-    __slots__ = (
-        "agent_id",
-        "id",
-        "timestamp",
-        "world_from_cam",
-        "camera",
-        "keypoints",
-        "octaves",
-        "descriptors",
-        "point_ids",
-        "point_agents",
-        "gnss_enu",
-        "gnss_cov",
-        "up_cam",
-        "parent",
-    )
-
-    def __init__(
-        self,
-        agent_id: str,
-        id: int,
-        timestamp: float,
-        world_from_cam: ArrayLike,
-        camera: PinholeCamera,
-        keypoints: ArrayLike,
-        octaves: ArrayLike | None = None,
-        descriptors: ArrayLike | None = None,
-        point_ids: ArrayLike | None = None,
-        gnss_enu: ArrayLike | None = None,
-        gnss_cov: ArrayLike | None = None,
-        *,
-        point_keys: Sequence[PointKey | None] | None = None,
-        up_cam: ArrayLike | None = None,
-    ) -> None:
-        self.agent_id = str(agent_id)
-        self.id = int(id)
-        self.timestamp = float(timestamp)
-        self.world_from_cam: F64 = np.array(world_from_cam, dtype=np.float64).reshape(4, 4)
-        self.camera = camera
-        kp = np.ascontiguousarray(keypoints, dtype=np.float32)
-        if kp.size == 0:
-            kp = kp.reshape(0, 2)
-        if kp.ndim != 2 or kp.shape[1] != 2:
-            raise ValueError(f"keypoints must have shape (N, 2), got {kp.shape}")
-        n = len(kp)
-        self.keypoints: NDArray[np.float32] = kp
-        self.octaves: NDArray[np.uint8] = (
-            np.zeros(n, np.uint8) if octaves is None else np.ascontiguousarray(octaves, dtype=np.uint8)
-        )
-        self.descriptors: NDArray[np.uint8] = (
-            np.zeros((n, 32), np.uint8)
-            if descriptors is None
-            else np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(-1, 32)
-        )
-        if self.octaves.shape != (n,) or self.descriptors.shape != (n, 32):
-            raise ValueError(
-                f"octaves {self.octaves.shape} / descriptors {self.descriptors.shape} "
-                f"do not match {n} keypoints"
-            )
-        self.point_agents: dict[int, str] = {}
-        if point_keys is not None:
-            if point_ids is not None:
-                raise ValueError("pass point_ids or point_keys, not both")
-            if len(point_keys) != n:
-                raise ValueError(f"point_keys has {len(point_keys)} entries for {n} keypoints")
-            self.point_ids: NDArray[np.int64] = np.full(n, -1, np.int64)
-            for i, pk in enumerate(point_keys):
-                if pk is not None:
-                    self.set_point_key(i, _key(pk))
-        elif point_ids is None:
-            self.point_ids = np.full(n, -1, np.int64)
-        else:
-            # always a private, writable copy (protocol arrays are read-only)
-            self.point_ids = np.array(point_ids, dtype=np.int64).reshape(-1)
-            if self.point_ids.shape != (n,):
-                raise ValueError(f"point_ids {self.point_ids.shape} does not match {n} keypoints")
-        self.gnss_enu: F64 | None = None if gnss_enu is None else np.array(gnss_enu, np.float64).reshape(3)
-        self.gnss_cov: F64 | None = None if gnss_cov is None else np.array(gnss_cov, np.float64).reshape(3, 3)
-        # up direction (unit, against gravity) in the camera frame as the agent's IMU measured it
-        self.up_cam: F64 | None = None if up_cam is None else np.array(up_cam, np.float64).reshape(3)
-        self.parent: KfKey | None = None
-
-    @property
-    def key(self) -> KfKey:
-        return (self.agent_id, self.id)
-
-    @property
-    def n_keypoints(self) -> int:
-        return len(self.keypoints)
-
-    @property
-    def cam_from_world(self) -> F64:
-        return se3_inverse(self.world_from_cam)
-
-    @property
-    def center(self) -> F64:
-        """Camera centre in the world frame (3,)."""
-        return self.world_from_cam[:3, 3].copy()
-
-    def point_key(self, i: int) -> PointKey | None:
-        pid = int(self.point_ids[i])
-        if pid < 0:
-            return None
-        return (self.point_agents.get(i, self.agent_id), pid)
-
-    def set_point_key(self, i: int, key: PointKey | None) -> None:
-        """Low-level: set keypoint ``i``'s reference. Inside a Map use the Map's methods instead."""
-        if key is None:
-            self.point_ids[i] = -1
-            self.point_agents.pop(i, None)
-            return
-        agent, pid = key
-        if pid < 0:
-            raise ValueError(f"point id must be >= 0, got {pid}")
-        self.point_ids[i] = pid
-        if agent == self.agent_id:
-            self.point_agents.pop(i, None)
-        else:
-            self.point_agents[i] = agent
-
-    @property
-    def point_keys(self) -> list[PointKey | None]:
-        """Per keypoint: the referenced point key or None (a fresh list; editing it changes nothing)."""
-        return [self.point_key(i) for i in range(self.n_keypoints)]
-
-    def referenced_points(self) -> Iterator[tuple[int, PointKey]]:
-        """(keypoint index, point key) for every keypoint that references a point."""
-        for i in np.flatnonzero(self.point_ids >= 0).tolist():
-            yield i, (self.point_agents.get(i, self.agent_id), int(self.point_ids[i]))
-
-    def __repr__(self) -> str:
-        n_ref = int((self.point_ids >= 0).sum())
-        return (
-            f"Keyframe({self.agent_id!r}, {self.id}, t={self.timestamp}, kps={self.n_keypoints}"
-            f", refs={n_ref})"
-        )
 
 
 class Map:
@@ -663,51 +464,11 @@ class Map:
         """Keyframe references to points not (yet) in the map: point key -> {keyframe: keypoint index}."""
         return {k: dict(v) for k, v in self._pending.items()}
 
-    # ------------------------------------------------------------------ checks
     def check_consistency(self) -> list[str]:
         """Brute-force check of every invariant (slow: tests and debugging). Returns the problems found."""
-        problems: list[str] = []
-        expected: dict[KfKey, dict[KfKey, int]] = {k: {} for k in self.keyframes}
-        for pk, mp in self.points.items():
-            for kf_key, idx in mp.observations.items():
-                kf = self.keyframes.get(kf_key)
-                if kf is None:
-                    problems.append(f"point {pk} observed by missing keyframe {kf_key}")
-                elif kf.point_key(idx) != pk:
-                    problems.append(f"point {pk}: keyframe {kf_key}[{idx}] references {kf.point_key(idx)}")
-            obs = sorted(mp.observations)
-            for i, a in enumerate(obs):
-                for b in obs[i + 1 :]:
-                    expected[a][b] = expected[a].get(b, 0) + 1
-                    expected[b][a] = expected[b].get(a, 0) + 1
-        for k, kf in self.keyframes.items():
-            seen: set[PointKey] = set()
-            for idx, pk in kf.referenced_points():
-                if pk in seen:
-                    problems.append(f"keyframe {k} references {pk} twice")
-                seen.add(pk)
-                mp2 = self.points.get(pk)
-                if mp2 is None:
-                    if self._pending.get(pk, {}).get(k) != idx:
-                        problems.append(f"keyframe {k}[{idx}] references missing point {pk} not pending")
-                elif mp2.observations.get(k) != idx:
-                    problems.append(f"keyframe {k}[{idx}] -> {pk} not in the point's observations")
-            bad_parent = kf.parent not in self.keyframes or k not in self._children[kf.parent]
-            if kf.parent is not None and bad_parent:
-                problems.append(f"keyframe {k}: bad parent {kf.parent}")
-        if self._covis != expected:
-            problems.append("covisibility differs from a brute-force recount")
-        for p, cs in self._children.items():
-            for c in cs:
-                if self.keyframes[c].parent != p:
-                    problems.append(f"children index: {c} listed under {p}")
-        for k in self.keyframes:  # acyclic
-            try:
-                self._root_of(k)
-            except RuntimeError:
-                problems.append(f"cycle through {k}")
-                break
-        return problems
+        from hivemap.maps.checks import check_consistency
+
+        return check_consistency(self)
 
 
 class MapStack:
@@ -753,148 +514,20 @@ class MapStack:
         target_from_source: Sim3,
         fused_pairs: Sequence[tuple[PointKey, PointKey]] = (),
     ) -> Map:
-        """Merge map ``source_id`` into map ``target_id``; the source leaves the stack.
+        """Merge map ``source_id`` into map ``target_id`` (:func:`hivemap.maps.merge.merge_maps`)."""
+        from hivemap.maps.merge import merge_maps
 
-        Every source keyframe pose is moved with ``target_from_source.transform_pose`` and every source
-        point with ``.apply``; then each ``(target_point, source_point)`` pair in ``fused_pairs`` is fused:
-        the first (target) point survives and inherits all observations (``Map.fuse_points``; pairs whose
-        points are gone or already the same are skipped). The source's spanning tree is re-rooted at its
-        keyframe most covisible with the target and attached there. A record is appended to
-        ``merge_history``. Raises ``ValueError`` (before changing anything) if keys collide.
-        """
-        if target_id == source_id:
-            raise ValueError("cannot merge a map with itself")
-        tgt, src = self.maps[target_id], self.maps[source_id]
-        clash_kf = tgt.keyframes.keys() & src.keyframes.keys()
-        clash_pt = tgt.points.keys() & src.points.keys()
-        if clash_kf or clash_pt:
-            raise ValueError(
-                f"maps {target_id} and {source_id} share keys: "
-                f"{len(clash_kf)} keyframes, {len(clash_pt)} points"
-            )
-        t0 = time.perf_counter()
-        src.transform(target_from_source)
-        src_keys = list(src.keyframes)
-        tgt.keyframes.update(src.keyframes)
-        tgt.points.update(src.points)
-        tgt._covis.update(src._covis)
-        tgt._children.update(src._children)
-        for a, bs in src._loops.items():
-            tgt._loops.setdefault(a, set()).update(bs)
-        tgt._orphans.update(src._orphans)
-        tgt._tree_changed.update(src._tree_changed)
-        tgt.agents.update(src.agents)
-        for k, v in src.point_redirects.items():
-            tgt.point_redirects.setdefault(k, v)
-        # pending references of either side may now name a present point
-        for pk, refs in src._pending.items():
-            tgt._pending.setdefault(pk, {}).update(refs)
-        for pk in [pk for pk in tgt._pending if pk in tgt.points]:
-            refs = tgt._pending.pop(pk)
-            mp = tgt.points[pk]
-            for kf_key, idx in refs.items():
-                kf = tgt.keyframes[kf_key]
-                if kf_key in mp.observations:
-                    kf.set_point_key(idx, None)
-                else:
-                    tgt._link(kf, idx, mp)
-        tgt.merge_history.extend(src.merge_history)
-        n_fused = 0
-        for keep, drop in fused_pairs:
-            k2, d2 = tgt.resolve_point(keep), tgt.resolve_point(drop)
-            if k2 == d2 or k2 not in tgt.points or d2 not in tgt.points:
-                logger.debug("merge %s<-%s: fused pair %s/%s skipped", target_id, source_id, keep, drop)
-                continue
-            tgt.fuse_points(k2, d2)
-            n_fused += 1
-        # attach each source tree to the target at its strongest covisibility link
-        src_set = set(src_keys)
-        roots: dict[KfKey, list[KfKey]] = {}
-        for k in src_keys:
-            roots.setdefault(tgt._root_of(k), []).append(k)
-        n_attached = 0
-        for root, members in roots.items():
-            if root not in src_set:
-                continue  # already attached (through an orphan link)
-            best: tuple[int, KfKey, KfKey] | None = None
-            for k in members:
-                for nb, w in tgt._covis[k].items():
-                    if nb not in src_set and (best is None or w > best[0]):
-                        best = (w, k, nb)
-            if best is not None:
-                _, k, nb = best
-                tgt._reroot(k)
-                tgt._set_parent_unchecked(k, nb)
-                tgt._orphans.discard(k)
-                n_attached += 1
-        record: dict[str, Any] = {
-            "time": time.time(),
-            "target": int(target_id),
-            "source": int(source_id),
-            "target_from_source": target_from_source.matrix().tolist(),
-            "n_fused": n_fused,
-            "n_keyframes_moved": len(src_keys),
-            "n_trees_attached": n_attached,
-            "source_agents": sorted(src.agents),
-        }
-        tgt.merge_history.append(record)
-        del self.maps[source_id]
-        logger.info(
-            "merged map %d into %d: %d keyframes moved, %d points fused (%.1f ms)",
-            source_id,
-            target_id,
-            len(src_keys),
-            n_fused,
-            (time.perf_counter() - t0) * 1e3,
-        )
-        return tgt
+        return merge_maps(self, target_id, source_id, target_from_source, fused_pairs)
 
 
-def _arr_eq(a: Any, b: Any) -> bool:
-    if a is None or b is None:
-        return a is None and b is None
-    a, b = np.asarray(a), np.asarray(b)
-    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
-
-
-def map_differences(a: Map, b: Map) -> list[str]:
-    """Every difference between two maps (bit-exact arrays, graphs, history); empty if identical."""
-    d: list[str] = []
-    if a.id != b.id:
-        d.append(f"id {a.id} != {b.id}")
-    if a.agents != b.agents:
-        d.append(f"agents {a.agents} != {b.agents}")
-    if a.keyframes.keys() != b.keyframes.keys():
-        d.append("keyframe keys differ")
-    if a.points.keys() != b.points.keys():
-        d.append("point keys differ")
-    for k in a.keyframes.keys() & b.keyframes.keys():
-        x, y = a.keyframes[k], b.keyframes[k]
-        arrays: tuple[str, ...] = ("world_from_cam", "keypoints", "octaves", "descriptors", "point_ids")
-        for f in (*arrays, "gnss_enu", "gnss_cov", "up_cam"):
-            if not _arr_eq(getattr(x, f), getattr(y, f)):
-                d.append(f"keyframe {k}: {f} differs")
-        if np.float64(x.timestamp).tobytes() != np.float64(y.timestamp).tobytes():
-            d.append(f"keyframe {k}: timestamp differs")
-        for f in ("camera", "point_agents", "parent"):
-            if getattr(x, f) != getattr(y, f):
-                d.append(f"keyframe {k}: {f} differs")
-    for k in a.points.keys() & b.points.keys():
-        x2, y2 = a.points[k], b.points[k]
-        if not _arr_eq(x2.xyz, y2.xyz) or not _arr_eq(x2.descriptor, y2.descriptor):
-            d.append(f"point {k}: xyz/descriptor differs")
-        if x2.observations != y2.observations:
-            d.append(f"point {k}: observations differ")
-    if a._covis != b._covis:
-        d.append("covisibility differs")
-    if a.loop_edges() != b.loop_edges():
-        d.append("loop edges differ")
-    if a.point_redirects != b.point_redirects:
-        d.append("point redirects differ")
-    if a._pending != b._pending:
-        d.append("pending references differ")
-    if a._orphans != b._orphans:
-        d.append("orphans differ")
-    if a.merge_history != b.merge_history:
-        d.append("merge history differs")
-    return d
+__all__ = [
+    "STRONG_COVISIBILITY",
+    "F64",
+    "Keyframe",
+    "KfKey",
+    "Map",
+    "MapPoint",
+    "MapStack",
+    "PointKey",
+    "map_differences",
+]

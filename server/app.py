@@ -100,7 +100,7 @@ def _report_load_failure(app: FastAPI, task: asyncio.Task[None]) -> None:
 
 def default_extensions(settings: ServerSettings) -> list[Callable[[HiveServer], None]]:
     """``hivemap.server.backend.install`` if the back-end module exists (and is enabled)."""
-    if not settings.backend:
+    if not settings.backend.enabled:
         return []
     try:
         backend = importlib.import_module("hivemap.server.backend")

@@ -61,6 +61,9 @@ def server_command(
             "--foxglove-port", help="Also publish the mission on a Foxglove WebSocket on this port."
         ),
     ] = None,
+    print_config: Annotated[
+        bool, typer.Option("--print-config", help="Print the effective settings as TOML and exit.")
+    ] = False,
 ) -> None:
     """Run the server: WebSocket ingest at /ws, REST inspection, viewer at /viewer/. Env: HIVEMAP_*.
 
@@ -72,12 +75,16 @@ def server_command(
 
     from hivemap.cli.errors import config_error
     from hivemap.server.app import create_app, uvicorn_config_kwargs
+    from hivemap.server.config_toml import settings_toml
     from hivemap.server.settings import load_settings
 
     try:
         settings = load_settings(config, host=host, port=port, data_dir=data_dir, foxglove_port=foxglove_port)
     except (tomllib.TOMLDecodeError, ValidationError) as exc:
         raise config_error(config, exc) from exc  # one line naming the file and field
+    if print_config:
+        typer.echo(settings_toml(settings), nl=False)
+        return
     if not settings.tokens:
         typer.echo(
             "warning: no agent tokens configured ([tokens] in --config): every agent is refused", err=True

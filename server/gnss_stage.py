@@ -10,12 +10,8 @@ fixes (``GnssStageOptions.stiffness_scales``).
 
 Roll/pitch: GNSS positions barely observe a keyframe's tilt, so on a gravity-aligned map an attitude
 factor holds each keyframe's up direction: the one the agent's IMU measured (``up_in_body``, sent with
-the keyframe) where there is one, else the map's own. The map's own carries the front-end's visual tilt
-drift (about 1 degree after 90 s on factory01's uav1); held there, it put the far ends of the merged
-map decimetres off in height (offline on the saved factory01 / factory05 GNSS-denied server maps with
-that run's fixes every 20 s: mean keyframe error in ENU 0.101 -> 0.083 m and 0.129 -> 0.095 m with up
-directions of 0.2 degree noise). The back-end passes them with ``BackendOptions.gnss_agent_up`` (on by
-default; see there for the online figures).
+the keyframe) where there is one, else the map's own, which carries the front-end's visual tilt drift
+and would put the far ends of a merged map off in height (``docs/decisions.md``).
 """
 
 from __future__ import annotations
@@ -52,17 +48,10 @@ class GnssStageOptions:
     sigma_attitude: float = 0.005  # rad
     outlier_sigma: float = 10.0
     max_iterations: int = 50
-    # How stiff the chain is (the relative sigmas above times a scale) is chosen from the data by
-    # cross-validation: for each scale the fixes are split into ``cv_folds`` interleaved folds, each fold is
-    # predicted by the stage solved without it, and the scale whose predictions are closest to the held-out
-    # fixes (mean squared Mahalanobis distance) wins. A map whose BA closed its loops is better held near
-    # rigid, as the fixes' own noise (0.05 m / 0.15 m) would otherwise bend it; a drifting one needs the
-    # looser chain to follow its fixes. Offline, saved GNSS-denied server maps with their scenario's fixes
-    # every 20 s (4 agents, 19 fixes; mean keyframe error in ENU over the agents): factory01 (693c404 map)
-    # 0.084 m at scale 1 -> CV picks 0.03: 0.075 m (best of the four: 0.073 at 0.1); factory05 (5373e64 map)
-    # 0.087 -> CV picks 0.1: 0.074 (best 0.072 at 0.03); factory07 (5373e64 map) 0.124 -> CV picks 0.03:
-    # 0.108 (the best). A synthetic map drifting 2e-4 rad per keyframe: CV picks 1 (0.078 m; 0.153 at 0.1);
-    # not drifting: CV picks 0.03 (0.035 m vs 0.075 at 1).
+    # How stiff the chain is (the relative sigmas above times a scale) is chosen by cross-validation: the
+    # fixes are split into ``cv_folds`` interleaved folds, each predicted by the stage solved without it,
+    # and the scale with the closest predictions (mean squared Mahalanobis distance) wins. A map whose
+    # loops closed is better held near rigid, a drifting one needs a looser chain (docs/decisions.md).
     stiffness_scales: tuple[float, ...] = (1.0, 0.3, 0.1, 0.03)
     cv_folds: int = 5
     cv_min_fixes: int = 10  # fewer used fixes: scale 1 (the first one), no cross-validation

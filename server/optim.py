@@ -31,7 +31,7 @@ class PoseGraphEdge:
     measurement; ``robust`` applies a Huber loss (loop/merge edges, paper's peers do this).
     ``sigma_yaw`` (rad) with ``up_j`` (the unit up direction in keyframe ``j``'s camera frame, from its
     agent's IMU): the rotation about up gets this sigma and ``sigma_rot`` is left for roll/pitch. An
-    agent's VIO measures yaw far better than tilt (see BackendOptions.pose_graph_sigma_yaw).
+    agent's VIO measures yaw far better than tilt (``OptimiseOptions.pose_graph_sigma_yaw``).
     """
 
     i: int

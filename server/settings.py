@@ -26,6 +26,9 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from hivemap.server.backend.options import BackendOptions
+from hivemap.server.backend.options import from_table as backend_options_from_table
+
 
 class QuotaSettings(BaseModel):
     """Per-agent limits (the ``[quotas]`` table). The totals bound what one agent can make the server
@@ -123,7 +126,10 @@ class ServerSettings(BaseSettings):
     shutdown_timeout_s: float = Field(
         default=10.0, gt=0.0, description="On SIGTERM/SIGINT: wait this long for connections to finish."
     )
-    backend: bool = Field(default=True, description="Run the collaboration back-end (merging, loops).")
+    backend: BackendOptions = Field(
+        default_factory=BackendOptions,
+        description="The collaboration back-end (merging, loops): [backend] enabled, preset, stage tables.",
+    )
     foxglove_port: int | None = Field(
         default=None, ge=0, le=65535, description="Publish the mission on a Foxglove WebSocket on this port."
     )
@@ -131,6 +137,11 @@ class ServerSettings(BaseSettings):
     event_buffer: int = Field(default=10000, ge=10, description="Events kept in the /events ring buffer.")
     ping_interval_s: float = Field(default=20.0, gt=0.0)
     log_level: str = "info"
+
+    @field_validator("backend", mode="before")
+    @classmethod
+    def _backend_options(cls, v: Any) -> BackendOptions:
+        return backend_options_from_table(v)  # ConfigError (a ValueError) names an unknown key
 
 
 def load_settings(config: Path | None = None, **overrides: Any) -> ServerSettings:

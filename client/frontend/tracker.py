@@ -3,147 +3,40 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field, replace
-from enum import StrEnum
+from dataclasses import replace
 from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.client.frontend import imu, mapping
+from hivemap.client.frontend.events import (
+    Event,
+    FrameResult,
+    FrontendStats,
+    KeyframeEvent,
+    NewSessionEvent,
+    PoseUpdateEvent,
+    TrackingState,
+)
 from hivemap.client.frontend.features import OrbExtractor
+from hivemap.client.frontend.imu import _ImuState
 from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore, hamming
 from hivemap.client.frontend.optim import (
-    BAProblem,
     Intrinsics,
-    bundle_adjust,
-    chi2_of,
-    chi2_thresholds,
     optimize_pose,
-    pose_hessian,
     project,
 )
 from hivemap.client.frontend.options import FrontendOptions
 from hivemap.client.frontend.stereo import StereoMatcher
 from hivemap.maps.camera import StereoRig
-from hivemap.maps.geometry import se3, se3_inverse, so3_exp
+from hivemap.maps.geometry import se3, se3_inverse
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
-
-
-class TrackingState(StrEnum):
-    INITIALIZING = "initializing"
-    OK = "ok"
-    RELOCALIZED = "relocalized"
-    LOST = "lost"
-    NEW_MAP = "new_map"
-
-
-@dataclass(frozen=True)
-class FrameResult:
-    """Result of one ``Frontend.process`` call.  Poses are in the VIO frame of ``session``."""
-
-    t: float
-    state: TrackingState
-    world_from_cam: F64
-    world_from_body: F64
-    n_tracked: int
-    session: int
-    new_keyframe_id: int | None = None
-
-
-@dataclass(frozen=True)
-class KeyframeEvent:
-    """A new keyframe ready for the link / second stage (emitted once, after ``emit_delay_keyframes``).
-
-    ``rel_body`` = prev_body_from_body (4x4) with ``rel_cov`` (6x6, gtsam order [rot, trans], right
-    perturbation of ``rel_body``), both None for the first keyframe of a session.
-    New points: those its keypoints reference that were not emitted before.
-    """
-
-    session: int
-    kf_id: int
-    timestamp: float
-    world_from_cam: F64
-    world_from_body: F64
-    keypoints: NDArray[np.float32]
-    octaves: NDArray[np.uint8]
-    descriptors: NDArray[np.uint8]
-    point_ids: I64
-    prev_kf_id: int | None
-    rel_body: F64 | None
-    rel_cov: F64 | None
-    gnss_epoch: bool
-    new_point_ids: I64
-    new_point_xyz: F64
-    new_point_descriptors: NDArray[np.uint8]
-
-
-@dataclass(frozen=True)
-class PoseUpdateEvent:
-    """Poses/points (already emitted) changed by local BA or gravity alignment."""
-
-    session: int
-    kf_ids: I64
-    world_from_cam: F64  # (K,4,4)
-    point_ids: I64
-    xyz: F64
-
-
-@dataclass(frozen=True)
-class NewSessionEvent:
-    """Tracking was lost and relocalisation failed: a new map (session) starts."""
-
-    old_session: int
-    session: int
-    t: float
-
-
-Event = KeyframeEvent | PoseUpdateEvent | NewSessionEvent
-
-
-@dataclass
-class FrontendStats:
-    frames: int = 0
-    keyframes: int = 0
-    lost_frames: int = 0
-    relocalizations: int = 0
-    sessions: int = 1
-    timing: dict[str, float] = field(default_factory=dict)
-
-
-class _ImuState:
-    """Gyro preintegration (gtsam) between frames + accelerometer buffer for gravity alignment."""
-
-    def __init__(self, params: dict[str, float] | None) -> None:
-        import gtsam
-
-        p = params or {}
-        self.gtsam = gtsam
-        self.pp = gtsam.PreintegrationParams.MakeSharedU(9.81)
-        self.pp.setGyroscopeCovariance(np.eye(3) * float(p.get("gyroscope_noise_density", 1.7e-4)) ** 2)
-        self.pp.setAccelerometerCovariance(np.eye(3) * float(p.get("accelerometer_noise_density", 2e-3)) ** 2)
-        self.pp.setIntegrationCovariance(np.eye(3) * 1e-8)
-        self.bias = gtsam.imuBias.ConstantBias()
-        self.last_t: float | None = None
-        self.acc_log: list[tuple[float, F64]] = []
-
-    def preintegrate(self, samples: F64) -> Any:
-        """samples (K,7) [t_s, wx, wy, wz, ax, ay, az] -> gtsam PreintegratedImuMeasurements or None."""
-        pim = self.gtsam.PreintegratedImuMeasurements(self.pp, self.bias)
-        n = 0
-        for row in samples:
-            t = float(row[0])
-            if self.last_t is not None and t > self.last_t:
-                dt = t - self.last_t
-                if dt < 0.5:
-                    pim.integrateMeasurement(row[4:7], row[1:4], dt)
-                    n += 1
-            self.last_t = t
-        return pim if n else None
 
 
 class Frontend:
@@ -264,8 +157,8 @@ class Frontend:
         t2 = time.perf_counter()
         if ok:
             self._lost_count = 0
-            if self._need_keyframe(frame, n_tracked, gnss_epoch, state):
-                new_kf = self._create_keyframe(frame, gnss_epoch)
+            if mapping.need_keyframe(self, frame, n_tracked, gnss_epoch, state):
+                new_kf = mapping.create_keyframe(self, frame, gnss_epoch)
         else:
             self._lost_count += 1
             self.stats.lost_frames += 1
@@ -381,7 +274,7 @@ class Frontend:
         self._last_tracked = tracked
         if not self._gravity_aligned and acc_mean is not None and self._kfs:
             self._align_buffer.append((frame.t, frame.T_wc @ self.cam_from_body, acc_mean))
-            self._try_gravity_alignment()
+            imu.try_gravity_alignment(self)
 
     # ------------------------------------------------------------------ map lifecycle
     def _reset_map(self) -> None:
@@ -397,70 +290,13 @@ class Frontend:
         if has.sum() < 50:
             return False
         frame.T_cw = T_cw.copy()
-        self._create_keyframe(frame, False, first=True)
+        mapping.create_keyframe(self, frame, False, first=True)
         log.info("map session %d initialised at t=%.3f with %d points", self.session, frame.t, has.sum())
         return True
 
     # ------------------------------------------------------------------ prediction / IMU
     def _predict(self, pim: Any) -> F64:
-        assert self._last is not None
-        motion = self._motion.copy()
-        if pim is not None:
-            dR_body = pim.deltaRij().matrix()
-            R_cb = self.cam_from_body[:3, :3]
-            motion[:3, :3] = R_cb @ dR_body @ R_cb.T
-            if self._gravity_aligned and self.imu is not None:
-                import gtsam
-
-                T_wb = self._last.T_wc @ self.cam_from_body
-                nav = gtsam.NavState(gtsam.Pose3(T_wb), self._velocity_w)
-                pred = pim.predict(nav, self.imu.bias)
-                T_wb_pred = pred.pose().matrix()
-                return se3_inverse(T_wb_pred @ self.body_from_cam)
-        return se3_inverse(self._last.T_wc @ motion)
-
-    def _try_gravity_alignment(self) -> None:
-        buf = self._align_buffer
-        if len(buf) < 3 or buf[-1][0] - buf[0][0] < self.options.gravity_init_s:
-            return
-        # specific force in the world: R_wb a = acc_w + g_up  ->  g_up = mean(R_wb a) - (v1 - v0) / T
-        ts = np.array([b[0] for b in buf])
-        ps = np.array([b[1][:3, 3] for b in buf])
-        f_w = np.array([b[1][:3, :3] @ b[2] for b in buf])
-        k = max(1, len(buf) // 5)
-        v0 = (ps[k] - ps[0]) / (ts[k] - ts[0])
-        v1 = (ps[-1] - ps[-1 - k]) / (ts[-1] - ts[-1 - k])
-        g_up = f_w.mean(0) - (v1 - v0) / ((ts[-1] + ts[-1 - k]) / 2 - (ts[k] + ts[0]) / 2)
-        if not 8.0 < np.linalg.norm(g_up) < 11.6:
-            self._align_failures += 1
-            if self._align_failures < 5:
-                log.warning("gravity estimate %.2f m/s^2 implausible; retrying", np.linalg.norm(g_up))
-                self._align_buffer = buf[len(buf) // 2 :]
-                return
-            g_up = f_w.mean(0)  # give up on the motion correction: assume a small mean acceleration
-            log.warning("gravity from the mean specific force only (%.2f m/s^2)", np.linalg.norm(g_up))
-        a = g_up / np.linalg.norm(g_up)
-        z = np.array([0.0, 0.0, 1.0])
-        axis = np.cross(a, z)
-        s = np.linalg.norm(axis)
-        ang = np.arctan2(s, float(a @ z))
-        R = so3_exp(axis / s * ang) if s > 1e-9 else np.eye(3)
-        A = se3(R, np.zeros(3))
-        self._apply_world_transform(A)
-        self._gravity_aligned = True
-        self._align_buffer = []
-        log.info("VIO frame gravity-aligned (%.2f deg correction)", np.degrees(ang))
-
-    def _apply_world_transform(self, A: F64) -> None:
-        Ainv = se3_inverse(A)
-        for kf in self._kfs.values():
-            kf.T_cw = kf.T_cw @ Ainv
-            kf.frame.T_cw = kf.T_cw
-        n = self._pts.n
-        self._pts.xyz[:n] = self._pts.xyz[:n] @ A[:3, :3].T + A[:3, 3]
-        if self._last is not None and not any(kf.frame is self._last for kf in self._kfs.values()):
-            self._last.T_cw = self._last.T_cw @ Ainv
-        self._velocity_w = A[:3, :3] @ self._velocity_w
+        return imu.predict(self, pim)
 
     # ------------------------------------------------------------------ matching
     def _match_projection(
@@ -631,251 +467,9 @@ class Frontend:
         inl = inl.reshape(-1)
         return self._finish_tracking(frame, T, mp[inl], kps[inl])
 
-    # ------------------------------------------------------------------ keyframes
-    def _need_keyframe(self, frame: Frame, n_tracked: int, gnss_epoch: bool, state: TrackingState) -> bool:
-        o = self.options
-        if gnss_epoch or state == TrackingState.RELOCALIZED:
-            return True
-        last = self._kfs.get(self._kf_last_id)
-        if last is None:
-            return True
-        if frame.t - last.timestamp >= o.kf_max_interval_s:
-            return True
-        tracked = frame.point_ids >= 0
-        close_th = o.close_depth_baselines * self.rig.baseline
-        z = frame.pts_cam[:, 2]
-        close = np.isfinite(z) & (z < close_th)
-        n_close_tracked = int((tracked & close).sum())
-        n_close_untracked = int((~tracked & close).sum())
-        weak_close = n_close_tracked < o.kf_min_close_tracked and n_close_untracked > o.kf_min_close_tracked
-        return n_tracked < o.kf_min_tracked_ratio * self._ref_tracked or weak_close
-
-    def _create_keyframe(self, frame: Frame, gnss_epoch: bool, first: bool = False) -> int:
-        import time
-
-        o = self.options
-        kid = self._kf_counter
-        self._kf_counter += 1
-        prev = self._kfs.get(self._kf_last_id)
-        kf = KeyframeData(
-            kid, self.session, frame, frame.T_cw.copy(), gnss_epoch, prev_id=prev.id if prev else None
-        )
-        self._kfs[kid] = kf
-        self.stats.keyframes += 1
-        pts = self._pts
-        tracked_before = int((frame.point_ids >= 0).sum())
-        for i in np.flatnonzero(frame.point_ids >= 0):
-            pid = int(frame.point_ids[i])
-            pts.obs[pid][kid] = int(i)
-            pts.desc[pid] = frame.desc[i]
-        # stereo points: all close ones, at least 100 (closest first) as ORB-SLAM
-        z = frame.pts_cam[:, 2]
-        cand = np.flatnonzero(np.isfinite(z) & (frame.point_ids < 0))
-        cand = cand[np.argsort(z[cand])]
-        close_th = o.close_depth_baselines * self.rig.baseline
-        n_close = int((z[cand] < close_th).sum())
-        n_take = max(n_close, min(len(cand), 100 if not first else len(cand)))
-        new = cand[:n_take]
-        if len(new):
-            Xw = frame.pts_cam[new] @ kf.T_wc[:3, :3].T + kf.T_wc[:3, 3]
-            ids = pts.add(Xw, frame.desc[new], kid)
-            frame.point_ids[new] = ids
-            for pid, i in zip(ids, new, strict=True):
-                pts.obs[int(pid)][kid] = int(i)
-        t0 = time.perf_counter()
-        if not first:
-            self._triangulate(kf)
-        t1 = time.perf_counter()
-        if not first:
-            self._local_ba(kf)
-            self._cull_points(kid)
-        t2 = time.perf_counter()
-        self.stats.timing["triangulate"] = self.stats.timing.get("triangulate", 0.0) + t1 - t0
-        self.stats.timing["local_ba"] = self.stats.timing.get("local_ba", 0.0) + t2 - t1
-        frame.T_cw = kf.T_cw
-        # relative pose covariance from the keyframe's own observations (motion-only information)
-        if prev is not None:
-            tr = frame.point_ids >= 0
-            idx = np.flatnonzero(tr)
-            H = pose_hessian(
-                self.k, kf.T_cw, pts.xyz[frame.point_ids[idx]], frame.meas[idx], frame.inv_sigma2[idx]
-            )
-            try:
-                cov = np.linalg.inv(H + 1e-6 * np.eye(6))
-            except np.linalg.LinAlgError:
-                cov = np.eye(6)
-            # left perturbation of cam_from_world == (minus) right perturbation of world_from_cam
-            dist = float(np.linalg.norm(kf.T_wc[:3, 3] - prev.T_wc[:3, 3]))
-            floor = np.array([1e-3 + 2e-3 * np.radians(1.0)] * 3 + [1e-3 + 4e-3 * dist] * 3) ** 2
-            kf.rel_cov_cam = cov + np.diag(floor)
-        self._kf_last_id = kid
-        self._ref_tracked = tracked_before if not first else int((frame.point_ids >= 0).sum())
-        self._update_local_map()
-        self._emit_ready()
-        return kid
-
     def _triangulate(self, kf: KeyframeData) -> None:
-        """Multi-view triangulation of unmatched keypoints with the previous keyframes."""
-        o = self.options
-        f1 = kf.frame
-        un1 = np.flatnonzero(f1.point_ids < 0)
-        if len(un1) < 10:
-            return
-        nbrs = sorted((k for k in self._kfs if k != kf.id), reverse=True)[: o.triangulation_neighbours]
-        bf = cv2.BFMatcher(cv2.NORM_HAMMING)
-        K = self.cam.K
-        Kinv = np.linalg.inv(K)
-        C1 = kf.T_wc[:3, 3]
-        for nid in nbrs:
-            nk = self._kfs[nid]
-            f2 = nk.frame
-            un2 = np.flatnonzero(f2.point_ids < 0)
-            un1 = np.flatnonzero(f1.point_ids < 0)
-            if len(un2) < 10 or len(un1) < 10:
-                continue
-            C2 = nk.T_wc[:3, 3]
-            if np.linalg.norm(C2 - C1) < 0.5 * self.rig.baseline:
-                continue
-            knn = bf.knnMatch(f1.desc[un1], f2.desc[un2], k=2)
-            a, b = [], []
-            for m in knn:
-                if len(m) == 2 and m[0].distance <= 50 and m[0].distance < 0.7 * m[1].distance:
-                    a.append(un1[m[0].queryIdx])
-                    b.append(un2[m[0].trainIdx])
-            if len(a) < 5:
-                continue
-            ia, ib = np.array(a), np.array(b)
-            _, u = np.unique(ib, return_index=True)
-            ia, ib = ia[u], ib[u]
-            x1 = np.c_[f1.kpu[ia], np.ones(len(ia))] @ Kinv.T
-            x2 = np.c_[f2.kpu[ib], np.ones(len(ib))] @ Kinv.T
-            r1 = x1 @ kf.T_wc[:3, :3].T
-            r2 = x2 @ nk.T_wc[:3, :3].T
-            cosp = (r1 * r2).sum(1) / np.linalg.norm(r1, axis=1) / np.linalg.norm(r2, axis=1)
-            ok = cosp < o.min_parallax_cos
-            if not ok.any():
-                continue
-            ia, ib, x1, x2 = ia[ok], ib[ok], x1[ok], x2[ok]
-            Xh = cv2.triangulatePoints(kf.T_cw[:3], nk.T_cw[:3], x1[:, :2].T, x2[:, :2].T)
-            Xw = (Xh[:3] / np.where(np.abs(Xh[3]) > 1e-12, Xh[3], 1e-12)).T
-            good = np.isfinite(Xw).all(1)
-            # Each view's reprojection, with the right-image coordinate where the keypoint has one (as
-            # local BA will weigh it): two views alone only check the epipolar line, so a wrong match
-            # along it (repeated posters on a wall, factory01's UGV at t=24-26 s) triangulates at a
-            # wrong depth that its stereo measurement contradicts. Such points entered local BA with
-            # chi2 in the thousands and pulled keyframes seeing mostly far points by 0.4-2.3 m.
-            for T, f, idx in ((kf.T_cw, f1, ia), (nk.T_cw, f2, ib)):
-                pc = Xw @ T[:3, :3].T + T[:3, 3]
-                meas = f.meas[idx]
-                chi2 = chi2_of(self.k, pc, meas, f.inv_sigma2[idx])
-                good &= (pc[:, 2] > 0.1) & (chi2 < chi2_thresholds(meas))
-            if not good.any():
-                continue
-            ia, ib, Xw = ia[good], ib[good], Xw[good]
-            ids = self._pts.add(Xw, f1.desc[ia], kf.id)
-            f1.point_ids[ia] = ids
-            f2.point_ids[ib] = ids
-            for pid, i, j in zip(ids, ia, ib, strict=True):
-                self._pts.obs[int(pid)][kf.id] = int(i)
-                self._pts.obs[int(pid)][nid] = int(j)
+        mapping.triangulate(self, kf)
 
-    def _local_ba(self, kf: KeyframeData) -> None:
-        o = self.options
-        cov = self._covisibility(kf.id)
-        window = [kf.id] + [k for k, _ in sorted(cov.items(), key=lambda kv: -kv[1])[: o.ba_window - 1]]
-        wset = set(window)
-        pids_l = [self._kfs[k].frame.point_ids for k in window]
-        pids = np.unique(np.concatenate(pids_l))
-        pids = pids[pids >= 0]
-        pids = pids[self._pts.alive[pids]]
-        if len(pids) < 10:
-            return
-        fixed_count: dict[int, int] = {}
-        cams: list[int] = []
-        pts_i: list[int] = []
-        kp_i: list[int] = []
-        for j, pid in enumerate(pids):
-            for k_id, i in self._pts.obs[int(pid)].items():
-                if k_id not in wset:
-                    fixed_count[k_id] = fixed_count.get(k_id, 0) + 1
-                cams.append(k_id)
-                pts_i.append(j)
-                kp_i.append(i)
-        fixed = [k for k, _ in sorted(fixed_count.items(), key=lambda kv: -kv[1])[: o.ba_fixed_max]]
-        if not fixed:
-            # gauge: hold the oldest keyframe of the window
-            oldest = min(window)
-            window.remove(oldest)
-            fixed = [oldest]
-        all_k = window + fixed
-        kidx = {k: n for n, k in enumerate(all_k)}
-        cam_arr = np.array(cams)
-        use = np.array([c in kidx for c in cams])
-        cam_idx = np.array([kidx.get(c, -1) for c in cams])[use]
-        pt_idx = np.array(pts_i)[use]
-        kp_arr = np.array(kp_i)[use]
-        cam_ids = cam_arr[use]
-        meas = np.empty((len(cam_idx), 3))
-        inv_s2 = np.empty(len(cam_idx))
-        for k_id in all_k:
-            m = cam_ids == k_id
-            f = self._kfs[k_id].frame
-            meas[m] = f.meas[kp_arr[m]]
-            inv_s2[m] = f.inv_sigma2[kp_arr[m]]
-        poses = np.stack([self._kfs[k].T_cw for k in all_k])
-        is_fixed = np.array([k not in wset or k in fixed for k in all_k])
-        prob = BAProblem(poses, is_fixed, self._pts.xyz[pids].copy(), cam_idx, pt_idx, meas, inv_s2)
-        n1 = max(2, o.ba_iterations // 2)
-        poses2, X2, inl = bundle_adjust(self.k, prob, n1)
-        prob2 = BAProblem(poses2, is_fixed, X2, cam_idx, pt_idx, meas, inv_s2)
-        poses2, X2, inl2 = bundle_adjust(self.k, prob2, o.ba_iterations - n1, active=inl)
-        # drop outlier observations
-        for n in np.flatnonzero(~inl2):
-            k_id = int(cam_ids[n])
-            pid = int(pids[pt_idx[n]])
-            self._pts.obs[pid].pop(k_id, None)
-            f = self._kfs[k_id].frame
-            if f.point_ids[kp_arr[n]] == pid:
-                f.point_ids[kp_arr[n]] = -1
-        for k_id, T in zip(all_k, poses2, strict=True):
-            if k_id in wset and k_id not in fixed:
-                self._kfs[k_id].T_cw = T
-                self._kfs[k_id].frame.T_cw = T
-        self._pts.xyz[pids] = X2
-        upd = [k for k in window if k not in fixed and self._kfs[k].emitted]
-        if upd:
-            pp = pids[self._pts.emitted[pids]]
-            self._events.append(
-                PoseUpdateEvent(
-                    self.session,
-                    np.array(upd, np.int64),
-                    np.stack([self._kfs[k].T_wc for k in upd]),
-                    pp,
-                    self._pts.xyz[pp].copy(),
-                )
-            )
-
-    def _cull_points(self, kid: int) -> None:
-        o = self.options
-        pts = self._pts
-        ids = pts.alive_ids()
-        ids = ids[pts.first_kf[ids] >= kid - 6]  # recently created points only (ORB-SLAM's recent list)
-        if len(ids) == 0:
-            return
-        nobs = np.array([len(pts.obs[i]) for i in ids])
-        ratio = pts.found[ids] / np.maximum(pts.visible[ids], 1)
-        age = kid - pts.first_kf[ids]
-        bad = (nobs == 0) | ((ratio < o.culling_min_found_ratio) & (age >= 2)) | ((age >= 3) & (nobs <= 1))
-        bad &= ~pts.emitted[ids] | (nobs == 0)
-        for pid in ids[bad]:
-            for k_id, i in pts.obs[pid].items():
-                f = self._kfs[k_id].frame
-                if f.point_ids[i] == pid:
-                    f.point_ids[i] = -1
-            pts.obs[pid] = {}
-            pts.alive[pid] = False
-
-    # ------------------------------------------------------------------ events
     def _emit_ready(self) -> None:
         if not self._gravity_aligned:
             return
@@ -931,3 +525,15 @@ class Frontend:
                 new_point_descriptors=self._pts.desc[newp].copy(),
             )
         )
+
+
+__all__ = [
+    "Event",
+    "FrameResult",
+    "Frontend",
+    "FrontendStats",
+    "KeyframeEvent",
+    "NewSessionEvent",
+    "PoseUpdateEvent",
+    "TrackingState",
+]

@@ -214,3 +214,20 @@ def test_team_section_matches_an_independent_joint_alignment(experiment):
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert set(cells[3].split(", ")) == set(AGENTS)
     assert float(cells[4]) == pytest.approx(want, abs=1e-3)
+
+
+def test_report_dir_gets_the_report_of_one_revision(experiment, tmp_path):
+    """--report-only --report-dir writes report.md/html/json and img/ there (nothing else), from the
+    results in --out; the report names the one revision every results file carries."""
+    _, out, args = experiment
+    dest = tmp_path / "report"
+    res = CliRunner().invoke(app, [*args, "--report-only", "--report-dir", str(dest)])
+    assert res.exit_code == 0, res.output
+    revs = {json.loads(p.read_text())["git"] for p in (out / "results" / "tiny").glob("*.json")}
+    assert len(revs) == 1 and all(revs)
+    assert {p.name for p in dest.iterdir()} <= {"report.md", "report.html", "report.json", "img"}
+    assert (dest / "report.md").exists() and (dest / "report.html").exists()
+    assert f"Every result below comes from revision {revs.pop()}." in (dest / "report.md").read_text()
+    assert json.loads((dest / "report.json").read_text())["revisions"] == sorted(
+        json.loads(p.read_text())["git"] for p in (out / "results" / "tiny").glob("single.json")
+    )

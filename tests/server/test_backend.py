@@ -26,10 +26,12 @@ from srv_helpers import TOKENS, free_port
 from hivemap.maps.geometry import Sim3, rotation_angle_deg, so3_exp
 from hivemap.protocol import Ack, Correction, Message
 from hivemap.server.app import create_app, uvicorn_config_kwargs
-from hivemap.server.backend import Backend, BackendOptions, installer
+from hivemap.server.backend import Backend, BackendOptions, installer, preset
+from hivemap.server.backend.options import SchedulerOptions
 from hivemap.server.backend_synth import agent_stream, make_world
 from hivemap.server.settings import ServerSettings
 
+FAST = SchedulerOptions(verifications_per_s=1000.0)  # no verification budget to wait for
 UGV_FROM_WORLD = Sim3(so3_exp(np.array([0.0, 0.0, 0.4])), np.array([3.0, -2.0, 0.5]), 1.0)
 UAV_FROM_WORLD = Sim3(so3_exp(np.array([0.3, -0.5, 1.2])), np.array([12.0, -7.0, 4.0]), 1.0)
 
@@ -39,7 +41,7 @@ class Server:
         self.port = free_port()
         settings = ServerSettings(port=self.port, data_dir=data_dir, tokens=TOKENS, log_level="warning")
         # Sim(3) merges: these tests include a monocular-like agent whose map has scale 2.5
-        opts = opts or BackendOptions(verifications_per_s=1000.0, fix_scale=False)
+        opts = opts or preset("monocular", scheduler=FAST)
         self.app = create_app(settings, extensions=[installer(opts)])
         self.server = uvicorn.Server(uvicorn.Config(self.app, **uvicorn_config_kwargs(settings)))  # type: ignore[arg-type]
         self.thread = threading.Thread(target=self.server.run, daemon=True)
@@ -128,7 +130,7 @@ def test_two_overlapping_agents_merge_in_ugv_frame(srv: Server) -> None:
 @pytest.mark.parametrize("lean_deg", [0.0, 0.6])
 def test_merge_rotation_follows_the_agents_up_directions(srv: Server, lean_deg: float) -> None:
     """With IMU up directions on both agents' keyframes the merge is levelled
-    (BackendOptions.level_gravity): exact ones give the true Sim(3); when the UAV's lean by 0.6 degrees,
+    (FitOptions.level_gravity): exact ones give the true Sim(3); when the UAV's lean by 0.6 degrees,
     the merge's rotation follows them, off the truth by the lean in tilt (a free fit would stay on it)."""
     rng = np.random.default_rng(1)
     pts, desc = make_world(rng, 2500, (-20, 30))
@@ -298,7 +300,7 @@ def test_gnss_guided_retry_merges_two_enu_maps(tmp_path: Path) -> None:
         consistency_required=1,
         thresholds=Thresholds(min_matches=10**6, min_inliers=10**6, min_projected=10**6),
     )
-    srv = Server(tmp_path / "data", BackendOptions(verifications_per_s=1000.0, placerec=blind))
+    srv = Server(tmp_path / "data", preset("default", scheduler=FAST, placerec=blind))
     try:
         rng = np.random.default_rng(7)
         pts, desc = make_world(rng, 2500, (-20, 30))
@@ -360,12 +362,12 @@ def test_pose_update_keeps_the_backends_correction_of_the_keyframe(srv: Server) 
 
 
 def test_gnss_cross_validation_repeats_at_growing_fix_counts() -> None:
-    """BackendOptions.gnss_cv_new_fixes / gnss_cv_growth: from the first round at 10 fixes the stiffness is
+    """GnssOptions.cv_new_fixes / cv_growth: from the first round at 10 fixes the stiffness is
     validated again at 13, 16 and 19 fixes (3 more each), later only every 15 % more (with fixes at 5 Hz,
     a round at every stage would cost 20 solves each): 27 rounds up to 600 fixes, not 590."""
-    from hivemap.server.backend import _cv_due
+    from hivemap.server.backend.gnss import cv_due as _cv_due
 
-    o = BackendOptions()
+    o = BackendOptions().gnss
     rounds, last = [10], 10
     for n in range(11, 601):
         if _cv_due(n, last, o):

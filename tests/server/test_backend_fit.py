@@ -1,5 +1,5 @@
-"""A loop's point-pair fit and its bootstrap spread (backend._fit_pairs), and how the pose graph weighs a
-loop edge by it (backend._pose_graph).
+"""A loop's point-pair fit and its bootstrap spread (backend.fit.fit_pairs), and how the pose graph weighs a
+loop edge by it (backend.optimise.pose_graph).
 
 Pairs: points 4-14 m from the query camera (source frame) and from a candidate camera 10 m away
 (target frame), each side off along its own viewing rays as stereo depth is (sigma k d^2). The
@@ -14,7 +14,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from hivemap.maps.geometry import Sim3, se3, so3_exp
-from hivemap.server.backend import _fit_pairs, _pose_graph
+from hivemap.server.backend.fit import fit_pairs as _fit_pairs
+from hivemap.server.backend.optimise import pose_graph as _pose_graph
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -82,7 +83,7 @@ def test_pose_graph_follows_a_tight_loop_edge_and_resists_a_loose_one() -> None:
 
 
 def test_levelled_reprojection_refinement_fixes_yaw_and_translation_only() -> None:
-    """refine_sim3 with ``yaw_axis`` (BackendOptions.level_reprojection): a levelled loop 0.3 m and 1 deg
+    """refine_sim3 with ``yaw_axis`` (FitOptions.level_reprojection): a levelled loop 0.3 m and 1 deg
     of yaw off, over 150 exact points seen 4-16 m away by a query camera and a candidate camera 10 m
     apart (0.5 px keypoint noise), comes back within 2 cm / 0.05 deg; its roll/pitch stay those of the
     start (the up directions') to 1e-9, even when the start leans 0.5 deg."""

@@ -12,10 +12,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_backend import UAV_FROM_WORLD, UGV_FROM_WORLD, Server, agent_transform, check_transform, stream
+from test_backend import (
+    FAST,
+    UAV_FROM_WORLD,
+    UGV_FROM_WORLD,
+    Server,
+    agent_transform,
+    check_transform,
+    stream,
+)
 
 from hivemap.maps.geometry import Sim3, rotation_angle_deg, so3_exp
-from hivemap.server.backend import BackendOptions
+from hivemap.server.backend import preset
+from hivemap.server.backend.options import FitOptions
 from hivemap.server.backend_synth import agent_stream, make_world
 
 
@@ -124,9 +133,9 @@ def test_keyframes_missing_from_an_optimisation_follow_their_parent(srv: Server)
 def test_loop_against_the_agents_up_directions_is_refused(srv: Server, tilt_deg: float) -> None:
     """The same loop with IMU up directions on every keyframe: exact ones agree with the loop's measured
     rotation, and it closes; on a second pass whose up directions lean 2 degrees (what a loop with a 2
-    degree tilt error looks like), it is refused (limit BackendOptions.loop_max_gravity_deg = 1 degree).
+    degree tilt error looks like), it is refused (limit AcceptOptions.loop_max_gravity_deg = 1 degree).
     Under the limit (0.5 degree) the loop closes levelled: its rotation follows the up directions
-    (BackendOptions.level_gravity), so it differs from the points' own by the lean."""
+    (FitOptions.level_gravity), so it differs from the points' own by the lean."""
     rng = np.random.default_rng(5)
     pts, desc = make_world(rng, 2500, (-20, 30))
     drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
@@ -156,7 +165,7 @@ def test_loop_against_the_agents_up_directions_is_refused(srv: Server, tilt_deg:
 @pytest.mark.parametrize("window", [0, 6])
 def test_loop_levelled_by_neighbouring_up_directions(tmp_path: Path, window: int) -> None:
     """The second pass's up directions jump +-1.5 degrees from keyframe to keyframe (an agent's filter can
-    be off for a while). Each keyframe's own (BackendOptions.level_up_window = 0) make every loop look
+    be off for a while). Each keyframe's own (FitOptions.level_up_window = 0) make every loop look
     1.5 degrees off gravity, and the loops are refused; the mean over +-6 neighbours, carried by the map's
     relative rotations, is within 0.2 degree, so the loops close and their rotation is right to 0.3 deg."""
     rng = np.random.default_rng(5)
@@ -166,8 +175,9 @@ def test_loop_levelled_by_neighbouring_up_directions(tmp_path: Path, window: int
     first, true1, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD, up_tilt_deg=0.0)
     second, true2, _ = agent_stream(rng, pts, desc, np.linspace(-4, 10, 10), UGV_FROM_WORLD, id0=1000,
                                     point_id0=100000, drift=drift, up_tilt_deg=jumpy)  # fmt: skip
-    srv = Server(tmp_path / "data", BackendOptions(verifications_per_s=1000.0, fix_scale=False,
-                                                   level_up_window=window))  # fmt: skip
+    srv = Server(
+        tmp_path / "data", preset("monocular", scheduler=FAST, fit=FitOptions(level_up_window=window))
+    )
     try:
         with stream(srv, "ugv1", "ugv", first + second):
             srv.wait_idle()

@@ -1,40 +1,4 @@
-"""The agent's second stage (paper 003, section 2.2, eqs. 1-3): GNSS + co-location fusion.
-
-A gtsam iSAM2 pose graph over keyframe poses ``local_from_kf`` (one ``Pose3`` per keyframe; ``kf`` is
-whatever frame the caller's keyframe poses use, normally the left camera as in the protocol):
-
-- relative-pose factors from the front-end (eq. 1): ``BetweenFactorPose3`` with the front-end's 6x6
-  covariance in gtsam's tangent order ``[rot, trans]`` (body-frame perturbation, ``T * Exp(xi)``);
-- GNSS position factors (eq. 2): ``GPSFactor`` (or ``GPSFactorArm`` with a lever arm
-  ``kf_from_antenna``) on an ENU position with the fix's 3x3 covariance.  A fix whose Mahalanobis
-  distance to the predicted antenna position (predicted covariance + fix covariance) exceeds
-  ``gnss_gate_sigma`` is rejected and logged (a chi-square gate on 3 dof);
-- co-location factors (eq. 3) from server corrections: a prior on the keyframe's local-frame pose
-  with a given covariance; a newer correction of the same keyframe replaces the older factor;
-- a loose prior on the first pose of every segment (iSAM2 is indeterminate with GNSS factors only).
-  With a gravity-aligned VIO frame the prior is tight on roll/pitch and loose on yaw and position;
-- optionally (``SecondStageOptions.imu``) IMU factors between consecutive keyframes of a segment
-  (gtsam ``ImuFactor`` on the IMU samples fed with :meth:`add_imu`, a velocity and a bias per
-  keyframe, bias random walk between keyframes): loosely coupled VIO. The front-end uses the IMU
-  for gravity alignment and rotation prediction only, so its roll/pitch drifts with the visual
-  rotation error; the IMU factors observe gravity through the velocity change between keyframes and
-  hold the tilt (factory01 uav1, every:20s, every frame against ground truth: tilt p90 0.61 -> 0.15
-  degrees, worst frame 1.52 -> 1.15; GNSS denied: p90 1.27 -> 0.15).
-
-The **local frame** equals the VIO frame until GNSS or co-location factors move it.  When GNSS
-arrives, the estimate is re-initialised once (translation after the first fix, yaw + translation
-once the fixes span ``align_min_spread_m``): iSAM2 linearises around its current estimate, and a
-90 degree yaw jump is far outside what incremental relinearisation handles well.
-
-After each update ``local_from_vio`` is re-estimated (yaw + translation when gravity-aligned, else
-SE(3), least-squares on keyframe positions; Umeyama without scale from evo), and the pose of any
-frame in the local frame is available by interpolating the per-keyframe correction
-``local_from_kf @ inv(vio_from_kf)`` between the neighbouring keyframes (:meth:`local_from_frame`).
-
-Segments: when the front-end starts a new map (tracking lost, new VIO frame), call
-:meth:`add_keyframe` with ``new_segment=True``; the segment gets its own loose prior and its own
-``local_from_vio``.  GNSS or co-location factors tie segments together in the local frame.
-"""
+"""The second stage's fusion: :class:`SecondStage` (see :mod:`hivemap.client.second_stage`)."""
 
 from __future__ import annotations
 
@@ -45,107 +9,26 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation, Slerp
 
-from hivemap.maps.geometry import Sim3, levelled_similarity, se3, se3_inverse
+from hivemap.client.second_stage import colocation, imu
+from hivemap.client.second_stage.factors import (
+    _bkey,
+    _gaussian,
+    _key,
+    _okey,
+    _vkey,
+    interpolate_se3,
+    rigid_alignment,
+    yaw_translation_alignment,
+)
+from hivemap.client.second_stage.options import SecondStageOptions
+from hivemap.maps.geometry import Sim3, se3, se3_inverse
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 
 _IDENTITY16 = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-
-
-@dataclass(frozen=True)
-class ImuOptions:
-    """IMU factors of the second stage: noise as in a EuRoC/Kalibr ``imu0/sensor.yaml``."""
-
-    gyroscope_noise_density: float = 1.7e-4  # rad/s/sqrt(Hz)
-    accelerometer_noise_density: float = 2.0e-3  # m/s^2/sqrt(Hz)
-    gyroscope_random_walk: float = 2.0e-5  # rad/s^2/sqrt(Hz)
-    accelerometer_random_walk: float = 3.0e-3  # m/s^3/sqrt(Hz)
-    gyroscope_noise_scale: float = 1.0
-    """The IMU factor's gyro noise is the density times this. Above 1 the front-end's relative rotation
-    outweighs the gyro (whose turn-on bias, 0.5 deg/s in paper Table 2, must otherwise be estimated). On
-    factory01 (every:20s, the same front-end events replayed) 1 was best for all four agents: ATE in ENU
-    0.120 / 0.072 / 0.106 / 0.103 m, with 3: 0.124 / 0.078 / 0.110 / 0.109, with 10: 0.131 / 0.088 /
-    0.114 / 0.122 (without IMU factors 0.154 / 0.116 / 0.135 / 0.138)."""
-    gravity: float = 9.81
-    kf_from_imu: tuple[float, ...] = _IDENTITY16
-    """The IMU's pose in the keyframe frame, row-major 4x4 (``body_P_sensor`` of gtsam)."""
-    integration_sigma: float = 1e-4
-    velocity_prior_sigma: float = 5.0
-    """m/s, on the first velocity of a segment (or after a gap without IMU samples)."""
-    bias_prior_sigma_accel: float = 0.1
-    bias_prior_sigma_gyro: float = 0.01
-    max_gap_s: float = 2.0
-    """No IMU factor between keyframes further apart than this (or without samples in between)."""
-
-    @classmethod
-    def from_noise(cls, noise: dict[str, float], kf_from_imu: F64 | None = None) -> ImuOptions:
-        """From ``imu0/sensor.yaml`` keys (missing keys keep the defaults)."""
-        names = (
-            "gyroscope_noise_density",
-            "accelerometer_noise_density",
-            "gyroscope_random_walk",
-            "accelerometer_random_walk",
-        )
-        kw: dict[str, Any] = {k: float(noise[k]) for k in names if k in noise and float(noise[k]) > 0}
-        if kf_from_imu is not None:
-            kw["kf_from_imu"] = tuple(float(x) for x in np.asarray(kf_from_imu, dtype=np.float64).reshape(16))
-        return cls(**kw)
-
-
-@dataclass(frozen=True)
-class SecondStageOptions:
-    """Tuning of the second stage. Distances in metres, angles in radians."""
-
-    gravity_aligned: bool = True
-    """The VIO frame's z axis is up (IMU): roll/pitch are observable, only yaw + translation drift."""
-    first_prior_sigma_pos: float = 100.0
-    """Loose prior on the first pose's position (per segment)."""
-    first_prior_sigma_yaw: float = math.pi
-    """Loose prior on the first pose's yaw."""
-    first_prior_sigma_tilt: float = 0.05
-    """Prior on the first pose's roll/pitch when gravity-aligned (else the yaw sigma is used)."""
-    kf_from_antenna: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """GNSS antenna position in the keyframe frame (lever arm); zeros -> plain ``GPSFactor``."""
-    gnss_gate_sigma: float = 10.0
-    """Reject a fix whose Mahalanobis distance to the prediction exceeds this (chi-square gate)."""
-    gnss_max_consecutive_rejections: int = 5
-    """After this many rejections in a row the next fix is accepted anyway (recovers from an
-    over-confident prediction); 0 disables the safety valve."""
-    align_min_spread_m: float = 5.0
-    """Horizontal spread of accepted fixes needed before the yaw re-initialisation."""
-    relinearize_threshold: float = 0.01
-    relinearize_skip: int = 1
-    extra_iterations: int = 1
-    """Extra ``update()`` calls after each new factor batch (lets iSAM2 relinearise)."""
-    imu: ImuOptions | None = None
-    """IMU factors between keyframes (feed samples with :meth:`SecondStage.add_imu`); None: off."""
-    colocation_offset_sigma: tuple[float, float, float] | None = None
-    """(tilt rad, yaw rad, translation m): co-location priors take the server's shape, placed by one
-    free transform ``O`` per agent (``local_from_kf ~ O @ prior``) with a prior of these sigmas at
-    identity, instead of pinning every keyframe absolutely. A server map's common tilt or ENU offset
-    (the visual tilt drift it keeps; 0.2-1 m of height in factory01's GNSS runs) then yields to the
-    agent's own IMU and GNSS. None: plain priors."""
-    colocation_offset_sigma_enu: tuple[float, float, float] | None = None
-    """O's prior while the co-location priors are absolute ENU poses (a server map the GNSS stage put
-    into ENU with every agent's fixes): a tighter translation lets the team's pooled fixes place this
-    agent instead of its own few (factory01 GNSS-challenged 1: each agent's local trajectory sat off
-    by the mean error of its own 5 fixes, e.g. uav3 (-0.04, -0.03, -0.07) m; the 19 fixes of the team
-    average (0.00, 0.01, -0.03) m). None: ``colocation_offset_sigma`` in both frames. Online on
-    factory01 (average gain over single + GNSS, one run per figure) the effect is not resolved:
-    challenged1 with it -32% and +27% (two runs of the code of 001a1ea), -1% (1bce6f3), +15% and -14%
-    (d77be1f); without it -5% (d61a6fb with the agents' up directions); challenged2 with it +11%, +5%,
-    +21%."""
-    colocation_enu_holds_own_fixes: bool = True
-    """While the co-location priors are ENU poses, this agent's own fixes on the keyframes they cover (up
-    to the latest one) leave the graph: the server's GNSS stage already fused them with the team's, and
-    counting them twice pulls the agent back toward its own few fixes' mean error (factory01
-    challenged1 at 13eeb44: uav1's five fixes average +0.057 m north, its local trajectory sat +0.05 m
-    north, the server's keyframes +0.008 m; with this (ef503a1, one run) +0.001 m, and every agent's
-    mean offset within 2 cm of the server's). They come back if the priors stop being ENU."""
 
 
 @dataclass
@@ -165,71 +48,6 @@ class GnssDecision:
     mahalanobis: float
     residual_m: float
     forced: bool = False
-
-
-def _key(kf_id: int) -> int:
-    import gtsam
-
-    return int(gtsam.symbol("k", int(kf_id)))
-
-
-def _vkey(kf_id: int) -> int:
-    import gtsam
-
-    return int(gtsam.symbol("v", int(kf_id)))
-
-
-def _okey() -> int:
-    import gtsam
-
-    return int(gtsam.symbol("o", 0))
-
-
-def _bkey(kf_id: int) -> int:
-    import gtsam
-
-    return int(gtsam.symbol("b", int(kf_id)))
-
-
-def _diag(sigmas: F64) -> Any:
-    import gtsam
-
-    return gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=np.float64))
-
-
-def _gaussian(cov: F64) -> Any:
-    import gtsam
-
-    cov = np.asarray(cov, dtype=np.float64)
-    cov = 0.5 * (cov + cov.T)
-    return gtsam.noiseModel.Gaussian.Covariance(cov)
-
-
-def yaw_translation_alignment(src: F64, dst: F64) -> F64:
-    """Least-squares ``dst ~ Rz(yaw) src + t`` for points (N, 3); returns the 4x4 transform.
-
-    The gravity-aligned case of Umeyama/Kabsch: rotation about z only, no scale. N >= 1
-    (with one point, or points on a vertical line, the yaw is 0).
-    """
-    z = np.array([0.0, 0.0, 1.0])
-    sim = levelled_similarity(src, dst, z, z, with_scale=False)
-    return se3(sim.R, sim.t)
-
-
-def rigid_alignment(src: F64, dst: F64) -> F64:
-    """Least-squares SE(3) ``dst ~ R src + t`` (Umeyama without scale, evo's implementation)."""
-    from evo.core.geometry import umeyama_alignment
-
-    R, t, _ = umeyama_alignment(np.asarray(src, float).T, np.asarray(dst, float).T, False)
-    return se3(R, t)
-
-
-def interpolate_se3(a: F64, b: F64, alpha: float) -> F64:
-    """Interpolate two 4x4 rigid transforms: slerp on rotation, linear on translation."""
-    alpha = float(np.clip(alpha, 0.0, 1.0))
-    rots = Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]]))
-    R = Slerp([0.0, 1.0], rots)([alpha]).as_matrix()[0]
-    return se3(R, (1.0 - alpha) * a[:3, 3] + alpha * b[:3, 3])
 
 
 class SecondStage:
@@ -268,7 +86,7 @@ class SecondStage:
         self._vel_prior: dict[int, tuple[int, F64]] = {}
         self._est: Any = None  # the latest iSAM2 estimate (gtsam Values): velocities and biases are read here
         self.n_imu_factors = 0
-        self._imu_params = self._make_imu_params() if self.options.imu is not None else None
+        self._imu_params = imu.imu_params(self) if self.options.imu is not None else None
         self._isam = self._new_isam()
 
     # ------------------------------------------------------------------ construction helpers
@@ -279,19 +97,6 @@ class SecondStage:
         p.setRelinearizeThreshold(self.options.relinearize_threshold)
         p.relinearizeSkip = self.options.relinearize_skip
         return self._gtsam.ISAM2(p)
-
-    def _make_imu_params(self) -> Any:
-        o = self.options.imu
-        assert o is not None
-        p = self._gtsam.PreintegrationParams.MakeSharedU(o.gravity)
-        p.setGyroscopeCovariance(np.eye(3) * (o.gyroscope_noise_density * o.gyroscope_noise_scale) ** 2)
-        p.setAccelerometerCovariance(np.eye(3) * o.accelerometer_noise_density**2)
-        p.setIntegrationCovariance(np.eye(3) * o.integration_sigma**2)
-        kf_from_imu = np.asarray(o.kf_from_imu, dtype=np.float64).reshape(4, 4)
-        if not np.allclose(kf_from_imu, np.eye(4)):
-            # gtsam's body_P_sensor: the sensor's (IMU's) pose in the state's (keyframe's) frame
-            p.setBodyPSensor(self._gtsam.Pose3(kf_from_imu))
-        return p
 
     def _first_prior_noise(self, vio_from_kf: F64) -> Any:
         o = self.options
@@ -387,7 +192,7 @@ class SecondStage:
         for kf_id in self._order:
             theta.insert(_key(kf_id), gtsam.Pose3(initial[kf_id]))
             if kf_id in self._imu_kfs:
-                v, b = self._velocity_bias(kf_id)
+                v, b = imu.velocity_bias(self, kf_id)
                 theta.insert(_vkey(kf_id), R @ v)
                 theta.insert(_bkey(kf_id), b)
         if self._offset is not None:
@@ -447,7 +252,7 @@ class SecondStage:
         extra = None
         vel_prior_mean: F64 | None = None
         if self._imu_params is not None:
-            imu_factors, extra, vel_prior_mean = self._imu_factors(kf_id, float(timestamp), segment)
+            imu_factors, extra, vel_prior_mean = imu.imu_factors(self, kf_id, float(timestamp), segment)
             factors += imu_factors
         self._kfs[kf_id] = _Kf(kf_id, float(timestamp), vio_from_kf, segment)
         self._order.append(kf_id)
@@ -473,62 +278,6 @@ class SecondStage:
             raise ValueError("IMU samples must be finite")
         self._imu_buf.extend(a)
 
-    def _velocity_bias(self, kf_id: int) -> tuple[F64, Any]:
-        """The current estimate of a keyframe's velocity (local frame) and IMU bias."""
-        return np.asarray(self._est.atVector(_vkey(kf_id)), dtype=np.float64), self._est.atConstantBias(
-            _bkey(kf_id)
-        )
-
-    def _imu_factors(self, kf_id: int, t: float, segment: int) -> tuple[list[Any], Any, F64 | None]:
-        """The IMU factors and new values (velocity, bias) of a keyframe about to be added.
-
-        Returns (factors, values, mean of the velocity prior or None). Within a segment, with samples
-        since the previous keyframe and a gap under ``max_gap_s``: an ``ImuFactor`` and a bias random
-        walk to the previous keyframe. Otherwise a loose velocity prior and a bias prior instead.
-        """
-        gtsam = self._gtsam
-        o = self.options.imu
-        assert o is not None
-        prev = next((k for k in reversed(self._order) if self._kfs[k].segment == segment), None)
-        t_prev = self._kfs[prev].timestamp if prev is not None else -math.inf
-        buf = self._imu_buf
-        samples = [r for r in buf if t_prev < r[0] <= t]
-        self._imu_buf = [r for r in buf if r[0] > t]
-        values = gtsam.Values()
-        v_prev, b_prev = self._velocity_bias(prev) if prev in self._imu_kfs else (None, None)
-        self._imu_kfs.add(kf_id)
-        if prev is not None and v_prev is not None and samples and 0.0 < t - t_prev <= o.max_gap_s:
-            pim = gtsam.PreintegratedImuMeasurements(self._imu_params, b_prev)
-            last = t_prev
-            for r in samples:
-                if r[0] > last:
-                    pim.integrateMeasurement(r[4:7], r[1:4], float(r[0] - last))
-                    last = float(r[0])
-            nav = gtsam.NavState(gtsam.Pose3(self._estimate[prev]), v_prev)
-            v0 = np.asarray(pim.predict(nav, b_prev).velocity(), dtype=np.float64)
-            dt = t - t_prev
-            rw = np.array([o.accelerometer_random_walk] * 3 + [o.gyroscope_random_walk] * 3) * math.sqrt(dt)
-            factors = [
-                gtsam.ImuFactor(_key(prev), _vkey(prev), _key(kf_id), _vkey(kf_id), _bkey(prev), pim),
-                gtsam.BetweenFactorConstantBias(
-                    _bkey(prev), _bkey(kf_id), gtsam.imuBias.ConstantBias(), _diag(rw)
-                ),
-            ]
-            values.insert(_vkey(kf_id), v0)
-            values.insert(_bkey(kf_id), b_prev)
-            self.n_imu_factors += 1
-            return factors, values, None
-        v0 = np.zeros(3) if v_prev is None else v_prev
-        b0 = gtsam.imuBias.ConstantBias() if b_prev is None else b_prev
-        sig_b = np.array([o.bias_prior_sigma_accel] * 3 + [o.bias_prior_sigma_gyro] * 3)
-        factors = [
-            gtsam.PriorFactorVector(_vkey(kf_id), v0, _diag(np.full(3, o.velocity_prior_sigma))),
-            gtsam.PriorFactorConstantBias(_bkey(kf_id), b0, _diag(sig_b)),
-        ]
-        values.insert(_vkey(kf_id), v0)
-        values.insert(_bkey(kf_id), b0)
-        return factors, values, v0
-
     def update_vio_pose(self, kf_id: int, vio_from_kf: F64) -> None:
         """The front-end moved an already added keyframe (local BA): see ``update_vio_poses``."""
         self.update_vio_poses({kf_id: vio_from_kf})
@@ -536,10 +285,8 @@ class SecondStage:
     def update_vio_poses(self, updates: dict[int, F64], min_change_m: float = 1e-3) -> None:
         """The front-end's local BA moved already added keyframes: keep their VIO poses current and
         replace the relative-pose factors that touch them by the refined relative poses (same
-        covariance). Keyframes are emitted before the local BA window has settled; measured on
-        factory01's UGV at a sharp turn, the emission-time relative poses were off by up to 0.4 m
-        while the refined VIO keyframes were within a few centimetres, so without this the local
-        trajectory (GNSS denied) was worse than the VIO's."""
+        covariance). Keyframes are emitted before the local BA window has settled, so their emission-time
+        relative poses can be decimetres off at sharp turns (docs/decisions.md)."""
         touched: set[int] = set()
         for kf_id, T in updates.items():
             if kf_id in self._kfs:
@@ -610,8 +357,7 @@ class SecondStage:
         # Before the yaw is anchored (by GNSS spread or a co-location) the linearised prediction is
         # meaningless (a 30 degree yaw error is far from linear), so the gate only runs afterwards.
         # Map-frame co-location priors tie the local frame to the VIO frame, not to ENU: only absolute
-        # (ENU) ones anchor it (factory01 challenged2: the UAVs' four random fixes, the first at 23.6 s
-        # after map-frame corrections, were all rejected as 14 m outliers).
+        # (ENU) ones anchor it (else fixes after map-frame corrections are rejected as outliers).
         anchored = self._gnss_stage >= 2 or (self._colocation_enu and bool(self._colocation_handle))
         if anchored and d > o.gnss_gate_sigma:
             if 0 < o.gnss_max_consecutive_rejections <= self._consecutive_rejections:
@@ -667,73 +413,10 @@ class SecondStage:
 
         A server correction is one consistent snapshot of the server's estimate expressed through one
         ``global_from_local``; priors kept from older corrections were expressed through older transforms
-        and pulled against the new ones (factory01, GNSS denied: the agents' local trajectories ended
-        worse than both their VIO and the server's map). The server sends one correction per front-end
-        session, so an agent that lost tracking gets one for each: ``scope`` is the session's keyframes,
-        and one session's snapshot must leave the other's priors alone (factory06 challenged2, uav1 after
-        its loss at t = 69.5 s: session 1's 1-keyframe correction replaced session 0's 14 priors while
-        session 0 held its own fixes out, session 0 slid off ENU, the next corrections were refused by
-        the agent's 1 m gate and it ended in its VIO frame, 14 m from ENU)."""
-        gtsam = self._gtsam
-        sig = self.options.colocation_offset_sigma
-
-        def in_scope(k: int) -> bool:
-            return scope is None or k in scope
-
-        factors, owners = [], []
-        for kf_id, (pose, cov) in priors.items():
-            if kf_id not in self._kfs or not in_scope(kf_id):
-                continue
-            T = gtsam.Pose3(np.asarray(pose, dtype=np.float64).reshape(4, 4))
-            noise = _gaussian(np.asarray(cov).reshape(6, 6))
-            if sig is None:
-                factors.append(gtsam.PriorFactorPose3(_key(kf_id), T, noise))
-            else:
-                factors.append(gtsam.BetweenFactorPose3(_okey(), _key(kf_id), T, noise))
-            owners.append(kf_id)
-        old = [self._colocation_handle.pop(k) for k in list(self._colocation_handle) if in_scope(k)]
-        self._colocation_enu = enu
-        # this agent's fixes the server already fused (options.colocation_enu_holds_own_fixes)
-        restore: list[Any] = []
-        if enu and owners and self.options.colocation_enu_holds_own_fixes:
-            pos = {k: i for i, k in enumerate(self._order)}
-            last = max(pos[k] for k in owners)
-            for kf_id in [k for k in self._gnss_handles if pos[k] <= last and in_scope(k)]:
-                hs = self._gnss_handles.pop(kf_id)
-                self._gnss_held[kf_id] = [self._factors[h] for h in hs]
-                old += hs
-        elif not enu and self._gnss_held:
-            for kf_id in [k for k in self._gnss_held if in_scope(k)]:
-                restore += [(kf_id, f) for f in self._gnss_held.pop(kf_id)]
-        factors += [f for _, f in restore]
-        if not factors and not old:
-            return
-        extra = None
-        n_own = len(owners)
-        sig_enu = self.options.colocation_offset_sigma_enu
-        # the sigmas of O's prior for these priors (None: no O)
-        s3 = None if sig is None else sig_enu if enu and sig_enu is not None else sig
-        use_enu = s3 is not sig
-        if s3 is not None and factors and (self._offset_prior is None or self._offset_prior[1] != use_enu):
-            # the offset's prior: identity, tilt/yaw/translation sigmas (the ENU ones with ENU priors)
-            if self._offset is None:
-                extra = gtsam.Values()
-                extra.insert(_okey(), gtsam.Pose3())
-                self._offset = np.eye(4)
-            if self._offset_prior is not None:
-                old.append(self._offset_prior[0])
-            factors.append(
-                gtsam.PriorFactorPose3(
-                    _okey(), gtsam.Pose3(), _diag(np.array([s3[0], s3[0], s3[1]] + [s3[2]] * 3))
-                )
-            )
-        handles = self._commit(factors, {}, remove=old, extra_values=extra)
-        self._colocation_handle.update(zip(owners, handles[:n_own], strict=True))
-        n_restore = len(restore)
-        for (kf_id, _), h in zip(restore, handles[n_own : n_own + n_restore], strict=True):
-            self._gnss_handles.setdefault(kf_id, []).append(h)
-        if len(handles) > n_own + n_restore:
-            self._offset_prior = (handles[n_own + n_restore], use_enu)
+        and pulled against the new ones. The server sends one correction per front-end session, so an
+        agent that lost tracking gets one for each: ``scope`` is the session's keyframes, and one
+        session's snapshot must leave the other's priors alone (docs/decisions.md)."""
+        colocation.set_colocations(self, priors, enu, scope)
 
     def add_correction(self, kf_id: int, global_from_kf: F64, global_from_local: F64, cov: F64) -> None:
         """A server correction: keyframe pose in the global frame + ``global_from_local`` (Sim(3)

@@ -1,0 +1,94 @@
+"""What the front-end reports: tracking states, per-frame results, keyframe / pose-update / new-session
+events and statistics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+class TrackingState(StrEnum):
+    INITIALIZING = "initializing"
+    OK = "ok"
+    RELOCALIZED = "relocalized"
+    LOST = "lost"
+    NEW_MAP = "new_map"
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """Result of one ``Frontend.process`` call.  Poses are in the VIO frame of ``session``."""
+
+    t: float
+    state: TrackingState
+    world_from_cam: F64
+    world_from_body: F64
+    n_tracked: int
+    session: int
+    new_keyframe_id: int | None = None
+
+
+@dataclass(frozen=True)
+class KeyframeEvent:
+    """A new keyframe ready for the link / second stage (emitted once, after ``emit_delay_keyframes``).
+
+    ``rel_body`` = prev_body_from_body (4x4) with ``rel_cov`` (6x6, gtsam order [rot, trans], right
+    perturbation of ``rel_body``), both None for the first keyframe of a session.
+    New points: those its keypoints reference that were not emitted before.
+    """
+
+    session: int
+    kf_id: int
+    timestamp: float
+    world_from_cam: F64
+    world_from_body: F64
+    keypoints: NDArray[np.float32]
+    octaves: NDArray[np.uint8]
+    descriptors: NDArray[np.uint8]
+    point_ids: I64
+    prev_kf_id: int | None
+    rel_body: F64 | None
+    rel_cov: F64 | None
+    gnss_epoch: bool
+    new_point_ids: I64
+    new_point_xyz: F64
+    new_point_descriptors: NDArray[np.uint8]
+
+
+@dataclass(frozen=True)
+class PoseUpdateEvent:
+    """Poses/points (already emitted) changed by local BA or gravity alignment."""
+
+    session: int
+    kf_ids: I64
+    world_from_cam: F64  # (K,4,4)
+    point_ids: I64
+    xyz: F64
+
+
+@dataclass(frozen=True)
+class NewSessionEvent:
+    """Tracking was lost and relocalisation failed: a new map (session) starts."""
+
+    old_session: int
+    session: int
+    t: float
+
+
+Event = KeyframeEvent | PoseUpdateEvent | NewSessionEvent
+
+
+@dataclass
+class FrontendStats:
+    frames: int = 0
+    keyframes: int = 0
+    lost_frames: int = 0
+    relocalizations: int = 0
+    sessions: int = 1
+    timing: dict[str, float] = field(default_factory=dict)

@@ -1,0 +1,277 @@
+"""The front-end's local mapping: when a frame becomes a keyframe, creating it (stereo points, the
+relative pose covariance), multi-view triangulation, local BA and map-point culling."""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.client.frontend.events import PoseUpdateEvent, TrackingState
+from hivemap.client.frontend.mapdata import Frame, KeyframeData
+from hivemap.client.frontend.optim import (
+    BAProblem,
+    bundle_adjust,
+    chi2_of,
+    chi2_thresholds,
+    pose_hessian,
+)
+
+if TYPE_CHECKING:
+    from hivemap.client.frontend.tracker import Frontend
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+def need_keyframe(fe: Frontend, frame: Frame, n_tracked: int, gnss_epoch: bool, state: TrackingState) -> bool:
+    o = fe.options
+    if gnss_epoch or state == TrackingState.RELOCALIZED:
+        return True
+    last = fe._kfs.get(fe._kf_last_id)
+    if last is None:
+        return True
+    if frame.t - last.timestamp >= o.kf_max_interval_s:
+        return True
+    tracked = frame.point_ids >= 0
+    close_th = o.close_depth_baselines * fe.rig.baseline
+    z = frame.pts_cam[:, 2]
+    close = np.isfinite(z) & (z < close_th)
+    n_close_tracked = int((tracked & close).sum())
+    n_close_untracked = int((~tracked & close).sum())
+    weak_close = n_close_tracked < o.kf_min_close_tracked and n_close_untracked > o.kf_min_close_tracked
+    return n_tracked < o.kf_min_tracked_ratio * fe._ref_tracked or weak_close
+
+
+def create_keyframe(fe: Frontend, frame: Frame, gnss_epoch: bool, first: bool = False) -> int:
+    import time
+
+    o = fe.options
+    kid = fe._kf_counter
+    fe._kf_counter += 1
+    prev = fe._kfs.get(fe._kf_last_id)
+    kf = KeyframeData(
+        kid, fe.session, frame, frame.T_cw.copy(), gnss_epoch, prev_id=prev.id if prev else None
+    )
+    fe._kfs[kid] = kf
+    fe.stats.keyframes += 1
+    pts = fe._pts
+    tracked_before = int((frame.point_ids >= 0).sum())
+    for i in np.flatnonzero(frame.point_ids >= 0):
+        pid = int(frame.point_ids[i])
+        pts.obs[pid][kid] = int(i)
+        pts.desc[pid] = frame.desc[i]
+    # stereo points: all close ones, at least 100 (closest first) as ORB-SLAM
+    z = frame.pts_cam[:, 2]
+    cand = np.flatnonzero(np.isfinite(z) & (frame.point_ids < 0))
+    cand = cand[np.argsort(z[cand])]
+    close_th = o.close_depth_baselines * fe.rig.baseline
+    n_close = int((z[cand] < close_th).sum())
+    n_take = max(n_close, min(len(cand), 100 if not first else len(cand)))
+    new = cand[:n_take]
+    if len(new):
+        Xw = frame.pts_cam[new] @ kf.T_wc[:3, :3].T + kf.T_wc[:3, 3]
+        ids = pts.add(Xw, frame.desc[new], kid)
+        frame.point_ids[new] = ids
+        for pid, i in zip(ids, new, strict=True):
+            pts.obs[int(pid)][kid] = int(i)
+    t0 = time.perf_counter()
+    if not first:
+        triangulate(fe, kf)
+    t1 = time.perf_counter()
+    if not first:
+        local_ba(fe, kf)
+        cull_points(fe, kid)
+    t2 = time.perf_counter()
+    fe.stats.timing["triangulate"] = fe.stats.timing.get("triangulate", 0.0) + t1 - t0
+    fe.stats.timing["local_ba"] = fe.stats.timing.get("local_ba", 0.0) + t2 - t1
+    frame.T_cw = kf.T_cw
+    # relative pose covariance from the keyframe's own observations (motion-only information)
+    if prev is not None:
+        tr = frame.point_ids >= 0
+        idx = np.flatnonzero(tr)
+        H = pose_hessian(fe.k, kf.T_cw, pts.xyz[frame.point_ids[idx]], frame.meas[idx], frame.inv_sigma2[idx])
+        try:
+            cov = np.linalg.inv(H + 1e-6 * np.eye(6))
+        except np.linalg.LinAlgError:
+            cov = np.eye(6)
+        # left perturbation of cam_from_world == (minus) right perturbation of world_from_cam
+        dist = float(np.linalg.norm(kf.T_wc[:3, 3] - prev.T_wc[:3, 3]))
+        floor = np.array([1e-3 + 2e-3 * np.radians(1.0)] * 3 + [1e-3 + 4e-3 * dist] * 3) ** 2
+        kf.rel_cov_cam = cov + np.diag(floor)
+    fe._kf_last_id = kid
+    fe._ref_tracked = tracked_before if not first else int((frame.point_ids >= 0).sum())
+    fe._update_local_map()
+    fe._emit_ready()
+    return kid
+
+
+def triangulate(fe: Frontend, kf: KeyframeData) -> None:
+    """Multi-view triangulation of unmatched keypoints with the previous keyframes."""
+    o = fe.options
+    f1 = kf.frame
+    un1 = np.flatnonzero(f1.point_ids < 0)
+    if len(un1) < 10:
+        return
+    nbrs = sorted((k for k in fe._kfs if k != kf.id), reverse=True)[: o.triangulation_neighbours]
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    K = fe.cam.K
+    Kinv = np.linalg.inv(K)
+    C1 = kf.T_wc[:3, 3]
+    for nid in nbrs:
+        nk = fe._kfs[nid]
+        f2 = nk.frame
+        un2 = np.flatnonzero(f2.point_ids < 0)
+        un1 = np.flatnonzero(f1.point_ids < 0)
+        if len(un2) < 10 or len(un1) < 10:
+            continue
+        C2 = nk.T_wc[:3, 3]
+        if np.linalg.norm(C2 - C1) < 0.5 * fe.rig.baseline:
+            continue
+        knn = bf.knnMatch(f1.desc[un1], f2.desc[un2], k=2)
+        a, b = [], []
+        for m in knn:
+            if len(m) == 2 and m[0].distance <= 50 and m[0].distance < 0.7 * m[1].distance:
+                a.append(un1[m[0].queryIdx])
+                b.append(un2[m[0].trainIdx])
+        if len(a) < 5:
+            continue
+        ia, ib = np.array(a), np.array(b)
+        _, u = np.unique(ib, return_index=True)
+        ia, ib = ia[u], ib[u]
+        x1 = np.c_[f1.kpu[ia], np.ones(len(ia))] @ Kinv.T
+        x2 = np.c_[f2.kpu[ib], np.ones(len(ib))] @ Kinv.T
+        r1 = x1 @ kf.T_wc[:3, :3].T
+        r2 = x2 @ nk.T_wc[:3, :3].T
+        cosp = (r1 * r2).sum(1) / np.linalg.norm(r1, axis=1) / np.linalg.norm(r2, axis=1)
+        ok = cosp < o.min_parallax_cos
+        if not ok.any():
+            continue
+        ia, ib, x1, x2 = ia[ok], ib[ok], x1[ok], x2[ok]
+        Xh = cv2.triangulatePoints(kf.T_cw[:3], nk.T_cw[:3], x1[:, :2].T, x2[:, :2].T)
+        Xw = (Xh[:3] / np.where(np.abs(Xh[3]) > 1e-12, Xh[3], 1e-12)).T
+        good = np.isfinite(Xw).all(1)
+        # Each view's reprojection, with the right-image coordinate where the keypoint has one (as
+        # local BA will weigh it): two views alone only check the epipolar line, so a wrong match
+        # along it (repeated posters on a wall) triangulates at a wrong depth that its stereo
+        # measurement contradicts, and such points pull local BA's keyframes (docs/decisions.md).
+        for T, f, idx in ((kf.T_cw, f1, ia), (nk.T_cw, f2, ib)):
+            pc = Xw @ T[:3, :3].T + T[:3, 3]
+            meas = f.meas[idx]
+            chi2 = chi2_of(fe.k, pc, meas, f.inv_sigma2[idx])
+            good &= (pc[:, 2] > 0.1) & (chi2 < chi2_thresholds(meas))
+        if not good.any():
+            continue
+        ia, ib, Xw = ia[good], ib[good], Xw[good]
+        ids = fe._pts.add(Xw, f1.desc[ia], kf.id)
+        f1.point_ids[ia] = ids
+        f2.point_ids[ib] = ids
+        for pid, i, j in zip(ids, ia, ib, strict=True):
+            fe._pts.obs[int(pid)][kf.id] = int(i)
+            fe._pts.obs[int(pid)][nid] = int(j)
+
+
+def local_ba(fe: Frontend, kf: KeyframeData) -> None:
+    o = fe.options
+    cov = fe._covisibility(kf.id)
+    window = [kf.id] + [k for k, _ in sorted(cov.items(), key=lambda kv: -kv[1])[: o.ba_window - 1]]
+    wset = set(window)
+    pids_l = [fe._kfs[k].frame.point_ids for k in window]
+    pids = np.unique(np.concatenate(pids_l))
+    pids = pids[pids >= 0]
+    pids = pids[fe._pts.alive[pids]]
+    if len(pids) < 10:
+        return
+    fixed_count: dict[int, int] = {}
+    cams: list[int] = []
+    pts_i: list[int] = []
+    kp_i: list[int] = []
+    for j, pid in enumerate(pids):
+        for k_id, i in fe._pts.obs[int(pid)].items():
+            if k_id not in wset:
+                fixed_count[k_id] = fixed_count.get(k_id, 0) + 1
+            cams.append(k_id)
+            pts_i.append(j)
+            kp_i.append(i)
+    fixed = [k for k, _ in sorted(fixed_count.items(), key=lambda kv: -kv[1])[: o.ba_fixed_max]]
+    if not fixed:
+        # gauge: hold the oldest keyframe of the window
+        oldest = min(window)
+        window.remove(oldest)
+        fixed = [oldest]
+    all_k = window + fixed
+    kidx = {k: n for n, k in enumerate(all_k)}
+    cam_arr = np.array(cams)
+    use = np.array([c in kidx for c in cams])
+    cam_idx = np.array([kidx.get(c, -1) for c in cams])[use]
+    pt_idx = np.array(pts_i)[use]
+    kp_arr = np.array(kp_i)[use]
+    cam_ids = cam_arr[use]
+    meas = np.empty((len(cam_idx), 3))
+    inv_s2 = np.empty(len(cam_idx))
+    for k_id in all_k:
+        m = cam_ids == k_id
+        f = fe._kfs[k_id].frame
+        meas[m] = f.meas[kp_arr[m]]
+        inv_s2[m] = f.inv_sigma2[kp_arr[m]]
+    poses = np.stack([fe._kfs[k].T_cw for k in all_k])
+    is_fixed = np.array([k not in wset or k in fixed for k in all_k])
+    prob = BAProblem(poses, is_fixed, fe._pts.xyz[pids].copy(), cam_idx, pt_idx, meas, inv_s2)
+    n1 = max(2, o.ba_iterations // 2)
+    poses2, X2, inl = bundle_adjust(fe.k, prob, n1)
+    prob2 = BAProblem(poses2, is_fixed, X2, cam_idx, pt_idx, meas, inv_s2)
+    poses2, X2, inl2 = bundle_adjust(fe.k, prob2, o.ba_iterations - n1, active=inl)
+    # drop outlier observations
+    for n in np.flatnonzero(~inl2):
+        k_id = int(cam_ids[n])
+        pid = int(pids[pt_idx[n]])
+        fe._pts.obs[pid].pop(k_id, None)
+        f = fe._kfs[k_id].frame
+        if f.point_ids[kp_arr[n]] == pid:
+            f.point_ids[kp_arr[n]] = -1
+    for k_id, T in zip(all_k, poses2, strict=True):
+        if k_id in wset and k_id not in fixed:
+            fe._kfs[k_id].T_cw = T
+            fe._kfs[k_id].frame.T_cw = T
+    fe._pts.xyz[pids] = X2
+    upd = [k for k in window if k not in fixed and fe._kfs[k].emitted]
+    if upd:
+        pp = pids[fe._pts.emitted[pids]]
+        fe._events.append(
+            PoseUpdateEvent(
+                fe.session,
+                np.array(upd, np.int64),
+                np.stack([fe._kfs[k].T_wc for k in upd]),
+                pp,
+                fe._pts.xyz[pp].copy(),
+            )
+        )
+
+
+def cull_points(fe: Frontend, kid: int) -> None:
+    o = fe.options
+    pts = fe._pts
+    ids = pts.alive_ids()
+    ids = ids[pts.first_kf[ids] >= kid - 6]  # recently created points only (ORB-SLAM's recent list)
+    if len(ids) == 0:
+        return
+    nobs = np.array([len(pts.obs[i]) for i in ids])
+    ratio = pts.found[ids] / np.maximum(pts.visible[ids], 1)
+    age = kid - pts.first_kf[ids]
+    bad = (nobs == 0) | ((ratio < o.culling_min_found_ratio) & (age >= 2)) | ((age >= 3) & (nobs <= 1))
+    bad &= ~pts.emitted[ids] | (nobs == 0)
+    for pid in ids[bad]:
+        for k_id, i in pts.obs[pid].items():
+            f = fe._kfs[k_id].frame
+            if f.point_ids[i] == pid:
+                f.point_ids[i] = -1
+        pts.obs[pid] = {}
+        pts.alive[pid] = False
+
+
+# ------------------------------------------------------------------ events

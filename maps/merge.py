@@ -1,0 +1,119 @@
+"""Merging one map of a stack into another (``MapStack.merge``)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+from hivemap.maps.elements import KfKey, PointKey
+from hivemap.maps.geometry import Sim3
+
+if TYPE_CHECKING:
+    from hivemap.maps.model import Map, MapStack
+
+logger = logging.getLogger(__name__)
+
+
+def merge_maps(
+    stack: MapStack,
+    target_id: int,
+    source_id: int,
+    target_from_source: Sim3,
+    fused_pairs: Sequence[tuple[PointKey, PointKey]] = (),
+) -> Map:
+    """Merge map ``source_id`` into map ``target_id``; the source leaves the stack.
+
+    Every source keyframe pose is moved with ``target_from_source.transform_pose`` and every source
+    point with ``.apply``; then each ``(target_point, source_point)`` pair in ``fused_pairs`` is fused:
+    the first (target) point survives and inherits all observations (``Map.fuse_points``; pairs whose
+    points are gone or already the same are skipped). The source's spanning tree is re-rooted at its
+    keyframe most covisible with the target and attached there. A record is appended to
+    ``merge_history``. Raises ``ValueError`` (before changing anything) if keys collide.
+    """
+    if target_id == source_id:
+        raise ValueError("cannot merge a map with itself")
+    tgt, src = stack.maps[target_id], stack.maps[source_id]
+    clash_kf = tgt.keyframes.keys() & src.keyframes.keys()
+    clash_pt = tgt.points.keys() & src.points.keys()
+    if clash_kf or clash_pt:
+        raise ValueError(
+            f"maps {target_id} and {source_id} share keys: {len(clash_kf)} keyframes, {len(clash_pt)} points"
+        )
+    t0 = time.perf_counter()
+    src.transform(target_from_source)
+    src_keys = list(src.keyframes)
+    tgt.keyframes.update(src.keyframes)
+    tgt.points.update(src.points)
+    tgt._covis.update(src._covis)
+    tgt._children.update(src._children)
+    for a, bs in src._loops.items():
+        tgt._loops.setdefault(a, set()).update(bs)
+    tgt._orphans.update(src._orphans)
+    tgt._tree_changed.update(src._tree_changed)
+    tgt.agents.update(src.agents)
+    for k, v in src.point_redirects.items():
+        tgt.point_redirects.setdefault(k, v)
+    # pending references of either side may now name a present point
+    for pk, refs in src._pending.items():
+        tgt._pending.setdefault(pk, {}).update(refs)
+    for pk in [pk for pk in tgt._pending if pk in tgt.points]:
+        refs = tgt._pending.pop(pk)
+        mp = tgt.points[pk]
+        for kf_key, idx in refs.items():
+            kf = tgt.keyframes[kf_key]
+            if kf_key in mp.observations:
+                kf.set_point_key(idx, None)
+            else:
+                tgt._link(kf, idx, mp)
+    tgt.merge_history.extend(src.merge_history)
+    n_fused = 0
+    for keep, drop in fused_pairs:
+        k2, d2 = tgt.resolve_point(keep), tgt.resolve_point(drop)
+        if k2 == d2 or k2 not in tgt.points or d2 not in tgt.points:
+            logger.debug("merge %s<-%s: fused pair %s/%s skipped", target_id, source_id, keep, drop)
+            continue
+        tgt.fuse_points(k2, d2)
+        n_fused += 1
+    # attach each source tree to the target at its strongest covisibility link
+    src_set = set(src_keys)
+    roots: dict[KfKey, list[KfKey]] = {}
+    for k in src_keys:
+        roots.setdefault(tgt._root_of(k), []).append(k)
+    n_attached = 0
+    for root, members in roots.items():
+        if root not in src_set:
+            continue  # already attached (through an orphan link)
+        best: tuple[int, KfKey, KfKey] | None = None
+        for k in members:
+            for nb, w in tgt._covis[k].items():
+                if nb not in src_set and (best is None or w > best[0]):
+                    best = (w, k, nb)
+        if best is not None:
+            _, k, nb = best
+            tgt._reroot(k)
+            tgt._set_parent_unchecked(k, nb)
+            tgt._orphans.discard(k)
+            n_attached += 1
+    record: dict[str, Any] = {
+        "time": time.time(),
+        "target": int(target_id),
+        "source": int(source_id),
+        "target_from_source": target_from_source.matrix().tolist(),
+        "n_fused": n_fused,
+        "n_keyframes_moved": len(src_keys),
+        "n_trees_attached": n_attached,
+        "source_agents": sorted(src.agents),
+    }
+    tgt.merge_history.append(record)
+    del stack.maps[source_id]
+    logger.info(
+        "merged map %d into %d: %d keyframes moved, %d points fused (%.1f ms)",
+        source_id,
+        target_id,
+        len(src_keys),
+        n_fused,
+        (time.perf_counter() - t0) * 1e3,
+    )
+    return tgt

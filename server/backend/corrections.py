@@ -1,0 +1,181 @@
+"""Corrections: moving a map by per-keyframe corrections (on the event loop, with the keyframes that arrived
+after the snapshot following their parent), re-framing its agents, and the ``correction`` messages that
+tell each agent where the server now puts its keyframes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.geometry import Sim3, rotation_angle_deg
+from hivemap.protocol import Correction, encode
+from hivemap.server.backend.fit import umeyama
+from hivemap.server.backend.options import CorrectionOptions
+
+logger = logging.getLogger(__name__)
+
+KfKey = tuple[str, int]
+F64 = NDArray[np.float64]
+
+# A correction whose log-scale exceeds this is "wild" (a failed solve) and none of the batch is applied.
+MAX_ABS_LOG_SCALE = 1.0
+# Keyframes are ranked for a correction by move (m) + this x turn (deg).
+TURN_WEIGHT_M_PER_DEG = 0.05
+
+
+def local_poses(server: Any, m: Any) -> dict[KfKey, F64]:
+    """Each keyframe's pose in its agent's local (VIO) frame, as the agent sees it now."""
+    out: dict[KfKey, F64] = {}
+    inv: dict[str, Sim3] = {}
+    for k, kf in m.keyframes.items():
+        g = inv.get(k[0])
+        if g is None:
+            am = server._agent_map_by_folded(k[0])
+            g = inv[k[0]] = (am.global_from_vio if am is not None else Sim3.identity()).inverse()
+        out[k] = g.transform_pose(kf.world_from_cam)
+    return out
+
+
+def apply_corrections(
+    server: Any,
+    m: Any,
+    corr: dict[KfKey, Sim3],
+    new_xyz: dict[Any, F64],
+    o: CorrectionOptions,
+    fix_scale: bool,
+) -> None:
+    """On the loop: move keyframes by their correction; keyframes that are not in ``corr`` (arrived
+    after the snapshot) by their nearest corrected ancestor's; points by ``new_xyz`` or by the correction
+    of a keyframe observing them; agents' ``global_from_vio`` by their latest keyframe's correction."""
+    bad = [
+        k
+        for k, c in corr.items()
+        if not (np.isfinite(c.matrix()).all() and abs(np.log(c.s)) < MAX_ABS_LOG_SCALE)
+    ]
+    if bad:
+        logger.error(
+            "map %d: %d non-finite or wild corrections (e.g. %s) not applied", m.id, len(bad), bad[0]
+        )
+        server.events.add("error", f"map {m.id}: {len(bad)} wild corrections not applied", map_id=m.id)
+        return
+    full: dict[KfKey, Sim3] = dict(corr)
+
+    def correction_of(k: KfKey) -> Sim3:
+        chain: list[KfKey] = []
+        cur: KfKey | None = k
+        while cur is not None and cur not in full and len(chain) < 10000:
+            chain.append(cur)
+            cur = m.parent(cur) if cur in m.keyframes else None
+        c = full.get(cur, Sim3.identity()) if cur is not None else Sim3.identity()
+        for x in chain:
+            full[x] = c
+        return c
+
+    for k, kf in m.keyframes.items():
+        c = correction_of(k)
+        kf.world_from_cam = c.transform_pose(kf.world_from_cam)
+    # points follow their first observer's correction, one stacked apply per keyframe (point by point
+    # it held the event loop for almost half a second on a factory map)
+    by_kf: dict[KfKey, list[Any]] = {}
+    for pk, mp in m.points.items():
+        x = new_xyz.get(pk)
+        if x is not None:
+            mp.xyz = np.array(x, dtype=np.float64)
+            continue
+        obs = next(iter(mp.observations), None)
+        if obs is not None and obs in full:
+            by_kf.setdefault(obs, []).append(mp)
+    for k, mps in by_kf.items():
+        for mp, x in zip(mps, full[k].apply(np.stack([mp.xyz for mp in mps])), strict=True):
+            mp.xyz = x
+    for folded in list(m.agents):
+        am = server._agent_map_by_folded(folded)
+        recent = sorted((k for k in full if k[0] == folded and k in m.keyframes), key=lambda k: k[1])
+        if am is None or not recent:
+            continue
+        recent = recent[-o.transform_window :]
+        c = full[recent[-1]]
+        if len(recent) >= 3:
+            # the agent's frame follows the best Sim(3) fit of its recent keyframes' corrections (one
+            # keyframe's correction carries that keyframe's own noise)
+            # (centres and axis tips: centres alone are nearly collinear along a straight path)
+            old_poses = [full[k].inverse().transform_pose(m.keyframes[k].world_from_cam) for k in recent]
+            centres = np.array([T[:3, 3] for T in old_poses])
+            arm = max(1e-3, float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1))))
+            old = np.concatenate([np.vstack([T[:3, 3], T[:3, 3] + arm * T[:3, :3].T]) for T in old_poses])
+            new = np.concatenate([full[k].apply(old[4 * i : 4 * i + 4]) for i, k in enumerate(recent)])
+            c = umeyama(old, new, with_scale=not fix_scale)
+        server.set_agent_transform(folded, c @ am.global_from_vio)
+
+
+def chosen_keyframes(
+    m: Any, folded: str, before: dict[KfKey, F64], after: dict[KfKey, F64], o: CorrectionOptions, enu: bool
+) -> list[KfKey]:
+    """The keyframes of agent ``folded`` that a correction carries: the moved ones (largest first), and,
+    whenever there are any or the map is in ENU, a whole snapshot of the server's estimate for the agent:
+    every ``stride``-th keyframe (the agent replaces this session's co-location priors with it)."""
+    moves = []
+    for k, T1 in after.items():
+        T0 = before.get(k)
+        if k[0] != folded or T0 is None:
+            continue
+        dt = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        dr = rotation_angle_deg(T1[:3, :3] @ T0[:3, :3].T)
+        if dt >= o.min_move_m or dr >= o.min_rot_deg:
+            moves.append((dt + TURN_WEIGHT_M_PER_DEG * dr, k))
+    moves.sort(reverse=True)
+    chosen = sorted(k for _, k in moves[: o.max_kfs])
+    if chosen or enu:
+        own = sorted(k for k in m.keyframes if k[0] == folded)
+        sample = own[:: o.stride][-o.max_kfs :]
+        in_sample = set(sample)
+        extra = [k for k in chosen if k not in in_sample]
+        chosen = sorted(set(sample) | set(extra[: max(0, o.max_kfs - len(sample))]))
+    return chosen
+
+
+async def send_corrections(
+    server: Any,
+    map_id: int,
+    before: dict[KfKey, F64],
+    t_det: float,
+    o: CorrectionOptions,
+    enu: bool,
+    correction_bytes: dict[str, int],
+    latencies: list[float],
+) -> None:
+    """Send every agent of map ``map_id`` its correction (``before``: the local poses before the change,
+    empty when no keyframe moved locally); counts bytes and latencies from ``t_det``."""
+    m = server.stack.maps.get(map_id)
+    if m is None:
+        return
+    after = local_poses(server, m) if before else {}
+    for folded in sorted(m.agents):
+        am = server._agent_map_by_folded(folded)
+        if am is None:
+            continue
+        chosen = chosen_keyframes(m, folded, before, after, o, enu)
+        ids = np.array([k[1] for k in chosen], dtype=np.int64)
+        poses = np.array([m.keyframes[k].world_from_cam for k in chosen], dtype=np.float64).reshape(-1, 4, 4)
+        corr = Correction(map_id=map_id, global_from_local=am.global_from_vio.matrix(), kf_ids=ids,
+                          world_from_cam=poses, session=am.session,
+                          global_frame="enu" if enu else "map")  # fmt: skip
+        nbytes = len(encode(corr, 0))
+        correction_bytes[am.agent_id] = correction_bytes.get(am.agent_id, 0) + nbytes
+        try:
+            await server.send_correction(am.agent_id, corr)
+        except KeyError:
+            continue
+        latencies.append(time.monotonic() - t_det)
+        server.events.add(
+            "correction_detail",
+            f"{folded}: {len(ids)} keyframes changed, {nbytes} bytes",
+            agent_id=am.agent_id,
+            map_id=map_id,
+            data={"bytes": nbytes, "n_keyframes": len(ids), "total_bytes": correction_bytes[am.agent_id]},
+        )

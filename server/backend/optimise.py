@@ -1,0 +1,248 @@
+"""Global optimisation of a map after a merge, a loop or new fixes: the pose graph over the essential graph
+plus the new edges, and global BA. Each step is built from a snapshot on the event loop, solved in the
+optimisation thread (pure functions, no map access) and turned into per-keyframe corrections.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.geometry import Sim3
+from hivemap.server.backend.options import OptimiseOptions
+
+KfKey = tuple[str, int]
+F64 = NDArray[np.float64]
+
+
+class NewEdge(NamedTuple):
+    """A loop's or merge's pose-graph edge: ``measured`` is cam_candidate_from_cam_query; sigmas in rad
+    and m (``FitOptions.loop_sigma_bootstrap``)."""
+
+    candidate: KfKey
+    query: KfKey
+    measured: Sim3
+    sigma_rot: float
+    sigma_trans: float
+
+
+@dataclass
+class Snapshot:
+    map_id: int
+    generation: int
+    keys: list[KfKey]
+    poses: F64  # (N, 4, 4) world_from_cam at snapshot time
+
+
+def snapshot(m: Any, generation: int) -> Snapshot:
+    keys = sorted(m.keyframes)
+    poses = np.array([m.keyframes[k].world_from_cam for k in keys]).reshape(-1, 4, 4)
+    return Snapshot(m.id, generation, keys, poses)
+
+
+def up_rows(m: Any, keys: list[KfKey]) -> F64:
+    """(N, 3): each keyframe's IMU up direction in its camera frame (``Keyframe.up_cam``), NaN where none."""
+    nan3 = np.full(3, np.nan)
+    return np.array([nan3 if (u := m.keyframes[k].up_cam) is None else u for k in keys], dtype=np.float64)
+
+
+def anchor(
+    m: Any, keys: list[KfKey], agent_kind: Callable[[str], str], anchored: set[str], per_agent: int = 2
+) -> list[int]:
+    """Indices of the ``per_agent`` earliest keyframes of the map's reference agent (UGV, else first
+    agent) and of every agent joined to this map by its known start pose (``anchored``)."""
+    agents = sorted(m.agents, key=lambda f: (agent_kind(f) != "ugv", f))
+    fixed: list[int] = []
+    for a in agents:
+        idx = [i for i, k in enumerate(keys) if k[0] == a]
+        if idx:
+            idx.sort(key=lambda i: (m.keyframes[keys[i]].timestamp, keys[i][1]))
+            if not fixed:
+                fixed = idx[:per_agent]
+            elif a in anchored:
+                # Joined by its known start pose (no shared points or edges with the others): hold its
+                # earliest keyframes too, else its part of the map has a free gauge (incl. scale).
+                fixed += idx[:per_agent]
+    return fixed or [0]
+
+
+@dataclass
+class PoseGraphProblem:
+    initial: F64
+    graph_edges: list[tuple[int, int]]
+    new_edges: list[tuple[int, int, Sim3, float, float]]
+    fixed: list[int]
+    ups: F64 | None
+
+
+def pose_graph_problem(
+    m: Any,
+    snap: Snapshot,
+    edges: list[NewEdge],
+    pre: tuple[Sim3, list[KfKey]] | None,
+    fixed: list[int],
+    o: OptimiseOptions,
+) -> PoseGraphProblem:
+    """The pose graph of ``m``'s essential graph plus ``edges``, from ``snap``; ``pre``: a correction that
+    the listed keyframes start from (a loop's query neighbourhood), ``fixed``: the held keyframes."""
+    index = {k: i for i, k in enumerate(snap.keys)}
+    new_pairs = {frozenset((e.candidate, e.query)) for e in edges}
+    graph_edges = [
+        (index[a], index[b])
+        for a, b in m.essential_edges()
+        if a in index and b in index and frozenset((a, b)) not in new_pairs
+    ]
+    new_edges = [
+        (index[e.candidate], index[e.query], e.measured, e.sigma_rot, e.sigma_trans)
+        for e in edges
+        if e.candidate in index and e.query in index
+    ]
+    initial = snap.poses.copy()
+    if pre is not None:
+        for k in pre[1]:
+            if k in index and index[k] not in fixed:
+                initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
+    ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
+    return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups)
+
+
+def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey, Sim3], float]:
+    """Each keyframe's correction from the solved poses, and the largest move (m)."""
+    corr = {k: sims[i] @ Sim3.from_se3(snap.poses[i]).inverse() for i, k in enumerate(snap.keys)}
+    moved = max(
+        (float(np.linalg.norm(sims[i].t - snap.poses[i][:3, 3])) for i in range(len(snap.keys))),
+        default=0.0,
+    )
+    return corr, moved
+
+
+def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseOptions) -> list[Sim3]:
+    """Optimisation thread: :func:`pose_graph` on a :class:`PoseGraphProblem`."""
+    return pose_graph(
+        p.initial, poses, p.graph_edges, p.new_edges, p.fixed, metric,
+        sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
+        sigma_yaw=o.pose_graph_sigma_yaw if o.pose_graph_sigma_yaw > 0 else None, ups=p.ups,
+    )  # fmt: skip
+
+
+def pose_graph(
+    initial: F64,
+    poses: F64,
+    graph_edges: list[tuple[int, int]],
+    new_edges: list[tuple[int, int, Sim3, float, float]],
+    fixed: list[int],
+    metric: bool,
+    *,
+    sigmas: tuple[float, float],
+    sigma_yaw: float | None = None,
+    ups: F64 | None = None,
+) -> list[Sim3]:
+    """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
+    with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust.
+    ``sigma_yaw`` with ``ups`` ((N, 3) up directions in the keyframes' camera frames, NaN rows where there
+    is none): the graph's edges hold the rotation about the far keyframe's up with this sigma instead.
+
+    ``metric``: the map has metric scale (stereo agents), so the graph is SE(3) (gtsam Pose3). A Sim(3)
+    graph let scale creep in at each of the dozens of loop closures of a factory run until poses
+    overflowed, and holding its scale with a tiny log-scale sigma made it ill-conditioned (rotations
+    came out scaled by ~100)."""
+    from hivemap.server.optim import (
+        PoseGraphEdge,
+        optimize_pose_graph_se3,
+        optimize_pose_graph_sim3,
+        relative_sim3,
+    )
+
+    def up(j: int) -> tuple[float, float, float] | None:
+        if sigma_yaw is None or ups is None or not np.all(np.isfinite(ups[j])):
+            return None
+        return (float(ups[j][0]), float(ups[j][1]), float(ups[j][2]))
+
+    edges = [
+        PoseGraphEdge(
+            i,
+            j,
+            relative_sim3(poses[i], poses[j]),
+            sigma_rot=sigmas[0],
+            sigma_trans=sigmas[1],
+            sigma_yaw=sigma_yaw,
+            up_j=up(j),
+        )  # fmt: skip
+        for i, j in graph_edges
+    ]
+    edges += [PoseGraphEdge(i, j, s, sr, st, robust=True) for i, j, s, sr, st in new_edges]
+    if metric:
+        return optimize_pose_graph_se3(initial, edges, set(fixed))
+    return optimize_pose_graph_sim3(initial, edges, set(fixed))
+
+
+@dataclass
+class BAProblem:
+    cameras: list[Any]
+    camera_index: NDArray[np.int64]
+    point_keys: list[Any]
+    points: F64
+    obs_kf: NDArray[np.int64]
+    obs_pt: NDArray[np.int64]
+    obs_uv: F64
+
+
+def ba_problem(m: Any, keys: list[KfKey]) -> BAProblem:
+    """Copy what the BA needs out of the map (on the loop, quick)."""
+    cams: dict[Any, int] = {}
+    cam_list: list[Any] = []
+    cam_idx = np.zeros(len(keys), dtype=np.int64)
+    pidx: dict[Any, int] = {}
+    pkeys: list[Any] = []
+    obs_kf: list[int] = []
+    obs_pt: list[int] = []
+    obs_uv: list[Any] = []
+    for i, k in enumerate(keys):
+        kf = m.keyframes[k]
+        ck = id(kf.camera)
+        if ck not in cams:
+            cams[ck] = len(cam_list)
+            cam_list.append(kf.camera)
+        cam_idx[i] = cams[ck]
+        for idx, pk in kf.referenced_points():
+            pk = m.resolve_point(pk)
+            if pk not in m.points:
+                continue
+            j = pidx.get(pk)
+            if j is None:
+                j = pidx[pk] = len(pkeys)
+                pkeys.append(pk)
+            obs_kf.append(i)
+            obs_pt.append(j)
+            obs_uv.append(kf.keypoints[idx])
+    pts = np.array([m.points[pk].xyz for pk in pkeys], dtype=np.float64).reshape(-1, 3)
+    return BAProblem(
+        cam_list,
+        cam_idx,
+        pkeys,
+        pts,
+        np.array(obs_kf, dtype=np.int64),
+        np.array(obs_pt, dtype=np.int64),
+        np.array(obs_uv, dtype=np.float64).reshape(-1, 2),
+    )
+
+
+def run_ba(poses: F64, p: BAProblem, fixed: list[int], max_iterations: int) -> Any:
+    from hivemap.server.optim import BundleAdjustmentOptions, global_bundle_adjustment
+
+    return global_bundle_adjustment(
+        p.cameras, p.camera_index, poses, p.points, p.obs_kf, p.obs_pt, p.obs_uv, set(fixed),
+        BundleAdjustmentOptions(max_iterations=max_iterations),
+    )  # fmt: skip
+
+
+def ba_corrections(snap: Snapshot, res: Any, problem: BAProblem) -> tuple[dict[KfKey, Sim3], dict[Any, F64]]:
+    """Each keyframe's correction and each point's new position from a BA result."""
+    corr = {k: Sim3.from_se3(res.world_from_cam[i]) @ Sim3.from_se3(snap.poses[i]).inverse()
+            for i, k in enumerate(snap.keys)}  # fmt: skip
+    new_xyz = {pk: res.points[j] for j, pk in enumerate(problem.point_keys)}
+    return corr, new_xyz

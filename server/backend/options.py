@@ -1,0 +1,247 @@
+"""The back-end's options: one frozen dataclass per stage, composed into :class:`BackendOptions`.
+
+The server's TOML sets them under ``[backend]`` (``enabled``, ``preset``, ``fix_scale``) and one table per
+stage (``[backend.scheduler]``, ``[backend.placerec]``, ``[backend.accept]``, ``[backend.fit]``,
+``[backend.optimise]``, ``[backend.gnss]``, ``[backend.gnss.stage]``, ``[backend.corrections]``). A preset
+(:data:`PRESETS`) gives the starting values; the tables override single fields. Why each default is what
+it is: ``docs/decisions.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from hivemap.server.gnss_stage import GnssStageOptions
+from hivemap.server.placerec import PlaceRecOptions, Thresholds
+
+
+class ConfigError(ValueError):
+    """A back-end option in the TOML is unknown or has the wrong type (the message names the key)."""
+
+
+@dataclass(frozen=True)
+class SchedulerOptions:
+    """What runs when: the place-recognition queue and its verification budget."""
+
+    verifications_per_s: float = 40.0  # budget of geometric verifications (token bucket)
+    queue_max: int = 5000  # queued query keyframes (oldest dropped beyond)
+
+
+@dataclass(frozen=True)
+class AcceptOptions:
+    """Acceptance of detections (:mod:`hivemap.server.backend.accept`)."""
+
+    # consecutive detections of one agent that must agree on the re-fitted transform
+    consistency_required: int = 3
+    consistency_max_gap: int = 8  # keyframe-id gap between consecutive consistent detections
+    consistency_max_rot_deg: float = 2.0
+    consistency_max_log_scale: float = 0.03
+    consistency_max_rel_shift: float = 0.05  # query points moved / their spread
+    min_pair_inlier_ratio: float = 0.5  # share of 3D pairs the trimmed fit must keep
+    # metric maps: a loop asking for a larger correction of the query is a false match (also given to
+    # place recognition, which rejects such candidates right after RANSAC)
+    loop_max_correction_m: float = 1.0
+    loop_max_correction_deg: float = 5.0
+    # a loop whose rotation disagrees with both keyframes' IMU up directions by more is refused (0: off)
+    loop_max_gravity_deg: float = 1.0
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """How a loop's or merge's transform is fitted (:mod:`hivemap.server.backend.fit`)."""
+
+    level_gravity: bool = True  # 4-DoF fit with roll/pitch from the keyframes' IMU up directions
+    level_reprojection: bool = True  # then refine yaw and translation by bidirectional reprojection
+    level_up_window: int = 6  # up directions averaged over +- this many keyframe ids (0: each its own)
+    loop_sigma_bootstrap: int = 30  # resamples giving the edge's sigmas (0: the essential edges')
+
+
+@dataclass(frozen=True)
+class OptimiseOptions:
+    """Pose graph and global BA (:mod:`hivemap.server.backend.optimise`)."""
+
+    # Global BA after each merge or loop. pycolmap's BA has only monocular residuals: it lets a stereo
+    # map's metric scale drift, so the default (metric) preset leaves it off.
+    global_ba: bool = False
+    ba_max_keyframes: int = 4000
+    ba_max_iterations: int = 30
+    pose_graph_max_move_m: float = 3.0  # a pose graph moving any keyframe farther is refused
+    pose_graph_sigma_rot: float = 0.01  # rad, essential edges
+    pose_graph_sigma_trans: float = 0.05  # m, essential edges
+    pose_graph_sigma_yaw: float = 0.0  # rad about the keyframe's up direction; 0: sigma_rot (isotropic)
+
+
+@dataclass(frozen=True)
+class GnssOptions:
+    """The server's GNSS stage and the GNSS-guided retry (:mod:`hivemap.server.backend.gnss`)."""
+
+    enabled: bool = True
+    # GNSS-guided retry (paper 2.5.3) between maps both in ENU: an agent's latest keyframe against the
+    # other map's keyframes within this radius (0: off), at most once per map pair per interval
+    retry_radius_m: float = 10.0
+    retry_candidates: int = 6
+    retry_interval_s: float = 5.0
+    # a stage result is applied only when most fixes agree with the map
+    max_rejected_ratio: float = 0.34
+    max_median_residual_m: float = 0.5
+    # the chain stiffness is cross-validated again once a map has this many and this share more fixes
+    cv_new_fixes: int = 3
+    cv_growth: float = 0.15
+    stage: GnssStageOptions = GnssStageOptions()
+
+
+@dataclass(frozen=True)
+class CorrectionOptions:
+    """What a correction to an agent carries (:mod:`hivemap.server.backend.corrections`)."""
+
+    stride: int = 12  # every stride-th keyframe of the agent, plus the moved ones
+    min_move_m: float = 0.01  # a keyframe is "moved" if it moved this much (local frame) ...
+    min_rot_deg: float = 0.1  # ... or turned this much
+    transform_window: int = 20  # recent keyframes whose corrections define an agent's new frame
+    max_kfs: int = 50  # keyframes per correction (largest moves first): bounds the downlink
+
+
+# The back-end confirms detections itself (AcceptOptions), so place recognition confirms every one.
+_PLACEREC = PlaceRecOptions(consistency_required=1)
+
+
+@dataclass(frozen=True)
+class BackendOptions:
+    """Every back-end option; ``preset`` names the preset the values started from."""
+
+    enabled: bool = True
+    preset: str = "default"
+    # Metric (stereo or stereo-inertial) agents: merges and loops are SE(3). False for monocular agents,
+    # whose scale is a Sim(3) unknown.
+    fix_scale: bool = True
+    scheduler: SchedulerOptions = SchedulerOptions()
+    placerec: PlaceRecOptions = field(default_factory=lambda: _PLACEREC)
+    accept: AcceptOptions = AcceptOptions()
+    fit: FitOptions = FitOptions()
+    optimise: OptimiseOptions = OptimiseOptions()
+    gnss: GnssOptions = GnssOptions()
+    corrections: CorrectionOptions = CorrectionOptions()
+
+
+PRESETS: dict[str, BackendOptions] = {
+    "default": BackendOptions(),
+    # monocular agents: Sim(3) merges and loops, and global BA (its residuals suit them)
+    "monocular": BackendOptions(
+        preset="monocular", fix_scale=False, optimise=OptimiseOptions(global_ba=True)
+    ),
+}
+
+
+def preset(name: str = "default", **overrides: Any) -> BackendOptions:
+    """The named preset with top-level fields or whole stage options replaced."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown back-end preset {name!r} (known: {', '.join(PRESETS)})")
+    return replace(PRESETS[name], **overrides)
+
+
+def _coerce(value: Any, hint: Any, where: str) -> Any:
+    origin = typing.get_origin(hint)
+    if dataclasses.is_dataclass(hint) and isinstance(hint, type):
+        if isinstance(value, hint):
+            return value
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a table")
+        return _update(hint(), value, where)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if value is None and len(args) < len(typing.get_args(hint)):
+            return None
+        return _coerce(value, args[0], where)
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{where}: expected an array")
+        item = typing.get_args(hint)[0]
+        return tuple(_coerce(v, item, where) for v in value)
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    raise ConfigError(f"{where}: unsupported option type {hint!r}")
+
+
+def _update(base: Any, table: dict[str, Any], where: str) -> Any:
+    """``base`` (a frozen dataclass) with the fields in ``table`` replaced, recursively."""
+    hints = typing.get_type_hints(type(base))
+    names = {f.name for f in dataclasses.fields(base)}
+    changes: dict[str, Any] = {}
+    for key, value in table.items():
+        if key not in names:
+            raise ConfigError(f"unknown key {where}.{key}")
+        current = getattr(base, key)
+        if dataclasses.is_dataclass(current) and isinstance(value, dict):
+            changes[key] = _update(current, value, f"{where}.{key}")
+        else:
+            changes[key] = _coerce(value, hints[key], f"{where}.{key}")
+    return replace(base, **changes)
+
+
+def from_table(table: dict[str, Any] | bool | BackendOptions | None) -> BackendOptions:
+    """The options a TOML ``[backend]`` table asks for: its ``preset`` (default ``"default"``) with the
+    table's fields replaced. ``true``/``false`` alone only switch the back-end on or off (older configs);
+    unknown keys raise :class:`ConfigError` naming the key."""
+    if table is None:
+        return PRESETS["default"]
+    if isinstance(table, BackendOptions):
+        return table
+    if isinstance(table, bool):
+        return replace(PRESETS["default"], enabled=table)
+    if not isinstance(table, dict):
+        raise ConfigError(f"backend: expected a table or true/false, got {table!r}")
+    name = table.get("preset", "default")
+    if not isinstance(name, str):
+        raise ConfigError(f"backend.preset: expected a string, got {name!r}")
+    return _update(preset(name), {k: v for k, v in table.items() if k != "preset"}, "backend")
+
+
+def to_table(options: BackendOptions) -> dict[str, Any]:
+    """``options`` as the nested table :func:`from_table` reads back (tuples as lists)."""
+
+    def plain(v: Any) -> Any:
+        if dataclasses.is_dataclass(v) and not isinstance(v, type):
+            return {f.name: plain(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, tuple):
+            return [plain(x) for x in v]
+        return v
+
+    out: dict[str, Any] = plain(options)
+    return out
+
+
+__all__ = [
+    "PRESETS",
+    "AcceptOptions",
+    "BackendOptions",
+    "ConfigError",
+    "CorrectionOptions",
+    "FitOptions",
+    "GnssOptions",
+    "GnssStageOptions",
+    "OptimiseOptions",
+    "PlaceRecOptions",
+    "SchedulerOptions",
+    "Thresholds",
+    "from_table",
+    "preset",
+    "to_table",
+]

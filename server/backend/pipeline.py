@@ -1,0 +1,437 @@
+"""The back-end's optimisation pipeline on the event loop: when a map's pose graph, global BA and GNSS stage
+run (one at a time per map; requests arriving meanwhile coalesce), and applying their results. The
+solves themselves are :mod:`.optimise` and :mod:`.gnss`, run in the optimisation thread on snapshots.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import time
+from collections import deque
+from functools import partial
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.geometry import Sim3
+from hivemap.server.backend import accept, corrections, detect, fit, gnss, optimise
+from hivemap.server.backend.optimise import NewEdge, Snapshot
+from hivemap.server.backend.options import BackendOptions
+from hivemap.server.convert import split_folded
+from hivemap.server.persist import GraphSnapshot
+from hivemap.server.placerec import Detection, PlaceRecognizer
+
+logger = logging.getLogger(__name__)
+
+KfKey = tuple[str, int]
+F64 = NDArray[np.float64]
+
+# The pose graph holds one keyframe per connected start, global BA two (its gauge includes scale).
+POSE_GRAPH_ANCHORS_PER_AGENT = 1
+
+
+class Pipeline:
+    """The back-end's state and its optimisation pipeline; :class:`~.scheduler.Backend` adds the
+    place-recognition worker, merges and loops."""
+
+    def __init__(self, server: Any, options: BackendOptions | None = None, vocabulary: Any = None) -> None:
+        self.server = server
+        self.options = options or BackendOptions()
+        starts = getattr(getattr(server, "settings", None), "start_poses", {}) or {}
+        self._start_poses: dict[str, NDArray[np.float64]] = {
+            a: np.asarray(T, dtype=np.float64).reshape(4, 4) for a, T in starts.items()
+        }
+        self._anchors: dict[str, tuple[int, Sim3]] = {}
+        self._start_lock = asyncio.Lock()
+        self._start_tasks: set[asyncio.Task[None]] = set()
+        self._vocabulary = vocabulary
+        self.recognizer: PlaceRecognizer | None = None
+        self.queue: deque[KfKey] = deque(maxlen=self.options.scheduler.queue_max)
+        self._wake = asyncio.Event()
+        self._pr_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-placerec")
+        self._opt_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-optim")
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._worker: asyncio.Task[None] | None = None
+        self._busy = 0  # queries or optimisations in flight
+        self._generation: dict[int, int] = {}  # bumped when a map changes frame (merge / GNSS)
+        self._opt_running: set[int] = set()
+        self._gnss_count: dict[int, int] = {}
+        self._enu_maps: set[int] = set()  # maps the GNSS stage has put into ENU
+        # per map, what undoes the bend the last GNSS stage gave each keyframe (visual = U @ bent). The map
+        # holds the bent poses between optimisations; each optimisation takes the bend out first, so that
+        # the pose graph, global BA and the next stage work on the visual shape, not on one with the
+        # previous fixes' noise baked in.
+        self._gnss_unbend: dict[int, dict[KfKey, Sim3]] = {}
+        self._retry_at: dict[tuple[int, int], float] = {}  # map pair -> last GNSS-guided retry
+        self._gnss_scale: dict[int, tuple[int, float]] = {}  # map -> (fixes at its last CV, chosen scale)
+        self._consistency = accept.Consistency()
+        self._opt_again: dict[int, list[NewEdge]] = {}
+        self._tokens = self.options.scheduler.verifications_per_s
+        self._last_refill = time.monotonic()
+        # figures
+        self.queries = 0
+        self.query_ms: list[float] = []
+        self.verifications = 0
+        self.merges: list[dict[str, Any]] = []
+        self.loops: list[dict[str, Any]] = []
+        self.correction_bytes: dict[str, int] = {}
+        self.correction_latencies: list[float] = []
+        self.ba_runs: list[dict[str, Any]] = []
+
+    def _take_tokens(self) -> float:
+        now = time.monotonic()
+        rate = self.options.scheduler.verifications_per_s
+        self._tokens = min(rate, self._tokens + (now - self._last_refill) * rate)
+        self._last_refill = now
+        return 0.0 if self._tokens >= 1.0 else (1.0 - self._tokens) / rate
+
+    # -- helpers over the server's state ------------------------------------------------------------
+    def _agent_kind(self, folded: str) -> str:
+        a = self.server.agents.get(split_folded(folded)[0])
+        return str(a.kind) if a is not None else "uav"
+
+    def _anchored(self, map_id: int) -> set[str]:
+        """Agents joined to map ``map_id`` by their known start pose."""
+        return {a for a, (mid, _) in self._anchors.items() if mid == map_id}
+
+    def _cam_from_antenna(self, folded: str) -> F64:
+        am = self.server._agent_map_by_folded(folded)
+        agent = self.server.agents.get(am.agent_id) if am is not None else None
+        lever = getattr(agent, "cam_from_antenna", None)
+        return np.zeros(3) if lever is None else np.asarray(lever, dtype=np.float64).reshape(3)
+
+    def _up_cam(self, m: Any, key: KfKey) -> F64 | None:
+        return fit.up_cam(m, key, self.options.fit.level_up_window, self._gnss_unbend)
+
+    def _snapshot(self, m: Any) -> Snapshot:
+        return optimise.snapshot(m, self._generation.get(m.id, 0))
+
+    def _current(self, snap: Snapshot) -> Any:
+        """The snapshot's map if it has not changed frame since (else its result is dropped)."""
+        m = self.server.stack.maps.get(snap.map_id)
+        if m is None or self._generation.get(snap.map_id, 0) != snap.generation:
+            return None
+        return m
+
+    def _apply_corrections(self, m: Any, corr: dict[KfKey, Sim3], new_xyz: dict[Any, F64]) -> None:
+        corrections.apply_corrections(
+            self.server, m, corr, new_xyz, self.options.corrections, self.options.fix_scale
+        )
+
+    async def _send_corrections(self, map_id: int, before: dict[KfKey, F64], t_det: float) -> None:
+        await corrections.send_corrections(
+            self.server, map_id, before, t_det, self.options.corrections, map_id in self._enu_maps,
+            self.correction_bytes, self.correction_latencies,
+        )  # fmt: skip
+
+    async def _apply_merge(
+        self, target: int, source: int, target_from_source: Sim3, pairs: list[Any]
+    ) -> tuple[Any, float]:
+        """Merge through the server (one commit), then re-key the back-end's per-map state; returns the
+        merged map and the merge time in ms."""
+        t0 = time.perf_counter()
+        merged = await self.server.apply_merge(target, source, target_from_source, pairs)
+        merge_ms = (time.perf_counter() - t0) * 1e3
+        self._generation[target] = self._generation.get(target, 0) + 1
+        self._generation.pop(source, None)
+        self._enu_maps.discard(source)  # the merged map keeps the target's frame
+        self._gnss_unbend.pop(source, None)  # its keyframes' poses count as visual from now on
+        if self.recognizer is not None:
+            await asyncio.get_running_loop().run_in_executor(
+                self._pr_exec, self.recognizer.on_merge, target, source
+            )
+        return merged, merge_ms
+
+    # -- optimisation pipeline ------------------------------------------------------------------------
+    def _schedule_optimisation(
+        self,
+        map_id: int,
+        edges: list[NewEdge],
+        t_det: float,
+        fuse: list[tuple[Any, Any]] | None = None,
+        pre: tuple[Sim3, list[KfKey]] | None = None,
+    ) -> None:
+        if map_id in self._opt_running:
+            self._opt_again.setdefault(map_id, []).extend(edges)
+            return
+        task = asyncio.create_task(self._optimise(map_id, edges, t_det, fuse or [], pre))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _optimise(
+        self,
+        map_id: int,
+        edges: list[NewEdge],
+        t_det: float,
+        fuse: list[tuple[Any, Any]],
+        pre: tuple[Sim3, list[KfKey]] | None = None,
+    ) -> None:
+        self._opt_running.add(map_id)
+        try:
+            while True:
+                await self._optimise_once(map_id, edges, t_det, fuse, pre)
+                pre = None
+                again = self._opt_again.pop(map_id, None)
+                if again is None or map_id not in self.server.stack.maps:
+                    break
+                edges, fuse, t_det = again, [], time.monotonic()
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            logger.exception("optimisation of map %d failed", map_id)
+            self.server.events.add("error", f"optimisation of map {map_id} failed (see log)", map_id=map_id)
+        finally:
+            self._opt_running.discard(map_id)
+
+    async def _optimise_once(
+        self,
+        map_id: int,
+        edges: list[NewEdge],
+        t_det: float,
+        fuse: list[tuple[Any, Any]],
+        pre: tuple[Sim3, list[KfKey]] | None = None,
+    ) -> None:
+        m = self.server.stack.maps.get(map_id)
+        if m is None or len(m.keyframes) < 2:
+            return
+        before = corrections.local_poses(self.server, m)
+        unbend = self._unbend_map(m) if self.options.gnss.enabled else None
+        try:
+            await self._optimise_steps(map_id, edges, t_det, fuse, pre, before, unbend)
+        finally:
+            m = self.server.stack.maps.get(map_id)
+            if unbend is not None and m is not None and map_id not in self._gnss_unbend:
+                self._rebend_map(m, unbend)  # a step gave up before the GNSS stage
+
+    async def _optimise_steps(
+        self,
+        map_id: int,
+        edges: list[NewEdge],
+        t_det: float,
+        fuse: list[tuple[Any, Any]],
+        pre: tuple[Sim3, list[KfKey]] | None,
+        before: dict[KfKey, F64],
+        unbend: dict[KfKey, Sim3] | None,
+    ) -> None:
+        server = self.server
+        m = server.stack.maps.get(map_id)
+        if m is None:
+            return
+        # 1. pose graph over the essential graph + the new edges
+        if edges and not await self._pose_graph_step(m, edges, pre):
+            return
+        # the loop's duplicate points become one only now (fused earlier, their covisibility edges would
+        # hold the uncorrected relative poses in the pose graph); the fusion is committed at once
+        await server.fuse_points(map_id, fuse)
+        m = server.stack.maps.get(map_id)
+        if m is None:
+            return
+        # 2. global BA (background; keyframes arriving meanwhile follow their parent). A BA dropped because
+        # the map changed skips the GNSS stage, but the pose graph it followed is still persisted and sent.
+        o = self.options.optimise
+        ba_ok = True
+        if o.global_ba and 2 <= len(m.keyframes) <= o.ba_max_keyframes:
+            ba_ok = await self._ba_step(m)
+        # 3. GNSS stage: the whole map into ENU once enough spread fixes
+        m = server.stack.maps.get(map_id)
+        if m is None:
+            return
+        if self.options.gnss.enabled:
+            if ba_ok:
+                await self._gnss_stage(m)
+            if unbend is not None and map_id not in self._gnss_unbend:
+                self._rebend_map(m, unbend)  # no new stage result: the last one's bend stands
+        # 4. persist (poses, and the loop edges this optimisation added, in one commit), 5. corrections
+        kfs, pts = list(m.keyframes.values()), list(m.points.values())
+        graph = GraphSnapshot(m)
+        await server.persist_exclusive(
+            lambda store: (store.maps.update_poses(map_id, kfs, pts), store.sync_graph(graph))
+        )
+        await self._send_corrections(map_id, before, t_det)
+        if map_id in self._enu_maps:
+            await self._gnss_retry(map_id)
+
+    async def _pose_graph_step(
+        self, m: Any, edges: list[NewEdge], pre: tuple[Sim3, list[KfKey]] | None
+    ) -> bool:
+        """Solve and apply the pose graph; False if the map changed meanwhile or the result is refused."""
+        o, map_id = self.options.optimise, m.id
+        snap = self._snapshot(m)
+        fixed = optimise.anchor(
+            m, snap.keys, self._agent_kind, self._anchored(map_id), POSE_GRAPH_ANCHORS_PER_AGENT
+        )
+        problem = optimise.pose_graph_problem(m, snap, edges, pre, fixed, o)
+        t0 = time.perf_counter()
+        sims = await asyncio.get_running_loop().run_in_executor(
+            self._opt_exec, optimise.solve_pose_graph, problem, snap.poses, self.options.fix_scale, o
+        )
+        pg_ms = (time.perf_counter() - t0) * 1e3
+        cur = self._current(snap)
+        if cur is None:
+            return False
+        corr, moved = optimise.pose_graph_corrections(snap, sims)
+        if moved > o.pose_graph_max_move_m:
+            self.server.events.add("pose_graph", f"map {map_id}: pose graph refused (a keyframe would move "
+                                   f"{moved:.1f} m > {o.pose_graph_max_move_m} m)", map_id=map_id,
+                                   data={"refused": True, "max_move_m": moved})  # fmt: skip
+            return False
+        self._apply_corrections(cur, corr, {})
+        n_edges = len(problem.graph_edges) + len(problem.new_edges)
+        self.server.events.add("pose_graph", f"map {map_id}: pose graph over {len(snap.keys)} keyframes, "
+                               f"{n_edges} edges ({pg_ms:.0f} ms)", map_id=map_id,
+                               data={"n_keyframes": len(snap.keys), "ms": pg_ms})  # fmt: skip
+        return True
+
+    async def _ba_step(self, m: Any) -> bool:
+        """Run and apply global BA; False if the map changed meanwhile (the result is dropped)."""
+        map_id = m.id
+        snap = self._snapshot(m)
+        problem = optimise.ba_problem(m, snap.keys)
+        fixed = optimise.anchor(m, snap.keys, self._agent_kind, self._anchored(map_id))
+        t0 = time.perf_counter()
+        res = await asyncio.get_running_loop().run_in_executor(
+            self._opt_exec,
+            optimise.run_ba,
+            snap.poses,
+            problem,
+            fixed,
+            self.options.optimise.ba_max_iterations,
+        )
+        ba_ms = (time.perf_counter() - t0) * 1e3
+        cur = self._current(snap)
+        if cur is None:
+            self.server.events.add(
+                "global_ba", f"map {map_id}: BA result dropped (map changed)", map_id=map_id
+            )
+            return False
+        corr, new_xyz = optimise.ba_corrections(snap, res, problem)
+        self._apply_corrections(cur, corr, new_xyz)
+        info = {"n_keyframes": len(snap.keys), "n_points": len(problem.point_keys), "ms": ba_ms,
+                "rmse_before_px": res.initial_rmse_px, "rmse_after_px": res.final_rmse_px}  # fmt: skip
+        info["accepted"] = bool(getattr(res, "accepted", True))  # rejected: inputs returned unchanged
+        self.ba_runs.append(info)
+        self.server.events.add("global_ba", f"map {map_id}: global BA {len(snap.keys)} keyframes, rmse "
+                               f"{res.initial_rmse_px:.2f} -> {res.final_rmse_px:.2f} px ({ba_ms:.0f} ms)"
+                               f"{'' if info['accepted'] else ', rejected by its checks'}",
+                               map_id=map_id, data=info)  # fmt: skip
+        return True
+
+    # -- GNSS stage -------------------------------------------------------------------------------------
+    def _unbend_map(self, m: Any) -> dict[KfKey, Sim3] | None:
+        """Take the last GNSS stage's bend out of the map before the pose graph and global BA: they work on
+        the visual shape (moved rigidly into ENU), and the next GNSS stage bends that afresh. Returns the
+        bend removed (to restore it if no new stage result replaces it), or None if there was none."""
+        unbend = self._gnss_unbend.pop(m.id, None)
+        if not unbend:
+            return None
+        self._apply_corrections(m, gnss.bend_corrections(m, unbend, invert=False), {})
+        self._generation[m.id] = self._generation.get(m.id, 0) + 1
+        return unbend
+
+    def _rebend_map(self, m: Any, unbend: dict[KfKey, Sim3]) -> None:
+        """Give the map back the bend :meth:`_unbend_map` took out (no new GNSS stage result)."""
+        self._apply_corrections(m, gnss.bend_corrections(m, unbend, invert=True), {})
+        self._gnss_unbend[m.id] = unbend
+        self._generation[m.id] = self._generation.get(m.id, 0) + 1
+
+    async def _gnss_stage(self, m: Any) -> None:
+        """Paper 2.5.3: bend the whole map onto every agent's GNSS fixes (antenna positions, through each
+        agent's lever arm) with the agents tied together, and move it into ENU."""
+        from hivemap.server.gnss_stage import NotEnoughFixes, fuse_gnss
+
+        o = self.options.gnss
+        inp = gnss.stage_input(m, self._cam_from_antenna, self._agent_kind, self._anchored(m.id))
+        if inp is None:
+            return
+        fixes, links = inp.fixes, inp.links
+        # the agents' IMU up directions (camera frame = antenna frame's rotation): the attitude factors hold
+        # those keyframes to gravity, the others to the map's own roll/pitch
+        up = optimise.up_rows(m, inp.keys)
+        snap = Snapshot(m.id, self._generation.get(m.id, 0), inp.keys, inp.poses)
+        # the chain's stiffness is cross-validated on the fixes, again only once enough more have arrived
+        cached = self._gnss_scale.get(m.id)
+        scale = None if cached is None or gnss.cv_due(len(fixes), cached[0], o) else cached[1]
+        try:
+            res = await asyncio.get_running_loop().run_in_executor(
+                self._opt_exec,
+                partial(fuse_gnss, options=o.stage, links=links, up_in_body=up, stiffness_scale=scale),
+                inp.world_from_ant,
+                inp.chains,
+                fixes,
+            )
+        except NotEnoughFixes as exc:
+            self.server.events.add("gnss_stage", f"map {m.id}: {exc}", map_id=m.id)
+            return
+        cv = res.cv_scores
+        used = int(np.sum(res.used))
+        refused = gnss.refusal(res, len(fixes), o)
+        if refused is not None:
+            self.server.events.add(
+                "gnss_stage", f"map {m.id}: {refused}", map_id=m.id,
+                data={"refused": True, "used": used, "n_fixes": len(fixes),
+                      "median_residual_m": float(np.median(res.residuals_m))},
+            )  # fmt: skip
+            return
+        cur = self._current(snap)
+        if cur is None:
+            return
+        new_cam, corr = gnss.corrected_cameras(res, inp)
+        self._apply_corrections(cur, corr, {})
+        if cv is not None:
+            # kept only with a result that is applied: a stage refused, or dropped because the map changed
+            # meanwhile (a merge during the solve), leaves the next stage to cross-validate the map it sees
+            self._gnss_scale[cur.id] = (len(fixes), res.stiffness_scale)
+        self._gnss_unbend[m.id] = gnss.unbend_of(res, inp, new_cam)
+        self._generation[m.id] = self._generation.get(m.id, 0) + 1
+        self._enu_maps.add(m.id)
+        self.server.events.add(
+            "gnss_stage",
+            f"map {m.id} bent onto {used}/{len(fixes)} fixes in ENU ({len(links)} inter-agent links, "
+            f"median residual {float(np.median(res.residuals_m)):.2f} m, chain stiffness "
+            f"x{res.stiffness_scale:g}{'' if cv is None else ' by cross-validation'})",
+            map_id=m.id,
+            data={"used": used, "n_fixes": len(fixes), "n_links": len(links),
+                  "enu_from_map": res.enu_from_map.tolist(), "stiffness_scale": res.stiffness_scale,
+                  "cv_scores": None if cv is None else {str(k): v for k, v in cv.items()}},
+        )  # fmt: skip
+
+    async def _gnss_retry(self, map_id: int) -> None:
+        """Paper 2.5.3: when GNSS has put two maps into ENU and brings an agent of one next to keyframes of
+        the other without a visual merge, verify that place with lowered thresholds
+        (``PlaceRecOptions.gnss_retry_thresholds``) and merge on success."""
+        o = self.options
+        maps = self.server.stack.maps
+        m = maps.get(map_id)
+        if m is None or self.recognizer is None or o.gnss.retry_radius_m <= 0:
+            return
+        now = time.monotonic()
+        for other_id in sorted(x for x in self._enu_maps if x != map_id and x in maps):
+            pair = (min(map_id, other_id), max(map_id, other_id))
+            if now - self._retry_at.get(pair, -np.inf) < o.gnss.retry_interval_s:
+                continue
+            self._retry_at[pair] = now
+            for q, near in gnss.retry_queries(m, maps[other_id], o.gnss):
+                recognizer = self.recognizer
+                res = await asyncio.get_running_loop().run_in_executor(
+                    self._pr_exec,
+                    partial(recognizer.verify_pair, maps, map_id, q, other_id, near, fix_scale=o.fix_scale),
+                )
+                detect.publish(self.server.events, res)
+                det = res.confirmed
+                if det is not None:
+                    self.server.events.add(
+                        "gnss_retry",
+                        f"GNSS-guided retry: {q} (map {map_id}) matched {det.candidate_key} (map {other_id}),"
+                        f" {det.n_inliers} inliers: merging",
+                        map_id=map_id,
+                        data={"query_key": list(q), "candidate_key": list(det.candidate_key),
+                              "n_inliers": det.n_inliers},
+                    )  # fmt: skip
+                    await self._merge(det, time.monotonic())
+                    return
+
+    async def _merge(self, det: Detection, t_det: float) -> None:
+        raise NotImplementedError  # the scheduler's (a GNSS-guided retry merges)

@@ -1,0 +1,269 @@
+"""The back-end's scheduler: what runs when, and applying results on the event loop.
+
+Threads and ownership:
+
+* the event loop (core's rule): every map mutation (merge, applying optimisation results, agent transforms);
+* one place-recognition thread: BoW + keyframe database + detection (:mod:`.detect`; the recogniser and
+  its database are only touched there, so they need no lock);
+* one optimisation thread: pose graph, global BA, GNSS stage (:mod:`.optimise`, :mod:`.gnss`), on
+  snapshots taken on the loop. Results are applied on the loop (:mod:`.corrections`); keyframes that
+  arrived meanwhile follow their spanning-tree parent's correction. Ingest never waits for them.
+
+Per inserted keyframe (observer, quick): enqueue. Worker: index, then detect against the other maps
+(merge) and the same map outside the covisible keyframes (loop), within a budget of verifications per
+second; accept (:mod:`.accept`), fit (:mod:`.fit`), merge or add the loop (:mod:`.surgery`), then
+optimise: pose graph with the new edge, global BA, GNSS stage, corrections to the agents.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.geometry import Sim3
+from hivemap.server.backend import accept, detect, fit, surgery
+from hivemap.server.backend.optimise import NewEdge
+from hivemap.server.backend.pipeline import Pipeline
+from hivemap.server.placerec import Detection
+
+logger = logging.getLogger(__name__)
+
+KfKey = tuple[str, int]
+F64 = NDArray[np.float64]
+
+# Reloaded keyframes are indexed in chunks of this many (a merge may relabel maps between chunks).
+INDEX_CHUNK = 200
+# The GNSS stage runs whenever a map gets a new keyframe with a fix (runs coalesce while one is busy).
+GNSS_EVERY_KFS = 1
+
+
+class Backend(Pipeline):
+    """Schedules detection and applies merges and loops (the optimisation pipeline: :class:`Pipeline`)."""
+
+    # -- lifecycle ----------------------------------------------------------------------------------
+    async def start(self, server: Any) -> None:
+        loop = asyncio.get_running_loop()
+
+        def init() -> None:
+            self.recognizer = detect.make_recognizer(self._vocabulary, self.options)
+
+        await loop.run_in_executor(self._pr_exec, init)
+        # keyframes reloaded from the store are indexed by the worker first (no detection on them); the
+        # server is ready meanwhile
+        keys = [(m.id, k) for m in server.stack.maps.values() for k in m.keyframes]
+        self._worker = asyncio.create_task(self._run(keys), name="hive-backend")
+        server.events.add("info", f"back-end started ({len(keys)} reloaded keyframes to index)")
+
+    async def stop(self, server: Any) -> None:
+        if self._worker is not None:
+            self._worker.cancel()
+        for t in list(self._tasks):
+            t.cancel()
+        await asyncio.gather(
+            *(t for t in [self._worker, *self._tasks] if t is not None), return_exceptions=True
+        )
+        # a running global BA is not waited for: its task is cancelled, so its result is never applied
+        self._pr_exec.shutdown(wait=False, cancel_futures=True)
+        self._opt_exec.shutdown(wait=False, cancel_futures=True)
+
+    def idle(self) -> bool:
+        """Nothing queued and nothing in flight (tests and benches wait for this)."""
+        return not self.queue and self._busy == 0 and not self._tasks
+
+    # -- observer -----------------------------------------------------------------------------------
+    async def on_keyframe(self, map_id: int, key: KfKey) -> None:
+        if key[0] in self._start_poses and key[0] not in self._anchors:
+            self._anchor_start(map_id, key)
+        if len(self.queue) == self.queue.maxlen:
+            self.server.events.add("placerec", f"query queue full: {self.queue[0]} dropped")
+        self.queue.append(key)
+        self._wake.set()
+        # GNSS stage also without a merge or loop: every ``GNSS_EVERY_KFS`` keyframes with a fix in a map
+        m = self.server.stack.maps.get(map_id)
+        kf = m.keyframes.get(key) if m is not None else None
+        if self.options.gnss.enabled and kf is not None and kf.gnss_enu is not None:
+            n = self._gnss_count[map_id] = self._gnss_count.get(map_id, 0) + 1
+            if n % GNSS_EVERY_KFS == 0:
+                self._schedule_optimisation(map_id, [], time.monotonic())
+
+    # -- known start configuration (paper 2.4) -------------------------------------------------------
+    def _anchor_start(self, map_id: int, key: KfKey) -> None:
+        """Record ``common_from_map`` for an agent with a known start pose (its first keyframe is taken at
+        the start pose) and merge its map with the other anchored agents' maps."""
+        m = self.server.stack.maps.get(map_id)
+        kf = m.keyframes.get(key) if m is not None else None
+        if kf is None:
+            return
+        self._anchors[key[0]] = (
+            map_id,
+            surgery.common_from_map(self._start_poses[key[0]], kf.world_from_cam),
+        )
+        self.server.events.add(
+            "start_anchor", f"{key[0]}: map {map_id} anchored by its start pose", map_id=map_id
+        )
+        task = asyncio.get_running_loop().create_task(self._start_merges())
+        self._start_tasks.add(task)
+        task.add_done_callback(self._start_tasks.discard)
+
+    async def _start_merges(self) -> None:
+        """Merge every pair of maps whose agents' start poses are known (no visual match needed)."""
+        async with self._start_lock:
+            while True:
+                maps = self.server.stack.maps
+                valid = {a: (mid, c) for a, (mid, c) in self._anchors.items() if mid in maps}
+                by_map: dict[int, Sim3] = {mid: c for mid, c in valid.values()}
+                if len(by_map) < 2:
+                    return
+                a_id, b_id = sorted(by_map)[:2]
+                target = surgery.target_of(maps, a_id, b_id, self._agent_kind)
+                source = b_id if target == a_id else a_id
+                target_from_source = by_map[target].inverse() @ by_map[source]
+                _, merge_ms = await self._apply_merge(target, source, target_from_source, [])
+                for a, (mid, _) in list(self._anchors.items()):
+                    if mid == source:
+                        self._anchors[a] = (target, by_map[target])
+                rec = {"target": target, "source": source, "scale": 1.0, "n_fused": 0,
+                       "merge_ms": merge_ms, "by": "start_pose",
+                       "target_from_source": target_from_source.matrix().tolist()}  # fmt: skip
+                self.merges.append(rec)
+                self.server.events.add(
+                    "merge_detail",
+                    f"merge {source} -> {target} from the known start poses",
+                    map_id=target,
+                    data=rec,
+                )
+                await self._send_corrections(target, {}, time.monotonic())
+
+    # -- place-recognition worker -------------------------------------------------------------------
+    async def _run(self, reloaded: list[tuple[int, KfKey]]) -> None:
+        loop = asyncio.get_running_loop()
+        assert self.recognizer is not None
+        recognizer, stack = self.recognizer, self.server.stack
+        if reloaded:
+            self._busy += 1
+            try:
+                for i in range(0, len(reloaded), INDEX_CHUNK):
+                    chunk = reloaded[i : i + INDEX_CHUNK]
+                    await loop.run_in_executor(self._pr_exec, detect.index_many, recognizer, stack, chunk)
+            except Exception:
+                logger.exception("indexing the reloaded keyframes failed")
+            finally:
+                self._busy -= 1
+        while True:
+            if not self.queue:
+                self._wake.clear()
+                await self._wake.wait()
+                continue
+            wait = self._take_tokens()
+            if wait > 0:
+                await asyncio.sleep(wait)
+                continue
+            key = self.queue.popleft()
+            self._busy += 1
+            try:
+                n_agents = max(1, len(self.server.agents))
+                res = await loop.run_in_executor(
+                    self._pr_exec, detect.detect, recognizer, stack, key, n_agents, self.options.fix_scale
+                )
+                if res is None:
+                    continue
+                self.queries += 1
+                self.query_ms.append(res.time_ms)
+                n_verified = sum(1 for c in res.candidates if c.reason != "covered_by_accepted_window")
+                self.verifications += n_verified
+                self._tokens -= n_verified
+                detect.publish(self.server.events, res)
+                det = None
+                if res.detection is not None:
+                    det = self._consistency.check(
+                        res.detection,
+                        stack.maps,
+                        self.options.accept,
+                        self.options.fix_scale,
+                        self.server.events,
+                    )
+                if det is not None:
+                    t_det = time.monotonic()
+                    if det.is_loop:
+                        await self._close_loop(det, t_det)
+                    else:
+                        await self._merge(det, t_det)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                logger.exception("back-end query %s failed", key)
+                self.server.events.add("error", f"back-end query {key} failed (see log)")
+            finally:
+                self._busy -= 1
+
+    # -- merge ----------------------------------------------------------------------------------------
+    async def _merge(self, det: Detection, t_det: float) -> None:
+        server = self.server
+        maps = server.stack.maps
+        if det.query_map not in maps or det.candidate_map not in maps or det.query_map == det.candidate_map:
+            server.events.add("merge", f"stale merge detection {det.query_key} dropped", data=det.to_dict())
+            return
+        levelled, sigmas = fit.levelled(self.options, maps, self._gnss_unbend, det)
+        if levelled is not None:
+            det = replace(det, target_from_source=levelled)
+        target = surgery.target_of(maps, det.query_map, det.candidate_map, self._agent_kind)
+        target_id, source_id, sim, pairs = det.merge_args(target)
+        self._consistency.forget_maps(source_id, target_id)
+        merged, merge_ms = await self._apply_merge(target_id, source_id, sim, pairs)
+        # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
+        edge = NewEdge(det.candidate_key, det.query_key, fit.edge_measure(merged, det), *sigmas)
+        if det.candidate_key in merged.keyframes and det.query_key in merged.keyframes:
+            merged.add_loop_edge(det.candidate_key, det.query_key)
+        rec = surgery.merge_record(merged, det, target_id, source_id, sim, len(pairs), merge_ms,
+                                   levelled is not None, sigmas)  # fmt: skip
+        self.merges.append(rec)
+        server.events.add(
+            "merge_detail",
+            f"merge {source_id} -> {target_id}: scale {sim.s:.4f}, {len(pairs)} duplicate points fused, "
+            f"{merge_ms:.0f} ms",
+            map_id=target_id,
+            data=rec,
+        )
+        # agents of the source map get their new global_from_local at once (no keyframe moved locally)
+        await self._send_corrections(target_id, {}, t_det)
+        self._schedule_optimisation(target_id, [edge], t_det)
+
+    # -- loop closure ---------------------------------------------------------------------------------
+    async def _close_loop(self, det: Detection, t_det: float) -> None:
+        m = self.server.stack.maps.get(det.query_map)
+        if m is None or det.query_key not in m.keyframes or det.candidate_key not in m.keyframes:
+            return
+        Tc = Sim3.from_se3(m.keyframes[det.candidate_key].world_from_cam)
+        Tq = Sim3.from_se3(m.keyframes[det.query_key].world_from_cam)
+        # the detection maps the query's (drifted) frame onto the candidate's: corrected query pose
+        measured = Tc.inverse() @ det.target_from_source @ Tq
+        o = self.options
+        ups = (self._up_cam(m, det.query_key), self._up_cam(m, det.candidate_key))
+        refused = accept.loop_refusal(det, m, measured, ups, o.accept, o.fix_scale)
+        if refused is not None:
+            self.server.events.add("loop", refused[0], map_id=m.id, data=refused[1])
+            return
+        tilt = accept.gravity_disagreement_deg(measured, *ups)
+        pairs = list(zip(det.candidate_points, det.query_points, strict=True))
+        levelled, sigmas = fit.levelled(o, self.server.stack.maps, self._gnss_unbend, det, ups)
+        if levelled is not None:
+            det = replace(det, target_from_source=levelled)
+            measured = Tc.inverse() @ levelled @ Tq
+        m.add_loop_edge(det.candidate_key, det.query_key)
+        rec = surgery.loop_record(m, det, measured, tilt, levelled is not None, len(pairs), sigmas)
+        self.loops.append(rec)
+        self.server.events.add(
+            "loop",
+            f"loop {det.query_key} -> {det.candidate_key} in map {m.id} ({det.n_inliers} inliers)",
+            map_id=m.id,
+            data=rec,
+        )
+        pre = (det.target_from_source, surgery.loop_neighbourhood(m, det.query_key))
+        edge = NewEdge(det.candidate_key, det.query_key, measured, *sigmas)
+        self._schedule_optimisation(m.id, [edge], t_det, fuse=pairs, pre=pre)

@@ -1,0 +1,462 @@
+"""Place recognition's geometry: BoW and projection matching, Sim(3) RANSAC, the bidirectional
+reprojection refinement (paper 2.5.1) and the observations it works on."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse, so3_exp
+from hivemap.maps.vocabulary import FeatureVector
+from hivemap.server.placerec.types import PlaceRecOptions
+
+log = logging.getLogger(__name__)
+
+KfKey = tuple[str, int]
+PointKey = tuple[str, int]
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+# ----------------------------------------------------------------------------------------------
+# matching primitives
+def _u64(d: NDArray[np.uint8]) -> NDArray[np.uint64]:
+    return np.ascontiguousarray(d, dtype=np.uint8).reshape(-1, 32).view(np.uint64)
+
+
+def match_bow(
+    fv_a: FeatureVector,
+    desc_a: NDArray[np.uint8],
+    fv_b: FeatureVector,
+    desc_b: NDArray[np.uint8],
+    max_distance: int = 50,
+    ratio: float = 0.75,
+    mask_a: NDArray[np.bool_] | None = None,
+    mask_b: NDArray[np.bool_] | None = None,
+) -> I64:
+    """Direct-index-accelerated matching (DBoW2 / ORB-SLAM ``SearchByBoW``), fully vectorised.
+
+    Features are compared only when they fall under the same vocabulary node. For every feature of
+    ``a`` the best ``b`` must be within ``max_distance`` bits and pass the ratio test against the
+    second best; each ``b`` is used once (the closest wins). Returns (K, 2) index pairs (a, b).
+    """
+    ia = np.arange(len(desc_a)) if mask_a is None else np.flatnonzero(mask_a)
+    ib = np.arange(len(desc_b)) if mask_b is None else np.flatnonzero(mask_b)
+    if len(ia) == 0 or len(ib) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    na = fv_a.node_of_feature[ia]
+    nb = fv_b.node_of_feature[ib]
+    order = np.argsort(nb, kind="stable")
+    ib_sorted, nb_sorted = ib[order], nb[order]
+    start = np.searchsorted(nb_sorted, na, side="left")
+    cnt = np.searchsorted(nb_sorted, na, side="right") - start
+    total = int(cnt.sum())
+    if total == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    a_rep = np.repeat(ia, cnt)
+    offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    b_rep = ib_sorted[np.repeat(start, cnt) + offs]
+    dist = np.bitwise_count(_u64(desc_a)[a_rep] ^ _u64(desc_b)[b_rep]).sum(axis=1)
+    return _best_unique(a_rep, b_rep, dist, max_distance, ratio)
+
+
+def _best_unique(a: I64, b: I64, dist: NDArray[Any], max_distance: float, ratio: float | None) -> I64:
+    """Per ``a``: best ``b`` (ratio test vs the second best if ``ratio``); then one ``a`` per ``b``."""
+    if len(a) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    o = np.lexsort((dist, a))
+    a, b, dist = a[o], b[o], dist[o]
+    first = np.ones(len(a), dtype=bool)
+    first[1:] = a[1:] != a[:-1]
+    idx = np.flatnonzero(first)
+    best_d = dist[idx]
+    ok = best_d <= max_distance
+    if ratio is not None:
+        has_second = np.zeros(len(idx), dtype=bool)
+        nxt = idx + 1
+        in_range = nxt < len(a)
+        has_second[in_range] = a[nxt[in_range]] == a[idx[in_range]]
+        second_d = np.where(has_second, dist[np.minimum(nxt, len(a) - 1)], np.inf)
+        ok &= best_d < ratio * second_d
+    idx = idx[ok]
+    pa, pb, pd = a[idx], b[idx], dist[idx]
+    o = np.lexsort((pd, pb))
+    pa, pb = pa[o], pb[o]
+    keep = np.ones(len(pb), dtype=bool)
+    keep[1:] = pb[1:] != pb[:-1]
+    return np.stack([pa[keep], pb[keep]], axis=1).astype(np.int64)
+
+
+def match_projected(
+    uv: F64,
+    desc_pts: NDArray[np.uint8],
+    keypoints: NDArray[np.floating],
+    octaves: NDArray[np.integer],
+    descriptors: NDArray[np.uint8],
+    radius: float,
+    max_distance: int,
+    kp_mask: NDArray[np.bool_] | None = None,
+) -> I64:
+    """Guided search: points projected to ``uv`` (M, 2) -> (K, 2) pairs (point index, keypoint index).
+
+    A keypoint is a candidate when within ``radius * 1.2^octave`` pixels; the closest descriptor within
+    ``max_distance`` bits wins; each keypoint is used once.
+    """
+    kidx = np.arange(len(keypoints)) if kp_mask is None else np.flatnonzero(kp_mask)
+    if len(uv) == 0 or len(kidx) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    kp = np.asarray(keypoints, dtype=np.float64)[kidx]
+    scale = 1.2 ** np.asarray(octaves, dtype=np.float64)[kidx]
+    tree_kp = cKDTree(kp)
+    tree_uv = cKDTree(np.asarray(uv, dtype=np.float64))
+    sdm = tree_uv.sparse_distance_matrix(tree_kp, radius * float(scale.max()), output_type="ndarray")
+    if len(sdm) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    pi = sdm["i"].astype(np.int64)
+    kj = sdm["j"].astype(np.int64)
+    near = sdm["v"] <= radius * scale[kj]
+    pi, kj = pi[near], kj[near]
+    dist = np.bitwise_count(_u64(desc_pts)[pi] ^ _u64(descriptors)[kidx[kj]]).sum(axis=1)
+    pairs = _best_unique(pi, kidx[kj], dist, max_distance, None)
+    return pairs
+
+
+# ----------------------------------------------------------------------------------------------
+# geometry
+def estimate_sim3_ransac(
+    src: F64,
+    tgt: F64,
+    max_error: float,
+    fix_scale: bool,
+    min_trials: int = 200,
+    seed: int = 0,
+    max_trials: int = 3000,
+) -> tuple[Sim3, NDArray[np.bool_]] | None:
+    """Robust ``tgt_from_src`` with pycolmap LO-RANSAC (Sim3d, or Rigid3d when ``fix_scale``)."""
+    import pycolmap
+
+    if len(src) < 3:
+        return None
+    opts = pycolmap.RANSACOptions()
+    opts.max_error = float(max_error)
+    opts.min_num_trials = int(min_trials)
+    # bounded: a wrong candidate has ~0 % inliers and would otherwise run to 100k trials
+    opts.max_num_trials = max(int(max_trials), int(min_trials))
+    opts.random_seed = int(seed)
+    src = np.ascontiguousarray(src, dtype=np.float64)
+    tgt = np.ascontiguousarray(tgt, dtype=np.float64)
+    # both return a dict (tgt_from_src, num_inliers, inlier_mask) or None, despite their docstrings
+    res: Any = (
+        pycolmap.estimate_rigid3d_robust(src, tgt, opts)
+        if fix_scale
+        else pycolmap.estimate_sim3d_robust(src, tgt, opts)
+    )
+    if res is None:
+        return None
+    M = np.asarray(res["tgt_from_src"].matrix())
+    if fix_scale:
+        sim = Sim3(M[:3, :3], M[:3, 3], 1.0)
+    else:
+        sim = Sim3.from_matrix(np.vstack([M[:3, :4], [0, 0, 0, 1]]))
+    return sim, np.asarray(res["inlier_mask"]).astype(bool)
+
+
+@dataclass
+class _Obs:
+    """Observations for the bidirectional reprojection refinement (paper 2.5.1).
+
+    Direction A: candidate point ``Xc`` -> query map (S^-1) -> query keyframe camera, vs ``uv_q``.
+    Direction B (where the query keypoint has a map point): query point ``Xq`` -> candidate map (S) ->
+    candidate keyframe camera ``cam_b``, vs ``uv_b``.
+    """
+
+    xc: F64  # (N, 3) candidate-map points
+    uv_q: F64  # (N, 2)
+    sig_q: F64  # (N,)
+    xq: F64  # (N, 3) query-map points (nan where none)
+    uv_b: F64  # (N, 2)
+    sig_b: F64  # (N,)
+    has_b: NDArray[np.bool_]  # (N,) direction B available
+    groups_b: list[tuple[I64, Any, F64]]  # (indices, camera, cam_from_world) per candidate keyframe
+    sig3: F64 | None = None  # (N,) sigma of the optional 3D term (``S Xq - Xc``), None = off
+
+    def subset(self, idx: I64) -> _Obs:
+        pos = np.full(len(self.xc), -1, dtype=np.int64)
+        pos[idx] = np.arange(len(idx))
+        groups = []
+        for g, cam, cfw in self.groups_b:
+            gi = pos[g]
+            gi = gi[gi >= 0]
+            if len(gi):
+                groups.append((gi, cam, cfw))
+        return _Obs(
+            self.xc[idx],
+            self.uv_q[idx],
+            self.sig_q[idx],
+            self.xq[idx],
+            self.uv_b[idx],
+            self.sig_b[idx],
+            self.has_b[idx],
+            groups,
+        )
+
+
+def _project(camera: Any, cam_from_world: F64, pts: F64) -> tuple[F64, NDArray[np.bool_]]:
+    pc = pts @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    uv, valid = camera.project(pc)
+    return uv, valid
+
+
+def _residuals(
+    sim: Sim3, obs: _Obs, q_camera: Any, q_cam_from_world: F64
+) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """Whitened residuals (N, 2) of directions A and B (B zero where unavailable) and B availability."""
+    inv = sim.inverse()
+    uv_a, va = _project(q_camera, q_cam_from_world, inv.apply(obs.xc))
+    ra = (uv_a - obs.uv_q) / obs.sig_q[:, None]
+    ra[~va] = 1e3
+    rb = np.zeros_like(ra)
+    if obs.groups_b:
+        xs = sim.apply(np.where(np.isfinite(obs.xq), obs.xq, 0.0))
+        for idx, cam, cfw in obs.groups_b:
+            uv_b, vb = _project(cam, cfw, xs[idx])
+            r = (uv_b - obs.uv_b[idx]) / obs.sig_b[idx, None]
+            r[~vb] = 1e3
+            rb[idx] = r
+    return ra, rb, obs.has_b
+
+
+def refine_sim3(
+    sim0: Sim3,
+    obs: _Obs,
+    q_camera: Any,
+    q_cam_from_world: F64,
+    fix_scale: bool,
+    huber: float = 2.45,
+    max_nfev: int = 50,
+    yaw_axis: F64 | None = None,
+) -> Sim3:
+    """Minimise the bidirectional reprojection error over ``[rotvec, t, log s]`` (Huber loss).
+
+    With ``obs.sig3`` set, a weak 3D term ``(S Xq - Xc) / sigma`` is added: when the query and the
+    candidate keyframes see the place from (almost) the same viewpoint, a similarity centred on the
+    camera is invisible in the reprojections, and only the maps' 3D structure fixes the scale.
+    ``yaw_axis`` (unit up direction in the candidate map's frame): only the rotation about it is refined
+    (``sim0``'s roll/pitch kept: a levelled loop, see BackendOptions.level_reprojection).
+    """
+    n_rot = 3 if yaw_axis is None else 1
+    n_par = n_rot + 3 + (0 if fix_scale else 1)
+    axis = None if yaw_axis is None else np.asarray(yaw_axis, dtype=np.float64) / np.linalg.norm(yaw_axis)
+
+    def make(x: F64) -> Sim3:
+        R = (so3_exp(x[:3]) if axis is None else so3_exp(axis * x[0])) @ sim0.R
+        s = sim0.s if fix_scale else sim0.s * float(np.exp(x[n_rot + 3]))
+        return Sim3(R, sim0.t + x[n_rot : n_rot + 3], s)
+
+    use3 = obs.sig3 is not None and bool(obs.has_b.any())
+    if use3:
+        assert obs.sig3 is not None
+        i3 = np.flatnonzero(obs.has_b)
+        xq3, xc3, s3 = obs.xq[i3], obs.xc[i3], obs.sig3[i3, None]
+
+    def fun(x: F64) -> F64:
+        sim = make(x)
+        ra, rb, _ = _residuals(sim, obs, q_camera, q_cam_from_world)
+        parts = [ra.ravel(), rb.ravel()]
+        if use3:
+            parts.append(((sim.apply(xq3) - xc3) / s3).ravel())
+        return np.concatenate(parts)
+
+    # translation steps are scaled to the scene (x_scale) so the numeric Jacobian is well conditioned
+    depth = float(np.median(np.linalg.norm(obs.xc - np.median(obs.xc, axis=0), axis=1))) + 1e-9
+    x_scale = np.array([0.01] * n_rot + [0.01 * depth] * 3 + ([0.01] if not fix_scale else []))
+    res = least_squares(
+        fun, np.zeros(n_par), loss="huber", f_scale=huber, x_scale=x_scale, max_nfev=max_nfev, method="trf"
+    )
+    return make(res.x)
+
+
+def correction_of(sim: Sim3, world_from_cam: Any) -> tuple[float, float]:
+    """How far (m) and how much (deg) the similarity ``sim`` moves and turns a camera pose."""
+    c = np.asarray(world_from_cam, dtype=np.float64)[:3, 3]
+    return float(np.linalg.norm(sim.apply(c) - c)), rotation_angle_deg(sim.R)
+
+
+def pair_observations(
+    mq: Any,
+    mc: Any,
+    query_key: KfKey,
+    candidate_key: KfKey,
+    query_points: Sequence[PointKey],
+    candidate_points: Sequence[PointKey],
+    n_covisible: int = 5,
+) -> _Obs:
+    """The reprojection observations of a detection's point pairs (``query_points[i]`` is
+    ``candidate_points[i]``): the query keyframe's keypoints of its paired points, and those points'
+    keypoints in the candidate keyframe and its ``n_covisible`` best covisible keyframes."""
+    q = mq.keyframes[query_key]
+    q_pk = _point_keys(q)
+    index: dict[PointKey, int] = {}
+    for i, k in enumerate(q_pk):
+        if k is not None:
+            index.setdefault(mq.resolve_point(k), i)
+    pairs: dict[int, PointKey] = {}
+    for kq, kc in zip(query_points, candidate_points, strict=True):
+        iq, pc = index.get(mq.resolve_point(kq)), mc.resolve_point(kc)
+        if iq is not None and pc in mc.points:
+            pairs.setdefault(iq, pc)
+    keys = [candidate_key, *_best_covisible(mc, candidate_key, n_covisible)]
+    window = [mc.keyframes[k] for k in dict.fromkeys(keys) if k in mc.keyframes]
+    return _observations(pairs, q, q_pk, mq, mc, window)
+
+
+def _best_covisible(m: Any, key: KfKey, n: int) -> list[KfKey]:
+    out = m.best_covisible(key, n)
+    res: list[KfKey] = []
+    for item in out:
+        if isinstance(item, tuple) and len(item) == 2 and isinstance(item[0], tuple):
+            res.append(item[0])  # (key, weight)
+        elif isinstance(item, tuple):
+            res.append(item)  # type: ignore[arg-type]
+        else:
+            res.append(item.key)
+    return res
+
+
+def _point_keys(kf: Any) -> list[PointKey | None]:
+    return list(kf.point_keys)
+
+
+def guided_search(
+    o: PlaceRecOptions,
+    q: Any,
+    q_cfw: F64,
+    q_pk: Sequence[PointKey | None],
+    mq: Any,
+    c: Any,
+    c_cfw: F64,
+    mc: Any,
+    cand_pts: list[PointKey],
+    q_pts: list[PointKey],
+    sim: Sim3,
+    pairs: dict[int, PointKey],
+) -> dict[int, PointKey]:
+    """Add matches by projection both ways; returns query keypoint -> candidate point."""
+    out = dict(pairs)
+    used_c = set(out.values())
+    # A: candidate-window points -> query keyframe
+    free_c = [k for k in cand_pts if k not in used_c]
+    if free_c:
+        xyz = sim.inverse().apply(np.array([mc.points[k].xyz for k in free_c]))
+        uv, valid = _project(q.camera, q_cfw, xyz)
+        valid &= q.camera.in_image(uv)
+        vi = np.flatnonzero(valid)
+        desc = np.array([mc.points[free_c[i]].descriptor for i in vi], dtype=np.uint8).reshape(-1, 32)
+        mask = np.ones(len(q.keypoints), dtype=bool)
+        mask[list(out.keys())] = False
+        m = match_projected(
+            uv[vi],
+            desc,
+            q.keypoints,
+            q.octaves,
+            q.descriptors,
+            o.search_radius_px,
+            o.search_max_distance,
+            mask,
+        )
+        for pi, kq in m.tolist():
+            out[int(kq)] = free_c[vi[pi]]
+            used_c.add(free_c[vi[pi]])
+    # B: query points -> candidate keyframe
+    used_q = {q_pk[i] for i in out if q_pk[i] is not None}
+    free_q = [k for k in q_pts if k not in used_q]
+    c_pk = _point_keys(c)
+    if free_q:
+        xyz = sim.apply(np.array([mq.points[k].xyz for k in free_q]))
+        uv, valid = _project(c.camera, c_cfw, xyz)
+        valid &= c.camera.in_image(uv)
+        vi = np.flatnonzero(valid)
+        desc = np.array([mq.points[free_q[i]].descriptor for i in vi], dtype=np.uint8).reshape(-1, 32)
+        cmask = np.array([k is not None and k in mc.points and k not in used_c for k in c_pk], dtype=bool)
+        m = match_projected(
+            uv[vi],
+            desc,
+            c.keypoints,
+            c.octaves,
+            c.descriptors,
+            o.search_radius_px,
+            o.search_max_distance,
+            cmask,
+        )
+        q_index = {k: i for i, k in enumerate(q_pk) if k is not None}
+        for pi, kc in m.tolist():
+            qk = free_q[vi[pi]]
+            iq = q_index[qk]
+            pc = c_pk[kc]
+            if iq not in out and pc is not None:
+                out[iq] = pc
+    return out
+
+
+def _window_points(mc: Any, window_kfs: list[Any]) -> list[PointKey]:
+    seen: dict[PointKey, None] = {}
+    for w in window_kfs:
+        for k in _point_keys(w):
+            if k is not None and k in mc.points:
+                seen.setdefault(k, None)
+    return list(seen)
+
+
+def _observations(
+    pairs: dict[int, PointKey],
+    q: Any,
+    q_pk: Sequence[PointKey | None],
+    mq: Any,
+    mc: Any,
+    window_kfs: list[Any],
+) -> _Obs:
+    n = len(pairs)
+    xc = np.zeros((n, 3))
+    uv_q = np.zeros((n, 2))
+    sig_q = np.ones(n)
+    xq = np.full((n, 3), np.nan)
+    uv_b = np.zeros((n, 2))
+    sig_b = np.ones(n)
+    kf_of: list[KfKey | None] = [None] * n
+    wpos = {
+        w.key: (w, (w.camera, se3_inverse(np.asarray(w.world_from_cam, dtype=np.float64))))
+        for w in window_kfs
+    }
+    for i, (iq, pc) in enumerate(pairs.items()):
+        mp = mc.points[pc]
+        xc[i] = mp.xyz
+        uv_q[i] = q.keypoints[iq]
+        sig_q[i] = 1.2 ** float(q.octaves[iq])
+        qk = q_pk[iq]
+        if qk is not None and qk in mq.points:
+            for wk, idx in mp.observations.items():
+                hit = wpos.get(wk)
+                if hit is not None:
+                    w, cam = hit
+                    xq[i] = mq.points[qk].xyz
+                    uv_b[i] = w.keypoints[idx]
+                    sig_b[i] = 1.2 ** float(w.octaves[idx])
+                    kf_of[i] = wk
+                    break
+    groups: list[tuple[I64, Any, F64]] = []
+    by_kf: dict[KfKey, list[int]] = {}
+    for i, wk in enumerate(kf_of):
+        if wk is not None:
+            by_kf.setdefault(wk, []).append(i)
+    for wk, idx_list in by_kf.items():
+        cam, cfw = wpos[wk][1]
+        groups.append((np.asarray(idx_list, dtype=np.int64), cam, cfw))
+    has_b = np.array([k is not None for k in kf_of], dtype=bool)
+    return _Obs(xc, uv_q, sig_q, xq, uv_b, sig_b, has_b, groups)
