@@ -29,14 +29,12 @@ import contextlib
 import gc
 import logging
 import time
-from collections import Counter, deque
 from collections.abc import Awaitable, Callable, Iterable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from hivemap import __version__
 from hivemap.maps import MapStack
@@ -45,16 +43,18 @@ from hivemap.maps.geometry import Sim3
 from hivemap.protocol import (
     Correction,
     Hello,
-    Keyframe,
-    MapPoints,
     Message,
-    PoseUpdates,
     Welcome,
 )
 from hivemap.protocol import Error as ErrorMsg
-from hivemap.server.bandwidth import Bandwidth
-from hivemap.server.convert import fold_agent_id, keyframe_from_msg, points_from_msg
+from hivemap.server.agents import AgentMap as AgentMap
+from hivemap.server.agents import AgentState as AgentState
+from hivemap.server.agents import Connection as Connection
+from hivemap.server.agents import MissionState as MissionState
+from hivemap.server.agents import PendingKeyframe as PendingKeyframe
+from hivemap.server.agents import Rejected as Rejected
 from hivemap.server.events import EventLog
+from hivemap.server.ingest import Ingest, _with_last_seq
 from hivemap.server.metrics import Histogram
 from hivemap.server.persist import GraphSnapshot, ServerStore
 from hivemap.server.quotas import Quotas
@@ -66,121 +66,9 @@ logger = logging.getLogger(__name__)
 KfKey = tuple[str, int]
 PointKey = tuple[str, int]
 KeyframeObserver = Callable[[int, KfKey], Awaitable[None]]
-# sessions of one agent id over all its missions (each is one agent map); bounds what one id can hold
-MAX_SESSIONS_PER_AGENT = 256
-# front-end sessions within one mission
-MAX_SESSIONS_PER_MISSION = 64
 
 
-def _with_last_seq(
-    data_op: Callable[[ServerStore], None] | None, agent_id: str, mission: str, seq: int
-) -> Callable[[ServerStore], None]:
-    """The message's data writes, then the mission's last seq: both land in the same commit."""
-
-    def op(store: ServerStore) -> None:
-        if data_op is not None:
-            data_op(store)
-        store.set_last_seq(agent_id, mission, seq)
-
-    return op
-
-
-class Rejected(Exception):
-    """A message that is refused as a whole (nothing applied); becomes an ``error`` reply."""
-
-    def __init__(self, code: str, message: str, field: str | None = None) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
-        self.field = field
-
-
-class Connection(Protocol):
-    """What the core needs from a WebSocket connection (implemented in :mod:`hivemap.server.ws`)."""
-
-    agent_id: str | None
-    mission: str | None
-    replaced: bool
-
-    def send(self, msg: Message) -> bool: ...
-
-    async def close(self, code: int, reason: str) -> None: ...
-
-
-@dataclass
-class PendingKeyframe:
-    msg: Keyframe
-    missing: set[int]
-
-
-@dataclass
-class AgentMap:
-    """One (agent, mission, session): the ingest bookkeeping of one agent map (the data lives in the
-    MapStack). ``session`` is the server's number of it among all the agent's maps (the ``#n`` of its
-    folded id); ``mission`` and ``client_session`` are what the agent calls it."""
-
-    agent_id: str
-    session: int
-    folded: str
-    camera: PinholeCamera
-    mission: str = ""
-    client_session: int = 0
-    global_from_vio: Sim3 = field(default_factory=Sim3.identity)
-    arrived_points: set[int] = field(default_factory=set)
-    arrived_kfs: set[int] = field(default_factory=set)
-    pending: dict[int, PendingKeyframe] = field(default_factory=dict)
-    waiting: dict[int, set[int]] = field(default_factory=dict)
-    # the last VIO pose received per keyframe (memory only): a pose update moves the keyframe by the
-    # agent's refinement and keeps the back-end's own correction of it (loop, GNSS bend and tilt)
-    vio_poses: dict[int, NDArray[np.float64]] = field(default_factory=dict)
-
-
-@dataclass
-class MissionState:
-    """One mission of an agent (one run of its outbox): its seqs count from 1 within it."""
-
-    mission: str
-    last_seq: int = 0  # durably stored
-    applied_seq: int = 0  # applied in memory (>= last_seq)
-    undelivered: deque[Correction] = field(default_factory=lambda: deque(maxlen=16))
-
-
-@dataclass
-class AgentState:
-    agent_id: str
-    kind: str = "uav"
-    camera: dict[str, Any] = field(default_factory=dict)
-    session: int = 0  # the newest server session (see AgentMap)
-    maps: dict[int, AgentMap] = field(default_factory=dict)  # by server session
-    missions: dict[str, MissionState] = field(default_factory=dict)
-    mission: str | None = None  # the mission of the latest hello
-    connection: Connection | None = None
-    connected_since: float | None = None
-    last_seen: float | None = None
-    bandwidth: Bandwidth = field(default_factory=Bandwidth)
-    received: Counter[str] = field(default_factory=Counter)
-    duplicates: int = 0
-    errors: int = 0
-    cam_from_antenna: NDArray[np.float64] | None = None  # GNSS lever arm from the hello (not persisted)
-
-    @property
-    def state(self) -> str:
-        return "connected" if self.connection is not None else "disconnected"
-
-    @property
-    def last_seq(self) -> int:
-        """The last stored seq of the latest mission."""
-        ms = self.missions.get(self.mission) if self.mission is not None else None
-        return ms.last_seq if ms is not None else 0
-
-    def session_of(self, mission: str, client_session: int) -> AgentMap | None:
-        for am in self.maps.values():
-            if am.mission == mission and am.client_session == client_session:
-                return am
-        return None
-
-
-class HiveServer:
+class HiveServer(Ingest):
     """The server state shared by the WebSocket handlers, the REST routes and the back-end."""
 
     def __init__(self, settings: ServerSettings) -> None:
@@ -564,239 +452,6 @@ class HiveServer:
             logger.warning("quota: %s", over.message)
             self.events.add("quota", over.message, agent_id=agent.agent_id, data={"limit": over.limit})
         raise Rejected(over.code, over.message, field)
-
-    def _apply(
-        self, agent: AgentState, mission: str, msg: Message
-    ) -> tuple[Callable[[ServerStore], None] | None, list[tuple[int, KfKey]]]:
-        if isinstance(msg, Keyframe):
-            return self._apply_keyframe(agent, mission, msg)
-        if isinstance(msg, MapPoints):
-            return self._apply_points(agent, mission, msg)
-        if isinstance(msg, PoseUpdates):
-            return self._apply_pose_updates(agent, mission, msg), []
-        raise Rejected("unexpected", f"'{type(msg).__name__}' is not a message an agent sends", "type")
-
-    def _session_map(
-        self, agent: AgentState, mission: str, session: int, create: bool, persist: bool = True
-    ) -> AgentMap:
-        """The agent map of the mission's front-end session ``session``; a new one gets the agent's next
-        server session (so a second mission never lands in the first one's maps)."""
-        am = agent.session_of(mission, session)
-        if am is not None:
-            return am
-        if not create:
-            raise Rejected(
-                "unknown_id",
-                f"unknown session {session} of mission {mission} for agent '{agent.agent_id}'",
-                "body.session",
-            )
-        in_mission = [a.client_session for a in agent.maps.values() if a.mission == mission]
-        if (
-            session < 0
-            or len(agent.maps) >= MAX_SESSIONS_PER_AGENT
-            or len(in_mission) >= MAX_SESSIONS_PER_MISSION
-            or session < max(in_mission, default=0)
-        ):
-            raise Rejected(
-                "bad_field", f"session {session} not allowed for agent '{agent.agent_id}'", "body.session"
-            )
-        # an agent id's first mission keeps its own session numbers; a later one's go above all used
-        first_mission = all(a.mission == mission for a in agent.maps.values())
-        server_session = session if first_mission else max(agent.maps, default=-1) + 1
-        am = self._new_agent_map(agent, server_session, mission, session)
-        agent.session = max(agent.session, server_session)
-        if not persist:
-            return am
-        folded, m = am.folded, am.global_from_vio.matrix()
-        rec = {
-            "agent_id": agent.agent_id,
-            "kind": agent.kind,
-            "camera": agent.camera,
-            "session": agent.session,
-            "mission": agent.mission,
-        }
-        self.writer.submit(
-            lambda store: (
-                store.put_agent(rec),
-                store.put_agent_map(folded, agent.agent_id, server_session, m, mission, session),
-            )
-        )
-        return am
-
-    def _new_agent_map(self, agent: AgentState, session: int, mission: str, client_session: int) -> AgentMap:
-        camera = PinholeCamera.from_dict(agent.camera)
-        am = AgentMap(
-            agent.agent_id, session, fold_agent_id(agent.agent_id, session), camera, mission, client_session
-        )
-        agent.maps[session] = am
-        return am
-
-    def _agent_map_by_folded(self, folded: str) -> AgentMap | None:
-        for agent in self.agents.values():
-            for am in agent.maps.values():
-                if am.folded == folded:
-                    return am
-        return None
-
-    def map_for(self, am: AgentMap) -> Any:
-        """The stack map holding this agent map's data (created on first use)."""
-        m = self.stack.map_of_agent(am.folded)
-        if m is None:
-            m = self.stack.new_map()
-            m.agents.add(am.folded)
-        return m
-
-    @staticmethod
-    def _missing_points(am: AgentMap, msg: Keyframe) -> set[int]:
-        ids = np.unique(msg.point_ids[msg.point_ids >= 0])
-        return {int(i) for i in ids.tolist() if int(i) not in am.arrived_points}
-
-    def _apply_keyframe(
-        self, agent: AgentState, mission: str, msg: Keyframe
-    ) -> tuple[Callable[[ServerStore], None] | None, list[tuple[int, KfKey]]]:
-        am = self._session_map(agent, mission, msg.session, create=True)
-        if msg.kf_id in am.arrived_kfs or msg.kf_id in am.pending:
-            agent.duplicates += 1
-            return None, []
-        self._check_quota(agent, "keyframes", 1, "body.kf_id")
-        missing = self._missing_points(am, msg)
-        if missing:
-            if len(am.pending) >= self.settings.max_pending_keyframes:
-                raise Rejected(
-                    "overloaded",
-                    f"{len(am.pending)} keyframes already wait for their map points; send the points first",
-                    "body.point_ids",
-                )
-            am.pending[msg.kf_id] = PendingKeyframe(msg, missing)
-            for pid in missing:
-                am.waiting.setdefault(pid, set()).add(msg.kf_id)
-            folded = am.folded
-            return (lambda store: store.put_pending(folded, msg)), []
-        m = self.map_for(am)
-        kf = self._insert_keyframe(am, m, msg)
-        map_id, graph = m.id, GraphSnapshot(m)
-
-        def op(store: ServerStore) -> None:
-            store.maps.put_keyframe(map_id, kf)
-            store.sync_graph(graph)
-
-        return op, [(map_id, kf.key)]
-
-    def _insert_keyframe(self, am: AgentMap, m: Any, msg: Keyframe) -> Any:
-        kf = keyframe_from_msg(am.folded, msg, am.camera, am.global_from_vio)
-        m.add_keyframe(kf)
-        am.arrived_kfs.add(msg.kf_id)
-        am.vio_poses[msg.kf_id] = np.array(msg.world_from_cam, dtype=np.float64)
-        return kf
-
-    def _apply_points(
-        self, agent: AgentState, mission: str, msg: MapPoints
-    ) -> tuple[Callable[[ServerStore], None] | None, list[tuple[int, KfKey]]]:
-        am = self._session_map(agent, mission, msg.session, create=True)
-        ids = msg.ids.tolist()
-        seen: set[int] = set()
-        keep: list[int] = []
-        for i, pid in enumerate(ids):
-            if pid < 0:
-                raise Rejected("bad_field", f"map point ids must be >= 0, got {pid}", "body.ids")
-            if pid in am.arrived_points or pid in seen:
-                continue
-            seen.add(pid)
-            keep.append(i)
-        if not keep:
-            agent.duplicates += 1
-            return None, []
-        self._check_quota(agent, "points", len(keep), "body.ids")
-        m = self.map_for(am)
-        points = points_from_msg(am.folded, msg, np.asarray(keep, dtype=np.int64), am.global_from_vio)
-        for mp in points:
-            m.add_point(mp)
-        am.arrived_points.update(seen)
-        # Keyframes that waited for these points (paper 2.3.2).
-        ready: list[int] = []
-        for pid in seen:
-            for kf_id in am.waiting.pop(pid, ()):
-                pk = am.pending.get(kf_id)
-                if pk is None:
-                    continue
-                pk.missing.discard(pid)
-                if not pk.missing:
-                    ready.append(kf_id)
-        released = []
-        for kf_id in sorted(ready):
-            pk = am.pending.pop(kf_id)
-            released.append(self._insert_keyframe(am, m, pk.msg))
-        map_id, folded = m.id, am.folded
-        graph = GraphSnapshot(m) if released else None
-
-        def op(store: ServerStore) -> None:
-            store.maps.put_points(map_id, points)
-            for kf in released:
-                store.maps.put_keyframe(map_id, kf)
-                store.delete_pending(folded, kf.id)
-            if graph is not None:
-                store.sync_graph(graph)
-
-        return op, [(map_id, kf.key) for kf in released]
-
-    def _apply_pose_updates(
-        self, agent: AgentState, mission: str, msg: PoseUpdates
-    ) -> Callable[[ServerStore], None] | None:
-        am = self._session_map(agent, mission, msg.session, create=False)
-        kf_ids = msg.kf_ids.tolist()
-        point_ids = msg.point_ids.tolist()
-        for i, k in enumerate(kf_ids):
-            if k not in am.arrived_kfs and k not in am.pending:
-                raise Rejected(
-                    "unknown_id", f"keyframe {k} of '{am.folded}' never arrived", f"body.kf_ids[{i}]"
-                )
-        for i, p in enumerate(point_ids):
-            if p not in am.arrived_points:
-                raise Rejected(
-                    "unknown_id", f"map point {p} of '{am.folded}' never arrived", f"body.point_ids[{i}]"
-                )
-        m = self.stack.map_of_agent(am.folded)
-        g = am.global_from_vio
-        changed_kfs = []
-        changed_pending = []
-        for i, k in enumerate(kf_ids):
-            T = np.array(msg.world_from_cam[i], dtype=np.float64)
-            pk = am.pending.get(k)
-            if pk is not None:
-                pk.msg = replace(pk.msg, world_from_cam=T)
-                changed_pending.append(pk.msg)
-                continue
-            kf = m.keyframes.get((am.folded, k)) if m is not None else None
-            if kf is not None:  # None: removed by the back-end (culled); the update is moot
-                old = am.vio_poses.get(k)
-                if old is None:  # not seen since a restart: the agent's transform alone
-                    kf.world_from_cam = g.transform_pose(T)
-                else:
-                    # the agent's refinement, in the keyframe's frame (scaled like the agent's map), on
-                    # top of the keyframe's current pose: g @ T would drop what the back-end did to this
-                    # keyframe alone (its share of a loop closure or of the GNSS stage's bend)
-                    delta = np.linalg.inv(old) @ T
-                    delta[:3, 3] *= g.s
-                    kf.world_from_cam = kf.world_from_cam @ delta
-                am.vio_poses[k] = T
-                changed_kfs.append(kf)
-        changed_points = []
-        if point_ids and m is not None:
-            xyz = g.apply(np.asarray(msg.xyz, dtype=np.float64))
-            for i, p in enumerate(point_ids):
-                mp = m.points.get((am.folded, p))
-                if mp is not None:
-                    mp.xyz = xyz[i].copy()
-                    changed_points.append(mp)
-        map_id, folded = (m.id if m is not None else -1), am.folded
-
-        def op(store: ServerStore) -> None:
-            if changed_kfs or changed_points:
-                store.maps.update_poses(map_id, changed_kfs, changed_points)
-            for pmsg in changed_pending:
-                store.put_pending(folded, pmsg)
-
-        return op
 
     # -- hooks for the back-end ---------------------------------------------------------------------
     async def send_correction(self, agent_id: str, correction: Correction) -> bool:

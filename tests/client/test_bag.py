@@ -20,8 +20,8 @@ from hivemap.client.bag import (
     decode_image,
     load_bag,
     load_calibration,
-    write_bag,
 )
+from hivemap.client.bag_write import write_bag
 from hivemap.client.dataset import DatasetError, load_dataset
 from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum
 
