@@ -18,7 +18,7 @@ from hivemap.eval.seeds import seeds_section
 
 log = logging.getLogger(__name__)
 
-# Paper 003_f6f3990b0874b823 (Xu et al., air-ground co-location), Table 8 "The accuracy of each agent
+# The paper (seed 003: Xu et al., air-ground co-location), Table 8 "The accuracy of each agent
 # running in different modes": ATE RMSE (m) / mean error (m), Factory 01, 03, 05, 06.
 PAPER_TABLE8: dict[str, dict[str, tuple[float, float]]] = {
     "uav1": {"challenged1": (0.262, 0.170), "challenged2": (0.311, 0.197), "denied": (0.930, 0.842),
