@@ -33,7 +33,10 @@ def config_error(path: Path | str | None, exc: Exception) -> ConfigError:
             first = items[0]
             field = ".".join(str(p) for p in first.get("loc", ())) or "(root)"
             more = f" (and {len(items) - 1} more)" if len(items) > 1 else ""
-            return ConfigError(path, f"field {field!r}: {first.get('msg', 'invalid')}{more}")
+            msg = str(first.get("msg", "invalid")).removeprefix("Value error, ")
+            if msg.startswith("unknown key"):  # the back-end's options name the whole key themselves
+                return ConfigError(path, f"{msg}{more}")
+            return ConfigError(path, f"field {field!r}: {msg}{more}")
     return ConfigError(path, str(exc))
 
 
