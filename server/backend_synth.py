@@ -104,3 +104,23 @@ def agent_stream(
         )  # fmt: skip
     true_local = np.array([local_from_world.transform_pose(T) for T in true])
     return msgs, true_local, np.array(sent)
+
+
+# the UGV's map frame in the back-end tests (the UGV defines the global frame)
+UGV_FROM_WORLD = Sim3(so3_exp(np.array([0.0, 0.0, 0.4])), np.array([3.0, -2.0, 0.5]), 1.0)
+
+
+def loop_passes(
+    seed: int = 5, local_from_world: Sim3 = UGV_FROM_WORLD
+) -> tuple[list[Message], list[Message], np.ndarray, np.ndarray]:
+    """One agent passes a place twice, the second pass with its own keyframe and point ids and under a
+    rigid drift (2.3 deg + ~0.5 m, as odometry accumulates): an intra-map loop closure. Returns the two
+    passes' messages and the second pass's true and sent poses."""
+    rng = np.random.default_rng(seed)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
+    first, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), local_from_world)
+    second, true2, sent2 = agent_stream(
+        rng, pts, desc, np.linspace(-4, 10, 10), local_from_world, id0=1000, point_id0=100000, drift=drift
+    )
+    return first, second, true2, sent2

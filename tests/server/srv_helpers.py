@@ -98,6 +98,17 @@ class ServerProcess:
             except subprocess.TimeoutExpired:
                 self.kill()
 
+    def wait_backend_idle(self, timeout: float = 90.0) -> None:
+        """Until ``/health`` reports the back-end idle three polls in a row."""
+        deadline = time.monotonic() + timeout
+        idle = 0
+        while time.monotonic() < deadline:
+            idle = idle + 1 if self.json("/health").get("backend_idle") is True else 0
+            if idle >= 3:
+                return
+            time.sleep(0.3)
+        raise TimeoutError("back-end still busy")
+
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
 

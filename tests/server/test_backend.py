@@ -28,11 +28,10 @@ from hivemap.protocol import Ack, Correction, Message
 from hivemap.server.app import create_app, uvicorn_config_kwargs
 from hivemap.server.backend import Backend, BackendOptions, installer, preset
 from hivemap.server.backend.options import SchedulerOptions
-from hivemap.server.backend_synth import agent_stream, make_world
+from hivemap.server.backend_synth import UGV_FROM_WORLD, agent_stream, make_world
 from hivemap.server.settings import ServerSettings
 
 FAST = SchedulerOptions(verifications_per_s=1000.0)  # no verification budget to wait for
-UGV_FROM_WORLD = Sim3(so3_exp(np.array([0.0, 0.0, 0.4])), np.array([3.0, -2.0, 0.5]), 1.0)
 UAV_FROM_WORLD = Sim3(so3_exp(np.array([0.3, -0.5, 1.2])), np.array([12.0, -7.0, 4.0]), 1.0)
 
 

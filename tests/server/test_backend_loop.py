@@ -25,7 +25,7 @@ from test_backend import (
 from hivemap.maps.geometry import Sim3, rotation_angle_deg, so3_exp
 from hivemap.server.backend import preset
 from hivemap.server.backend.options import FitOptions
-from hivemap.server.backend_synth import agent_stream, make_world
+from hivemap.server.backend_synth import agent_stream, loop_passes, make_world
 
 
 @pytest.fixture
@@ -36,13 +36,7 @@ def srv(tmp_path: Path) -> Iterator[Server]:
 
 
 def test_second_pass_closes_a_loop_and_removes_the_drift(srv: Server) -> None:
-    rng = np.random.default_rng(5)
-    pts, desc = make_world(rng, 2500, (-20, 30))
-    drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
-    first, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD)
-    second, true2, sent2 = agent_stream(
-        rng, pts, desc, np.linspace(-4, 10, 10), UGV_FROM_WORLD, id0=1000, point_id0=100000, drift=drift
-    )
+    first, second, true2, sent2 = loop_passes()
     with stream(srv, "ugv1", "ugv", first + second):
         srv.wait_idle()
     loops = srv.call(lambda: list(srv.backend.loops))

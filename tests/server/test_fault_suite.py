@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from mission_records import agent_record, compare
+from mission_records import Comparison, agent_record, compare
 from srv_helpers import TOKENS, ServerProcess, write_config
 
 
@@ -50,15 +50,14 @@ def _finish(proc: subprocess.Popen[str], timeout: float = 300.0) -> tuple[str, s
     return out, err
 
 
-def _check(server: ServerProcess, outbox: Path) -> None:
-    """The records match the store, and one more clean restart gives the same map stack."""
+def _restart_and_compare(server: ServerProcess, outbox: Path) -> tuple[Comparison, bool, int]:
+    """Compare the store with the agent's record, restart once more: (comparison, the same map stack
+    after the restart, messages the agent still has unacknowledged)."""
     digest = server.json("/maps/digest")["digests"]
     server.stop()
     c = compare([agent_record(outbox, "uav1")], server.data_dir / "hivemap.sqlite", "uav1")
-    assert c.clean, c
     server.start()
-    assert server.json("/maps/digest")["digests"] == digest
-    assert agent_record(outbox, "uav1").unacked == 0
+    return c, server.json("/maps/digest")["digests"] == digest, agent_record(outbox, "uav1").unacked
 
 
 @pytest.fixture
@@ -73,17 +72,24 @@ def test_server_killed_at_three_points_of_a_stream(
 ) -> None:
     out = tmp_path / "out"
     proc = _agent(tiny_uav, server, out)
+    survived = []
     try:
         for seq in (3, 12, 25):  # early, mid-stream, late (this run sends ~40 messages)
             _wait_seq(server, seq, proc)
+            acked = _stored_seq(server)
             server.kill()
             time.sleep(0.5)
             server.start()
+            survived.append(_stored_seq(server) >= acked)  # what was acknowledged outlives the kill
         _finish(proc)
     finally:
         if proc.poll() is None:
             proc.kill()
-    _check(server, out / "outbox.sqlite")
+    assert survived == [True, True, True]
+    c, same_after_restart, unacked = _restart_and_compare(server, out / "outbox.sqlite")
+    assert c.clean, c
+    assert same_after_restart and unacked == 0
+    assert agent_record(out / "outbox.sqlite", "uav1").keyframe_messages > 5
 
 
 def test_agent_killed_then_restarted_resumes_its_mission(
@@ -99,7 +105,9 @@ def test_agent_killed_then_restarted_resumes_its_mission(
     assert "resumes mission" in err
     rec = agent_record(out / "outbox.sqlite", "uav1")
     assert rec.mission == mission and {k[1] for k in rec.poses} == {0, 1}
-    _check(server, out / "outbox.sqlite")
+    c, same_after_restart, unacked = _restart_and_compare(server, out / "outbox.sqlite")
+    assert c.clean, c
+    assert same_after_restart and unacked == 0
 
 
 def test_sigterm_of_the_agent_and_of_the_server(
@@ -116,4 +124,6 @@ def test_sigterm_of_the_agent_and_of_the_server(
     assert server.proc.wait(30) == 0
     server.start()
     _finish(_agent(tiny_uav, server, out))
-    _check(server, out / "outbox.sqlite")
+    c, same_after_restart, unacked = _restart_and_compare(server, out / "outbox.sqlite")
+    assert c.clean, c
+    assert same_after_restart and unacked == 0

@@ -38,31 +38,12 @@ def _decoder(schema_name: str, schema_b64_or_bytes: str | bytes) -> Any:
 
 def _streams() -> dict[str, list[Any]]:
     """ugv1: two passes over the same place (the second drifted: a loop closure); uav1 elsewhere."""
-    from hivemap.maps.geometry import Sim3, so3_exp
-    from hivemap.server.backend_synth import agent_stream, make_world
+    from hivemap.server.backend_synth import loop_passes
     from hivemap.server.loadgen import synthetic_stream
 
-    ugv_from_world = Sim3(so3_exp(np.array([0.0, 0.0, 0.4])), np.array([3.0, -2.0, 0.5]), 1.0)
-    rng = np.random.default_rng(5)
-    pts, desc = make_world(rng, 2500, (-20, 30))
-    drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
-    first, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), ugv_from_world)
-    second, _, _ = agent_stream(
-        rng, pts, desc, np.linspace(-4, 10, 10), ugv_from_world, id0=1000, point_id0=100000, drift=drift
-    )
+    first, second, _, _ = loop_passes()
     uav, _ = synthetic_stream("uav1", 6, seed=3)
     return {"ugv1": first + second, "uav1": uav}
-
-
-def _wait_backend_idle(server: ServerProcess, timeout: float = 90.0) -> None:
-    deadline = time.monotonic() + timeout
-    idle = 0
-    while time.monotonic() < deadline:
-        idle = idle + 1 if server.json("/health").get("backend_idle") is True else 0
-        if idle >= 3:
-            return
-        time.sleep(0.3)
-    raise TimeoutError("back-end still busy")
 
 
 EXPECTED = {
@@ -88,7 +69,7 @@ def mission(tmp_path_factory: pytest.TempPathFactory) -> Any:
             with SyncAgent(server.ws_url, agent_id, TOKENS[agent_id], kind=kind) as agent:
                 agent.welcome()
                 assert agent.send_all(msgs)[1] == []
-        _wait_backend_idle(server)
+        server.wait_backend_idle()
         yield server, fox_port
     finally:
         server.stop()

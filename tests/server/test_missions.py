@@ -147,41 +147,20 @@ def test_a_new_mission_reusing_ids_and_seqs_is_stored_beside_the_old_one(server:
     a2.close()
 
 
-def _wait_backend_idle(server: ServerProcess, timeout: float = 90.0) -> None:
-    import time
-
-    deadline = time.monotonic() + timeout
-    idle = 0
-    while time.monotonic() < deadline:
-        idle = idle + 1 if server.json("/health").get("backend_idle") is True else 0
-        if idle >= 3:
-            return
-        time.sleep(0.3)
-    raise TimeoutError("back-end still busy")
-
-
 def test_points_fused_at_a_loop_closure_survive_kill_and_restart(tmp_path: Path) -> None:
     """A loop closure fuses the two passes' duplicate points; after a SIGKILL and after a clean restart
     the reloaded map stack is the one the server had (same digest: keyframes, points, observations,
     graphs, poses bit for bit), not one with the fused-away points back."""
-    from hivemap.maps.geometry import Sim3, so3_exp
-    from hivemap.server.backend_synth import agent_stream, make_world
+    from hivemap.server.backend_synth import loop_passes
 
-    ugv_from_world = Sim3(so3_exp(np.array([0.0, 0.0, 0.4])), np.array([3.0, -2.0, 0.5]), 1.0)
-    rng = np.random.default_rng(5)
-    pts, desc = make_world(rng, 2500, (-20, 30))
-    drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
-    first, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), ugv_from_world)
-    second, _, _ = agent_stream(
-        rng, pts, desc, np.linspace(-4, 10, 10), ugv_from_world, id0=1000, point_id0=100000, drift=drift
-    )
+    first, second, _, _ = loop_passes()
     cfg = write_config(tmp_path / "server.toml", backend=True)
     server = ServerProcess(tmp_path / "data", cfg).start()
     try:
         with SyncAgent(server.ws_url, "ugv1", TOKENS["ugv1"], kind="ugv") as agent:
             agent.welcome()
             assert agent.send_all(first + second)[1] == []
-        _wait_backend_idle(server)
+        server.wait_backend_idle()
         loops = [e for e in server.json("/events", limit=1000)["events"] if e["kind"] == "loop"]
         assert loops, "the second pass closed no loop"
         (m,) = server.json("/maps")["maps"]
@@ -206,19 +185,12 @@ def test_corrections_reach_only_the_mission_whose_map_they_correct(tmp_path: Pat
     number; A's corrections wait for A (applied to B's front-end they would move the wrong map)."""
     import time
 
-    from test_backend import UGV_FROM_WORLD, Server
+    from test_backend import Server
 
-    from hivemap.maps.geometry import Sim3, so3_exp
     from hivemap.protocol import Correction
-    from hivemap.server.backend_synth import agent_stream, make_world
+    from hivemap.server.backend_synth import loop_passes
 
-    rng = np.random.default_rng(5)
-    pts, desc = make_world(rng, 2500, (-20, 30))
-    drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
-    first, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD)
-    second, _, _ = agent_stream(
-        rng, pts, desc, np.linspace(-4, 10, 10), UGV_FROM_WORLD, id0=1000, point_id0=100000, drift=drift
-    )
+    first, second, _, _ = loop_passes()
     srv = Server(tmp_path / "data")
     try:
         with SyncAgent(srv.ws_url, "ugv1", TOKENS["ugv1"], kind="ugv", mission="mission-a") as a:
