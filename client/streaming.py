@@ -222,15 +222,12 @@ async def _stream_until(
         options=LinkOptions(max_connect_attempts=options.max_connect_attempts),
     )  # fmt: skip
     outgoing: list[object] = []
-    sessions_used = {first}
 
     def on_event(ev: object) -> None:
         # the wire carries the mission's session numbers: this process's front-end sessions shifted by
         # the first one it was given
         session = first + int(getattr(ev, "session", 0))
-        if session not in sessions_used:
-            sessions_used.add(session)
-            box.reserve_sessions(session)
+        box.reserve_sessions(session)  # writes only when a tracking loss started a new session
         if isinstance(ev, KeyframeEvent):
             if len(ev.new_point_ids):
                 outgoing.append(

@@ -65,6 +65,11 @@ class AgentMap:
     # agent's refinement and keeps the back-end's own correction of it (loop, GNSS bend and tilt)
     vio_poses: dict[int, NDArray[np.float64]] = field(default_factory=dict)
 
+    def row(self) -> tuple[str, str, int, NDArray[np.float64], str, int]:
+        """What the store keeps of it (``ServerStore.put_agent_map``), copied on the loop."""
+        return (self.folded, self.agent_id, self.session, self.global_from_vio.matrix(), self.mission,
+                self.client_session)  # fmt: skip
+
 
 @dataclass
 class MissionState:
@@ -97,6 +102,11 @@ class AgentState:
     @property
     def state(self) -> str:
         return "connected" if self.connection is not None else "disconnected"
+
+    def record(self) -> dict[str, Any]:
+        """What the store keeps of the agent (``ServerStore.put_agent``)."""
+        return {"agent_id": self.agent_id, "kind": self.kind, "camera": self.camera, "session": self.session,
+                "mission": self.mission}  # fmt: skip
 
     @property
     def last_seq(self) -> int:

@@ -321,24 +321,13 @@ class HiveServer(Ingest):
         am_now = self._session_map(agent, hello.mission, hello.session, create=True, persist=False)
         self.map_for(am_now)  # the agent's map exists (maybe empty) from its hello on
         am_now.camera = camera
-        rec = {
-            "agent_id": agent.agent_id,
-            "kind": agent.kind,
-            "camera": agent.camera,
-            "session": agent.session,
-            "mission": agent.mission,
-        }
-        maps = [
-            (am.folded, am.agent_id, am.session, am.global_from_vio.matrix(), am.mission, am.client_session)
-            for am in agent.maps.values()
-        ]
-        mission = hello.mission
+        rec, rows, mission = agent.record(), [am.row() for am in agent.maps.values()], hello.mission
 
         def op(store: ServerStore) -> None:
             store.put_agent(rec)
             store.put_mission(agent.agent_id, mission)
-            for folded, agent_id, session, m, mis, cs in maps:
-                store.put_agent_map(folded, agent_id, session, m, mis, cs)
+            for row in rows:
+                store.put_agent_map(row)
 
         await self.writer.call(op)  # also flushes everything the old connection had applied
         agent.connection = conn
@@ -485,12 +474,8 @@ class HiveServer(Ingest):
         if am is None:
             raise KeyError(folded)
         am.global_from_vio = global_from_vio
-        m = global_from_vio.matrix()
-        self.writer.submit(
-            lambda store: store.put_agent_map(
-                am.folded, am.agent_id, am.session, m, am.mission, am.client_session
-            )
-        )
+        row = am.row()
+        self.writer.submit(lambda store: store.put_agent_map(row))
 
     async def persist(self, fn: Callable[[ServerStore], Any]) -> Any:
         """Run ``fn(store)`` in the writer thread; returns its result after the commit. ``fn`` must not read
@@ -528,23 +513,13 @@ class HiveServer(Ingest):
             merged = self.stack.merge(target_id, source_id, target_from_source, list(fused_pairs))
             for am in moved:
                 am.global_from_vio = target_from_source @ am.global_from_vio
-            frames = [
-                (
-                    am.folded,
-                    am.agent_id,
-                    am.session,
-                    am.global_from_vio.matrix(),
-                    am.mission,
-                    am.client_session,
-                )
-                for am in moved
-            ]
+            rows = [am.row() for am in moved]
 
             def op(store: ServerStore) -> None:
                 store.maps.delete_map(source_id)
                 store.maps.save_map(merged)
-                for folded, agent_id, session, g, mission, cs in frames:
-                    store.put_agent_map(folded, agent_id, session, g, mission, cs)
+                for row in rows:
+                    store.put_agent_map(row)
 
             await self.writer.call(op)
         finally:

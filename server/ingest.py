@@ -98,20 +98,8 @@ class Ingest:
         agent.session = max(agent.session, server_session)
         if not persist:
             return am
-        folded, m = am.folded, am.global_from_vio.matrix()
-        rec = {
-            "agent_id": agent.agent_id,
-            "kind": agent.kind,
-            "camera": agent.camera,
-            "session": agent.session,
-            "mission": agent.mission,
-        }
-        self.writer.submit(
-            lambda store: (
-                store.put_agent(rec),
-                store.put_agent_map(folded, agent.agent_id, server_session, m, mission, session),
-            )
-        )
+        rec, row = agent.record(), am.row()
+        self.writer.submit(lambda store: (store.put_agent(rec), store.put_agent_map(row)))
         return am
 
     def _new_agent_map(self, agent: AgentState, session: int, mission: str, client_session: int) -> AgentMap:

@@ -139,15 +139,10 @@ class ServerStore:
             (int(seq), agent_id, mission),
         )
 
-    def put_agent_map(
-        self,
-        folded: str,
-        agent_id: str,
-        session: int,
-        global_from_vio: np.ndarray,
-        mission: str,
-        client_session: int,
-    ) -> None:
+    def put_agent_map(self, row: tuple[str, str, int, np.ndarray, str, int]) -> None:
+        """``row``: ``AgentMap.row()`` (folded id, agent id, session, global_from_vio, mission, client
+        session)."""
+        folded, agent_id, session, global_from_vio, mission, client_session = row
         blob = np.ascontiguousarray(global_from_vio, dtype="<f8").tobytes()
         self.conn.execute(
             "INSERT OR REPLACE INTO server_agent_maps "
