@@ -17,7 +17,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "server"))
 from agent_client import SyncAgent  # noqa: E402
 from srv_helpers import TOKENS, ServerProcess, parse_ply, write_config  # noqa: E402
-from test_foxglove import _streams, _wait_backend_idle  # noqa: E402
+from test_foxglove import _streams  # noqa: E402
 
 from hivemap.server.foxglove import PALETTE_HEX, agent_color  # noqa: E402
 
@@ -35,7 +35,7 @@ def mission(tmp_path_factory: pytest.TempPathFactory) -> Any:
             with SyncAgent(server.ws_url, agent_id, TOKENS[agent_id], kind=kind) as agent:
                 agent.welcome()
                 assert agent.send_all(msgs)[1] == []
-        _wait_backend_idle(server)
+        server.wait_backend_idle()
         yield server
     finally:
         server.stop()
