@@ -103,7 +103,8 @@ def apply_corrections(
         if len(recent) >= 3:
             # the agent's frame follows the mean of its recent keyframes' corrections (one keyframe's
             # correction carries that keyframe's own noise)
-            centres = np.array([full[k].inverse().apply(m.keyframes[k].world_from_cam[:3, 3]) for k in recent])
+            old = [full[k].inverse().apply(m.keyframes[k].world_from_cam[:3, 3]) for k in recent]
+            centres = np.array(old)
             c = frame_correction([full[k] for k in recent], centres, with_scale=not fix_scale)
         server.set_agent_transform(folded, c @ am.global_from_vio)
 
