@@ -201,6 +201,11 @@ class Backend(Pipeline):
             merged.add_loop_edge(det.candidate_key, det.query_key)
         rec = surgery.merge_record(merged, det, target_id, source_id, sim, len(pairs), merge_ms,
                                    levelled is not None, sigmas)  # fmt: skip
+        if det.candidate_key in merged.keyframes and det.query_key in merged.keyframes:
+            # the measured relative pose of the two keyframes (eval: merge accuracy, as a loop's)
+            rec.update(query=list(det.query_key), candidate=list(det.candidate_key),
+                       candidate_t=float(merged.keyframes[det.candidate_key].timestamp),
+                       candidate_from_query=edge.measured.matrix().tolist(), n_inliers=det.n_inliers)  # fmt: skip
         if prior is not None:
             rec.update(by="place_recognition+prior" if prior["agrees"] else "place_recognition", prior=prior)
         self.merges.append(rec)
