@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, corrections, detect, fit, gnss, optimise
+from hivemap.server.backend import accept, corrections, detect, fit, gnss, optimise, selfcheck
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.backend.startprior import StartPrior
@@ -76,6 +76,7 @@ class Pipeline:
         self.correction_bytes: dict[str, int] = {}
         self.correction_latencies: list[float] = []
         self.ba_runs: list[dict[str, Any]] = []
+        self.selfcheck: dict[int, dict[str, Any]] = {}  # map -> its last self-check (/maps/{id})
 
     def _take_tokens(self) -> float:
         now = time.monotonic()
@@ -88,6 +89,19 @@ class Pipeline:
     def _agent_kind(self, folded: str) -> str:
         a = self.server.agents.get(split_folded(folded)[0])
         return str(a.kind) if a is not None else "uav"
+
+    def _self_check(self, map_id: int) -> None:
+        """The map's self-check after an optimisation (:mod:`.selfcheck`); each new alarm is an event."""
+        m = self.server.stack.maps.get(map_id)
+        if m is None:
+            return
+        enu = map_id in self._enu_maps
+        res = selfcheck.check(m, [*self.merges, *self.loops], self._cam_from_antenna, enu)
+        seen = {a["subject"] for a in self.selfcheck.get(map_id, {}).get("alarms", [])}
+        self.selfcheck[map_id] = res
+        for a in res["alarms"]:
+            if a["subject"] not in seen:
+                self.server.events.add("selfcheck_alarm", a["message"], map_id=map_id, data=a)
 
     def _cam_from_antenna(self, folded: str) -> F64:
         am = self.server._agent_map_by_folded(folded)
@@ -130,6 +144,7 @@ class Pipeline:
         self._generation[target] = self._generation.get(target, 0) + 1
         self._generation.pop(source, None)
         self._prior.merged(target, source, target_from_source)
+        self.selfcheck.pop(source, None)
         self._enu_maps.discard(source)  # the merged map keeps the target's frame
         self._gnss_unbend.pop(source, None)  # its keyframes' poses count as visual from now on
         if self.recognizer is not None:
@@ -166,6 +181,7 @@ class Pipeline:
         try:
             while True:
                 await self._optimise_once(map_id, edges, t_det, fuse, pre)
+                self._self_check(map_id)
                 pre = None
                 again = self._opt_again.pop(map_id, None)
                 if again is None or map_id not in self.server.stack.maps:

@@ -205,7 +205,8 @@ class Backend(Pipeline):
             # the measured relative pose of the two keyframes (eval: merge accuracy, as a loop's)
             rec.update(query=list(det.query_key), candidate=list(det.candidate_key),
                        candidate_t=float(merged.keyframes[det.candidate_key].timestamp),
-                       candidate_from_query=edge.measured.matrix().tolist(), n_inliers=det.n_inliers)  # fmt: skip
+                       candidate_from_query=edge.measured.matrix().tolist(),
+                       n_inliers=det.n_inliers)  # fmt: skip
         if prior is not None:
             rec.update(by="place_recognition+prior" if prior["agrees"] else "place_recognition", prior=prior)
         self.merges.append(rec)

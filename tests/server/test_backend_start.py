@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 
@@ -82,6 +83,12 @@ def test_agreeing_prior_merges_at_first_detection_with_the_measured_transform(
     assert rotation_angle_deg(est.R @ true.R.T) < 1.0  # ... and the merge takes the measurement
     check_transform(est, true, uav_true[:, :3, 3])
     assert len(_merge_checks(srv)) == 1, "an agreeing prior stands in for the consecutive confirmations"
+    # the map's self-check on the REST API: the two agents agree with their measured relative poses
+    (map_id,) = srv.call(lambda: list(srv.hive.stack.maps))
+    sc = httpx.get(f"http://127.0.0.1:{srv.port}/maps/{map_id}", timeout=10).json()["selfcheck"]
+    (pair,) = sc["pairs"]
+    assert pair["agents"] == ["uav1", "ugv1"] and pair["n"] >= 1 and pair["max_m"] < 0.2, sc
+    assert sc["alarms"] == []
 
 
 def test_contradicting_prior_is_overridden_by_confirmed_place_recognition(
