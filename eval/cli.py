@@ -166,12 +166,20 @@ def experiment_command(
     ] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
     start_poses: Annotated[
-        bool,
+        str,
         typer.Option(
-            "--start-poses/--no-start-poses",
-            help="Co-location: give the server the agents' known start configuration (paper 2.4).",
+            "--start-poses",
+            help="Co-location: the server's nominal start configuration (paper 2.4), a prior of "
+            "--start-sigma-m / --start-sigma-deg: 'perturbed' (the true start poses moved by a draw of "
+            "those sigmas, seeded by --seed and the world), 'none', or 'truth' (exact, explicit only).",
         ),
-    ] = True,
+    ] = "perturbed",
+    start_sigma_m: Annotated[
+        float, typer.Option("--start-sigma-m", help="Start position sigma per axis (m).")
+    ] = 0.2,
+    start_sigma_deg: Annotated[
+        float, typer.Option("--start-sigma-deg", help="Start orientation sigma per axis (deg).")
+    ] = 5.0,
     report_only: Annotated[
         bool,
         typer.Option(
@@ -187,10 +195,15 @@ def experiment_command(
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment
+    from hivemap.eval.startposes import StartPoseOptions
 
     def split(s: str) -> list[str]:
         return [x.strip() for x in s.split(",") if x.strip()]
 
+    try:
+        starts = StartPoseOptions(start_poses, start_sigma_m, start_sigma_deg, seed)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--start-poses") from exc
     opts = ExperimentOptions(
         scenarios=split(scenarios),
         modes=split(modes),
@@ -201,7 +214,7 @@ def experiment_command(
         seed=seed,
         seeds=_world_seeds(seeds) if seeds else None,
         progress=not no_progress,
-        start_poses=start_poses,
+        start_poses=starts,
         report_only=report_only,
         report_dir=report_dir,
     )

@@ -20,9 +20,9 @@ co-location modes the server's global-frame keyframe trajectory (camera poses, S
 (``server_*`` fields). Estimates and ground truth are copied next to the results JSON as TUM files, so the
 numbers can be recomputed from the raw trajectories.
 
-Co-location servers get the known start configuration (paper 2.4: the UAVs take off from the UGV's
-roof) as ``start_poses`` unless ``start_poses=False``: cam0's pose at each agent's first frame, from the
-simulation's ground truth (the known mounting).
+Co-location servers get the agents' nominal start configuration (paper 2.4: the UAVs take off from the
+UGV's roof) as ``[start_poses]``, a prior with stated sigmas (:mod:`hivemap.eval.startposes`): by default
+the true cam0 start poses perturbed by those sigmas (seeded), or none, or the exact ones on request.
 """
 
 from __future__ import annotations
@@ -40,6 +40,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+from hivemap.eval.startposes import StartPoseOptions, start_poses, start_poses_toml
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +77,8 @@ class ExperimentOptions:
     seed: int = 0
     progress: bool = True
     settle_s: float = 3.0  # wait for the back-end's last optimisation after the agents finish
-    start_poses: bool = True  # co-location: the server knows the agents' start configuration
+    # co-location: the server's nominal start configuration (perturbed / none / truth, with its sigmas)
+    start_poses: StartPoseOptions = field(default_factory=StartPoseOptions)
     agent_timeout_s: float = 6 * 3600.0
     report_only: bool = False  # run nothing: write the report from the results already in ``out``
     report_dir: Path | None = None  # where the report goes (default ``out``)
@@ -150,22 +153,6 @@ def ensure_scenario(name: str, data: Path, seed: int | None = None) -> Path:
     return scen
 
 
-def start_poses_toml(scen: Path, agent_ids: Sequence[str]) -> str:
-    """The server config's ``[start_poses]`` table: cam0's pose at each agent's first frame, from the
-    simulation's ground truth (paper 2.4: the UAVs take off from the UGV's roof, a known mounting)."""
-    import numpy as np
-
-    from hivemap.client.dataset import load_scenario
-
-    scenario = load_scenario(scen)
-    lines = ["[start_poses]\n"]
-    for a in agent_ids:
-        ds = scenario.load_agent(a)
-        T = np.asarray(ds.groundtruth.world_from_body[0]) @ np.asarray(ds.T_BS["cam0"])
-        lines.append(f"{a} = {[[float(x) for x in row] for row in T]}\n")
-    return "".join(lines)
-
-
 # The server keeps this many events; the runner reads them all (one /events request allows 100k). The
 # default 10k ring buffer lost the first 3-18 % of the events of a 4-agent factory run (placerec_candidate
 # events dominate), and with them the start merges and early recognitions of Tables 6-7.
@@ -173,14 +160,17 @@ EXPERIMENT_EVENT_BUFFER = 100_000
 
 
 def write_server_config(
-    path: Path, scen: Path, tokens: dict[str, str], start_poses: bool = True, event_buffer: int | None = None
+    path: Path,
+    tokens: dict[str, str],
+    start_table: dict[str, Any] | None = None,
+    event_buffer: int | None = None,
 ) -> None:
-    """A server TOML config: one token per agent and, with ``start_poses``, the known start configuration."""
+    """A server TOML config: one token per agent and the start configuration (:mod:`.startposes`)."""
     path.write_text(
         ("" if event_buffer is None else f"event_buffer = {int(event_buffer)}\n")
         + "[tokens]\n"
         + "".join(f'{a} = "{t}"\n' for a, t in tokens.items())
-        + (start_poses_toml(scen, list(tokens)) if start_poses else "")
+        + (start_poses_toml(start_table) if start_table else "")
     )
 
 
@@ -283,7 +273,8 @@ def _read_run(out: Path) -> dict[str, Any]:
 
 
 def run_single(scen: Path, agents: list[tuple[str, str]], mode: str, work: Path, mode_dir: Path,
-               opts: ExperimentOptions, bar: Any) -> dict[str, Any]:  # fmt: skip
+               opts: ExperimentOptions, bar: Any, world_seed: int | None = None,
+               ) -> dict[str, Any]:  # fmt: skip
     """Each agent alone, offline, one after another."""
     from hivemap.eval.trajectory import groundtruth_trajectory
 
@@ -312,11 +303,13 @@ def run_single(scen: Path, agents: list[tuple[str, str]], mode: str, work: Path,
 
 
 def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: Path, mode_dir: Path,
-                   opts: ExperimentOptions, bar: Any) -> dict[str, Any]:  # fmt: skip
+                   opts: ExperimentOptions, bar: Any, world_seed: int | None = None,
+               ) -> dict[str, Any]:  # fmt: skip
     """One server, every agent streaming to it at once."""
     import httpx
 
-    from hivemap.eval.trajectory import groundtruth_trajectory, loop_errors
+    from hivemap.eval.globalmap import all_merged_at, loop_errors, team_by_map
+    from hivemap.eval.trajectory import groundtruth_trajectory
 
     port = free_port()
     url = f"http://127.0.0.1:{port}"
@@ -325,7 +318,8 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
     shutil.rmtree(sdir, ignore_errors=True)
     sdir.mkdir(parents=True)
     cfg = sdir / "server.toml"
-    write_server_config(cfg, scen, tokens, opts.start_poses, event_buffer=EXPERIMENT_EVENT_BUFFER)
+    start_table = start_poses(scen, list(tokens), opts.start_poses, world_seed)
+    write_server_config(cfg, tokens, start_table, event_buffer=EXPERIMENT_EVENT_BUFFER)
     env = clean_env()
     slog = open(sdir / "server.log", "wb")  # noqa: SIM115
     server = subprocess.Popen(
@@ -397,6 +391,13 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
         return {
             "agents": [asdict(r) for r in results.values()],
             "loop_errors": loop_errors(events, gt_cam),
+            "team": team_by_map(
+                mode_dir / "server", [(aid, results[aid].run.get("map_id")) for aid, _ in agents]
+            ),
+            "start_poses": start_table,
+            "all_merged_s": all_merged_at(
+                events, len(agents), min(float(g.timestamps[0]) for g in gt_cam.values())
+            ),
             "events": events,
             "maps": maps,
             "server_start_wall": t_server,
@@ -451,14 +452,13 @@ def run_experiment(opts: ExperimentOptions) -> Path:
             work.mkdir(parents=True, exist_ok=True)
             t0 = time.time()
             fn = run_colocation if mode in COLOCATION else run_single
-            data = fn(scen_dirs[name], agents, mode, work, mode_dir, opts, bar)
+            data = fn(scen_dirs[name], agents, mode, work, mode_dir, opts, bar, seed)
             data.update(
                 scenario=name,
                 mode=mode,
                 scenario_dir=str(scen_dirs[name]),
                 scenario_seed=seed,
                 alignment="per agent: none when it used GNSS, else se3",
-                start_poses=opts.start_poses if mode in COLOCATION else None,
                 max_diff=MAX_DIFF,
                 agent_seed=opts.seed,
                 max_frames=opts.max_frames,

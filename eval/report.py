@@ -14,6 +14,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from hivemap.eval.globalmap import globalmap_section
 from hivemap.eval.seeds import seeds_section
 
 log = logging.getLogger(__name__)
@@ -480,7 +481,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str], report_dir: 
         for e in merges:
             d = next((x.get("data") or {} for x in details if _same_merge(x, e)), {})
             when = f"{e['time'] - t0:.1f} s after server start" if t0 else ""
-            if d.get("by") == "start_pose":
+            if d.get("by") == "start_pose":  # results from before issue 27: start poses taken as exact
                 when += ", mission time 0 s (the agents' first keyframes, known start poses)"
             elif d.get("query_t") is not None and t_mission is not None:
                 when += f", mission time {float(d['query_t']) - t_mission:.1f} s (query keyframe)"
@@ -490,6 +491,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str], report_dir: 
     md.append("")
     md += seeds_section(table8)
     md += team_section(out, results)
+    md += globalmap_section(results)
     md += table67(results)
     # ---------------------------------------------------------------- plots
     md += ["## Trajectories (top view, estimate SE(3)-aligned vs ground truth; * merge, o loop)", ""]

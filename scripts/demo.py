@@ -35,6 +35,7 @@ def main() -> int:
 
     from hivemap.client.dataset import load_scenario
     from hivemap.eval.experiment import clean_env, stop, wait_health, write_server_config
+    from hivemap.eval.startposes import StartPoseOptions, describe, start_poses
     from hivemap.eval.trajectory import AgentRun, ate, evaluate_team, groundtruth_trajectory, read_tum
 
     work: Path = args.work
@@ -51,9 +52,11 @@ def main() -> int:
     shutil.rmtree(server_dir, ignore_errors=True)
     server_dir.mkdir(parents=True)
     cfg = server_dir / "server.toml"
-    # The UAVs take off from the UGV's roof (paper 2.4): the start configuration is known, so the server
-    # joins the maps at the first keyframes. In the simulation the start poses come from ground truth.
-    write_server_config(cfg, scen_dir, tokens)
+    # The UAVs take off from the UGV's roof (paper 2.4): their nominal mounting is a prior (0.2 m / 5 deg)
+    # that place recognition's merges are checked against; here the true start poses perturbed by it.
+    starts = start_poses(scen_dir, agents, StartPoseOptions("perturbed"), scenario.seed)
+    log(describe(starts))
+    write_server_config(cfg, tokens, starts)
     url = f"http://127.0.0.1:{args.port}"
     env = clean_env()
     server_log = open(server_dir / "server.log", "wb")  # noqa: SIM115

@@ -127,6 +127,11 @@ class MapDetail(MapSummary):
     keyframes_per_agent: dict[str, int]
     points_per_agent: dict[str, int]
     merge_history: list[dict[str, Any]]
+    selfcheck: dict[str, Any] | None = Field(
+        default=None,
+        description="The back-end's last self-check of the map (agent pairs' consistency at their merges "
+        "and loops, GNSS residuals per agent, alarms); None before its first optimisation.",
+    )
 
 
 class KeyframeInfo(BaseModel):

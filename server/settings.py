@@ -48,27 +48,17 @@ class QuotaSettings(BaseModel):
     keyframes_burst: int = Field(default=500, ge=1, description="Keyframes accepted at once above the rate.")
 
 
-class ServerSettings(BaseSettings):
-    """Everything the server needs; built once and handed to :func:`hivemap.server.app.create_app`."""
+class StartPoses(BaseModel):
+    """The ``[start_poses]`` table: ``sigma_m``, ``sigma_deg`` (the mounting's uncertainty, per axis) and
+    one 4x4 cam0 start pose per agent (``uav1 = [[...], ...]``)."""
 
-    model_config = SettingsConfigDict(env_prefix="HIVEMAP_", extra="forbid", env_nested_delimiter="__")
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
-    host: str = "127.0.0.1"
-    port: int = Field(default=8765, ge=0, le=65535)
-    data_dir: Path = Path("hivemap-data")
-    tokens: dict[str, str] = Field(
-        default_factory=dict, description="Per-agent tokens (agent id -> token); others are refused."
-    )
-    start_poses: dict[str, list[list[float]]] = Field(
-        default_factory=dict,
-        description=(
-            "Known start configuration (paper 2.4: the UAVs take off from the UGV's roof): agent id -> 4x4 "
-            "pose of the agent's cam0 at its start, in any common frame. Agents listed here are merged at "
-            "their first keyframe (they must be at rest until then), before any visual match."
-        ),
-    )
+    sigma_m: float = Field(default=0.2, gt=0.0, description="Start position uncertainty per axis (m).")
+    sigma_deg: float = Field(default=5.0, gt=0.0, description="Start orientation uncertainty per axis (deg).")
+    poses: dict[str, list[list[float]]] = Field(default_factory=dict)
 
-    @field_validator("start_poses")
+    @field_validator("poses")
     @classmethod
     def _rigid_4x4(cls, v: dict[str, list[list[float]]]) -> dict[str, list[list[float]]]:
         import numpy as np
@@ -82,6 +72,37 @@ class ServerSettings(BaseSettings):
                 raise ValueError(
                     f"start_poses.{agent}: not a rigid transform (rotation and last row [0 0 0 1])"
                 )
+        return v
+
+
+class ServerSettings(BaseSettings):
+    """Everything the server needs; built once and handed to :func:`hivemap.server.app.create_app`."""
+
+    model_config = SettingsConfigDict(env_prefix="HIVEMAP_", extra="forbid", env_nested_delimiter="__")
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=8765, ge=0, le=65535)
+    data_dir: Path = Path("hivemap-data")
+    tokens: dict[str, str] = Field(
+        default_factory=dict, description="Per-agent tokens (agent id -> token); others are refused."
+    )
+    start_poses: StartPoses = Field(
+        default_factory=lambda: StartPoses(),
+        description=(
+            "Nominal start configuration (paper 2.4: the UAVs take off from the UGV's roof): agent id -> 4x4 "
+            "pose of the agent's cam0 at its start, in any common frame, known to sigma_m / sigma_deg. A "
+            "prior for place recognition between those agents' maps, never a merge by itself."
+        ),
+    )
+
+    @field_validator("start_poses", mode="before")
+    @classmethod
+    def _start_table(cls, v: Any) -> Any:
+        # the TOML table mixes the two sigmas with one pose per agent
+        if isinstance(v, dict) and "poses" not in v:
+            v = dict(v)
+            sig = {k: v.pop(k) for k in ("sigma_m", "sigma_deg") if k in v}
+            return {**sig, "poses": v}
         return v
 
     # Ingest and back-pressure.

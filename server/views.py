@@ -211,6 +211,7 @@ def map_detail(server: HiveServer, map_id: int) -> schemas.MapDetail:
         keyframes_per_agent=kfs,
         points_per_agent=pts,
         merge_history=[_jsonable(h) for h in m.merge_history],
+        selfcheck=_jsonable(getattr(getattr(server, "backend", None), "selfcheck", {}).get(map_id)),
     )
 
 

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3, rotation_angle_deg
 from hivemap.protocol import Correction, encode
-from hivemap.server.backend.fit import umeyama
+from hivemap.server.backend.fit import frame_correction
 from hivemap.server.backend.options import CorrectionOptions
 
 logger = logging.getLogger(__name__)
@@ -101,15 +101,11 @@ def apply_corrections(
         recent = recent[-o.transform_window :]
         c = full[recent[-1]]
         if len(recent) >= 3:
-            # the agent's frame follows the best Sim(3) fit of its recent keyframes' corrections (one
-            # keyframe's correction carries that keyframe's own noise)
-            # (centres and axis tips: centres alone are nearly collinear along a straight path)
-            old_poses = [full[k].inverse().transform_pose(m.keyframes[k].world_from_cam) for k in recent]
-            centres = np.array([T[:3, 3] for T in old_poses])
-            arm = max(1e-3, float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1))))
-            old = np.concatenate([np.vstack([T[:3, 3], T[:3, 3] + arm * T[:3, :3].T]) for T in old_poses])
-            new = np.concatenate([full[k].apply(old[4 * i : 4 * i + 4]) for i, k in enumerate(recent)])
-            c = umeyama(old, new, with_scale=not fix_scale)
+            # the agent's frame follows the mean of its recent keyframes' corrections (one keyframe's
+            # correction carries that keyframe's own noise)
+            old = [full[k].inverse().apply(m.keyframes[k].world_from_cam[:3, 3]) for k in recent]
+            centres = np.array(old)
+            c = frame_correction([full[k] for k in recent], centres, with_scale=not fix_scale)
         server.set_agent_transform(folded, c @ am.global_from_vio)
 
 

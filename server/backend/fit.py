@@ -115,6 +115,22 @@ def umeyama(src: F64, dst: F64, with_scale: bool = True) -> Sim3:
     return Sim3(np.asarray(R), np.asarray(t).reshape(3), float(s))
 
 
+def frame_correction(corrections: list[Sim3], centres: F64, with_scale: bool = True) -> Sim3:
+    """The one Sim(3) that moves an agent's frame as its recent keyframes' ``corrections`` move them
+    (``centres``: those keyframes' camera centres before): rotation the chordal mean of theirs, scale
+    their geometric mean (1 without ``with_scale``), translation the least-squares one at the centres.
+    A point fit to the moved centres instead would get its rotation from their spread: for a standing
+    agent (centres a millimetre apart) each correction's millimetre of noise turns it by tens of degrees."""
+    R_sum = np.sum([c.R for c in corrections], axis=0)
+    U, _, Vt = np.linalg.svd(R_sum)
+    R = U @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))]) @ Vt
+    s = float(np.exp(np.mean([math.log(c.s) for c in corrections]))) if with_scale else 1.0
+    P = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    moved = np.array([c.apply(p) for c, p in zip(corrections, P, strict=True)])
+    t = np.mean(moved - s * (P @ R.T), axis=0)
+    return Sim3(R, t, s)
+
+
 def levelled(
     o: BackendOptions,
     maps: Any,

@@ -17,9 +17,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, corrections, detect, fit, gnss, optimise
+from hivemap.server.backend import accept, corrections, detect, fit, gnss, optimise, selfcheck
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import BackendOptions
+from hivemap.server.backend.startprior import StartPrior
 from hivemap.server.convert import split_folded
 from hivemap.server.persist import GraphSnapshot
 from hivemap.server.placerec import Detection, PlaceRecognizer
@@ -40,13 +41,9 @@ class Pipeline:
     def __init__(self, server: Any, options: BackendOptions | None = None, vocabulary: Any = None) -> None:
         self.server = server
         self.options = options or BackendOptions()
-        starts = getattr(getattr(server, "settings", None), "start_poses", {}) or {}
-        self._start_poses: dict[str, NDArray[np.float64]] = {
-            a: np.asarray(T, dtype=np.float64).reshape(4, 4) for a, T in starts.items()
-        }
-        self._anchors: dict[str, tuple[int, Sim3]] = {}
-        self._start_lock = asyncio.Lock()
-        self._start_tasks: set[asyncio.Task[None]] = set()
+        self._generation: dict[int, int] = {}  # bumped when a map changes frame (merge / GNSS)
+        starts = getattr(getattr(server, "settings", None), "start_poses", None)
+        self._prior = StartPrior.from_settings(starts, self._generation)
         self._vocabulary = vocabulary
         self.recognizer: PlaceRecognizer | None = None
         self.queue: deque[KfKey] = deque(maxlen=self.options.scheduler.queue_max)
@@ -56,7 +53,6 @@ class Pipeline:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._worker: asyncio.Task[None] | None = None
         self._busy = 0  # queries or optimisations in flight
-        self._generation: dict[int, int] = {}  # bumped when a map changes frame (merge / GNSS)
         self._opt_running: set[int] = set()
         self._gnss_count: dict[int, int] = {}
         self._enu_maps: set[int] = set()  # maps the GNSS stage has put into ENU
@@ -80,6 +76,7 @@ class Pipeline:
         self.correction_bytes: dict[str, int] = {}
         self.correction_latencies: list[float] = []
         self.ba_runs: list[dict[str, Any]] = []
+        self.selfcheck: dict[int, dict[str, Any]] = {}  # map -> its last self-check (/maps/{id})
 
     def _take_tokens(self) -> float:
         now = time.monotonic()
@@ -93,9 +90,18 @@ class Pipeline:
         a = self.server.agents.get(split_folded(folded)[0])
         return str(a.kind) if a is not None else "uav"
 
-    def _anchored(self, map_id: int) -> set[str]:
-        """Agents joined to map ``map_id`` by their known start pose."""
-        return {a for a, (mid, _) in self._anchors.items() if mid == map_id}
+    def _self_check(self, map_id: int) -> None:
+        """The map's self-check after an optimisation (:mod:`.selfcheck`); each new alarm is an event."""
+        m = self.server.stack.maps.get(map_id)
+        if m is None:
+            return
+        enu = map_id in self._enu_maps
+        res = selfcheck.check(m, [*self.merges, *self.loops], self._cam_from_antenna, enu)
+        seen = {a["subject"] for a in self.selfcheck.get(map_id, {}).get("alarms", [])}
+        self.selfcheck[map_id] = res
+        for a in res["alarms"]:
+            if a["subject"] not in seen:
+                self.server.events.add("selfcheck_alarm", a["message"], map_id=map_id, data=a)
 
     def _cam_from_antenna(self, folded: str) -> F64:
         am = self.server._agent_map_by_folded(folded)
@@ -137,6 +143,8 @@ class Pipeline:
         merge_ms = (time.perf_counter() - t0) * 1e3
         self._generation[target] = self._generation.get(target, 0) + 1
         self._generation.pop(source, None)
+        self._prior.merged(target, source, target_from_source)
+        self.selfcheck.pop(source, None)
         self._enu_maps.discard(source)  # the merged map keeps the target's frame
         self._gnss_unbend.pop(source, None)  # its keyframes' poses count as visual from now on
         if self.recognizer is not None:
@@ -173,6 +181,7 @@ class Pipeline:
         try:
             while True:
                 await self._optimise_once(map_id, edges, t_det, fuse, pre)
+                self._self_check(map_id)
                 pre = None
                 again = self._opt_again.pop(map_id, None)
                 if again is None or map_id not in self.server.stack.maps:
@@ -260,9 +269,7 @@ class Pipeline:
         """Solve and apply the pose graph; False if the map changed meanwhile or the result is refused."""
         o, map_id = self.options.optimise, m.id
         snap = self._snapshot(m)
-        fixed = optimise.anchor(
-            m, snap.keys, self._agent_kind, self._anchored(map_id), POSE_GRAPH_ANCHORS_PER_AGENT
-        )
+        fixed = optimise.anchor(m, snap.keys, self._agent_kind, set(), POSE_GRAPH_ANCHORS_PER_AGENT)
         problem = optimise.pose_graph_problem(m, snap, edges, pre, fixed, o)
         t0 = time.perf_counter()
         sims = await asyncio.get_running_loop().run_in_executor(
@@ -290,7 +297,7 @@ class Pipeline:
         map_id = m.id
         snap = self._snapshot(m)
         problem = optimise.ba_problem(m, snap.keys)
-        fixed = optimise.anchor(m, snap.keys, self._agent_kind, self._anchored(map_id))
+        fixed = optimise.anchor(m, snap.keys, self._agent_kind, set())
         t0 = time.perf_counter()
         res = await asyncio.get_running_loop().run_in_executor(
             self._opt_exec,
@@ -343,7 +350,7 @@ class Pipeline:
         from hivemap.server.gnss_stage import NotEnoughFixes, fuse_gnss
 
         o = self.options.gnss
-        inp = gnss.stage_input(m, self._cam_from_antenna, self._agent_kind, self._anchored(m.id))
+        inp = gnss.stage_input(m, self._cam_from_antenna, self._agent_kind, set())
         if inp is None:
             return
         fixes, links = inp.fixes, inp.links

@@ -78,8 +78,8 @@ class Backend(Pipeline):
 
     # -- observer -----------------------------------------------------------------------------------
     async def on_keyframe(self, map_id: int, key: KfKey) -> None:
-        if key[0] in self._start_poses and key[0] not in self._anchors:
-            self._anchor_start(map_id, key)
+        if self._prior.wants(key[0]):
+            self._record_start(map_id, key)
         if len(self.queue) == self.queue.maxlen:
             self.server.events.add("placerec", f"query queue full: {self.queue[0]} dropped")
         self.queue.append(key)
@@ -92,53 +92,40 @@ class Backend(Pipeline):
             if n % GNSS_EVERY_KFS == 0:
                 self._schedule_optimisation(map_id, [], time.monotonic())
 
-    # -- known start configuration (paper 2.4) -------------------------------------------------------
-    def _anchor_start(self, map_id: int, key: KfKey) -> None:
-        """Record ``common_from_map`` for an agent with a known start pose (its first keyframe is taken at
-        the start pose) and merge its map with the other anchored agents' maps."""
+    # -- nominal start configuration (paper 2.4) -----------------------------------------------------
+    def _record_start(self, map_id: int, key: KfKey) -> None:
+        """An agent with a nominal start pose sent its first keyframe (taken at the start pose): its map's
+        place in the common start frame is known to the prior's sigmas (no merge by itself)."""
         m = self.server.stack.maps.get(map_id)
         kf = m.keyframes.get(key) if m is not None else None
         if kf is None:
             return
-        self._anchors[key[0]] = (
-            map_id,
-            surgery.common_from_map(self._start_poses[key[0]], kf.world_from_cam),
-        )
+        self._prior.record(key[0], map_id, kf.world_from_cam)
+        p = self._prior
         self.server.events.add(
-            "start_anchor", f"{key[0]}: map {map_id} anchored by its start pose", map_id=map_id
+            "start_anchor",
+            f"{key[0]}: map {map_id} has a nominal start pose (prior, {p.sigma_m} m / {p.sigma_deg} deg)",
+            map_id=map_id,
         )
-        task = asyncio.get_running_loop().create_task(self._start_merges())
-        self._start_tasks.add(task)
-        task.add_done_callback(self._start_tasks.discard)
 
-    async def _start_merges(self) -> None:
-        """Merge every pair of maps whose agents' start poses are known (no visual match needed)."""
-        async with self._start_lock:
-            while True:
-                maps = self.server.stack.maps
-                valid = {a: (mid, c) for a, (mid, c) in self._anchors.items() if mid in maps}
-                by_map: dict[int, Sim3] = {mid: c for mid, c in valid.values()}
-                if len(by_map) < 2:
-                    return
-                a_id, b_id = sorted(by_map)[:2]
-                target = surgery.target_of(maps, a_id, b_id, self._agent_kind)
-                source = b_id if target == a_id else a_id
-                target_from_source = by_map[target].inverse() @ by_map[source]
-                _, merge_ms = await self._apply_merge(target, source, target_from_source, [])
-                for a, (mid, _) in list(self._anchors.items()):
-                    if mid == source:
-                        self._anchors[a] = (target, by_map[target])
-                rec = {"target": target, "source": source, "scale": 1.0, "n_fused": 0,
-                       "merge_ms": merge_ms, "by": "start_pose",
-                       "target_from_source": target_from_source.matrix().tolist()}  # fmt: skip
-                self.merges.append(rec)
-                self.server.events.add(
-                    "merge_detail",
-                    f"merge {source} -> {target} from the known start poses",
-                    map_id=target,
-                    data=rec,
-                )
-                await self._send_corrections(target, {}, time.monotonic())
+    def _accept(self, det: Detection) -> tuple[Detection | None, dict[str, Any] | None]:
+        """The detection once accepted (else None) and how it compares with the start prior (None
+        without one): a merge that agrees with the prior is taken at once, any other needs the
+        consecutive confirmations (:class:`~.accept.Consistency`)."""
+        o, maps, events = self.options, self.server.stack.maps, self.server.events
+        chk = self._prior.check(det, maps, o.accept.min_pair_inlier_ratio, o.fix_scale)
+        prior = chk.to_dict() if chk is not None else None
+        if chk is not None and chk.agrees:
+            ok = self._consistency.check(det, maps, replace(o.accept, consistency_required=1),
+                                         o.fix_scale, events)  # fmt: skip
+            if ok is not None:
+                return ok, prior
+        if chk is not None and not chk.agrees:
+            events.add("start_prior", f"merge {det.query_key} -> {det.candidate_key} contradicts the start "
+                       f"prior by {chk.diff_m:.2f} m / {chk.diff_deg:.1f} deg (gates {chk.gate_m:.2f} m / "
+                       f"{chk.gate_deg:.1f} deg): it needs its confirmations and then overrides it",
+                       map_id=det.query_map, data=prior)  # fmt: skip
+        return self._consistency.check(det, maps, o.accept, o.fix_scale, events), prior
 
     # -- place-recognition worker -------------------------------------------------------------------
     async def _run(self, reloaded: list[tuple[int, KfKey]]) -> None:
@@ -179,21 +166,13 @@ class Backend(Pipeline):
                 self.verifications += n_verified
                 self._tokens -= n_verified
                 detect.publish(self.server.events, res)
-                det = None
-                if res.detection is not None:
-                    det = self._consistency.check(
-                        res.detection,
-                        stack.maps,
-                        self.options.accept,
-                        self.options.fix_scale,
-                        self.server.events,
-                    )
+                det, prior = self._accept(res.detection) if res.detection is not None else (None, None)
                 if det is not None:
                     t_det = time.monotonic()
                     if det.is_loop:
                         await self._close_loop(det, t_det)
                     else:
-                        await self._merge(det, t_det)
+                        await self._merge(det, t_det, prior)
             except asyncio.CancelledError:
                 raise
             except Exception:
@@ -203,7 +182,7 @@ class Backend(Pipeline):
                 self._busy -= 1
 
     # -- merge ----------------------------------------------------------------------------------------
-    async def _merge(self, det: Detection, t_det: float) -> None:
+    async def _merge(self, det: Detection, t_det: float, prior: dict[str, Any] | None = None) -> None:
         server = self.server
         maps = server.stack.maps
         if det.query_map not in maps or det.candidate_map not in maps or det.query_map == det.candidate_map:
@@ -222,6 +201,14 @@ class Backend(Pipeline):
             merged.add_loop_edge(det.candidate_key, det.query_key)
         rec = surgery.merge_record(merged, det, target_id, source_id, sim, len(pairs), merge_ms,
                                    levelled is not None, sigmas)  # fmt: skip
+        if det.candidate_key in merged.keyframes and det.query_key in merged.keyframes:
+            # the measured relative pose of the two keyframes (eval: merge accuracy, as a loop's)
+            rec.update(query=list(det.query_key), candidate=list(det.candidate_key),
+                       candidate_t=float(merged.keyframes[det.candidate_key].timestamp),
+                       candidate_from_query=edge.measured.matrix().tolist(),
+                       n_inliers=det.n_inliers)  # fmt: skip
+        if prior is not None:
+            rec.update(by="place_recognition+prior" if prior["agrees"] else "place_recognition", prior=prior)
         self.merges.append(rec)
         server.events.add(
             "merge_detail",

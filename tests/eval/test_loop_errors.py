@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hivemap.eval.trajectory import loop_errors, trajectory_from_poses
+from hivemap.eval.globalmap import loop_errors
+from hivemap.eval.trajectory import trajectory_from_poses
 from hivemap.maps.geometry import se3
 
 
@@ -39,3 +40,21 @@ def test_loop_error_is_the_measurements_offset_from_the_true_relative_pose() -> 
     assert abs(e["rot_err_deg"] - 0.5) < 1e-6 and abs(e["tilt_err_deg"] - 0.5) < 1e-6  # about a's x: all tilt
     assert abs(y["rot_err_deg"] - 0.5) < 1e-6 and y["tilt_err_deg"] < 1e-4  # acos: ~1e-6 deg near 0
     assert abs(e["distance_m"] - float(np.linalg.norm(true[:3, 3]))) < 1e-9
+
+
+def test_merges_are_measured_like_loops() -> None:
+    """A ``merge_detail`` event with its measured relative pose is listed too, as kind "merge"."""
+    t = np.arange(0.0, 4.0, 0.5)
+    a = np.array([se3(np.eye(3), np.array([i, 0.0, 0.0])) for i in t])
+    b = np.array([se3(Rotation.from_euler("z", 0.4).as_matrix(), np.array([0.0, i, 3.0])) for i in t])
+    gt = {"a": trajectory_from_poses(t, a), "b": trajectory_from_poses(t, b)}
+    meas = np.linalg.inv(b[2]) @ a[1]
+    meas[:3, 3] += [0.3, 0.0, 0.0]  # 0.3 m off in the candidate camera
+    merge = {"query": ["a", 2], "candidate": ["b", 4], "query_t": 0.5, "candidate_t": 1.0}
+    events = [
+        {"kind": "merge_detail", "data": {**merge, "candidate_from_query": meas.tolist(), "n_inliers": 80}},
+        {"kind": "merge_detail", "data": {"by": "start_pose", "query_t": None}},  # old record: no measurement
+    ]
+    (e,) = loop_errors(events, gt)
+    assert e["kind"] == "merge" and (e["query"], e["candidate"]) == ("a", "b")
+    assert abs(e["trans_err_m"] - 0.3) < 1e-9 and e["rot_err_deg"] < 1e-6 and e["n_inliers"] == 80

@@ -36,9 +36,11 @@ UAV_FROM_WORLD = Sim3(so3_exp(np.array([0.3, -0.5, 1.2])), np.array([12.0, -7.0,
 
 
 class Server:
-    def __init__(self, data_dir: Path, opts: BackendOptions | None = None) -> None:
+    def __init__(self, data_dir: Path, opts: BackendOptions | None = None, **settings_kw: Any) -> None:
         self.port = free_port()
-        settings = ServerSettings(port=self.port, data_dir=data_dir, tokens=TOKENS, log_level="warning")
+        settings = ServerSettings(
+            port=self.port, data_dir=data_dir, tokens=TOKENS, log_level="warning", **settings_kw
+        )
         # Sim(3) merges: these tests include a monocular-like agent whose map has scale 2.5
         opts = opts or preset("monocular", scheduler=FAST)
         self.app = create_app(settings, extensions=[installer(opts)])
