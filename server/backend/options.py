@@ -48,6 +48,9 @@ class AcceptOptions:
     loop_max_correction_deg: float = 5.0
     # a loop whose rotation disagrees with both keyframes' IMU up directions by more is refused (0: off)
     loop_max_gravity_deg: float = 1.0
+    # a merge stays on trial (undone if the robust pose graph rejects its edge) until this many loops
+    # between its two sides, with distinct query keyframes, are kept alongside it
+    merge_confirmations: int = 3
 
 
 @dataclass(frozen=True)
@@ -73,6 +76,11 @@ class OptimiseOptions:
     pose_graph_sigma_rot: float = 0.01  # rad, essential edges
     pose_graph_sigma_trans: float = 0.05  # m, essential edges
     pose_graph_sigma_yaw: float = 0.0  # rad about the keyframe's up direction; 0: sigma_rot (isotropic)
+    # Loop and merge edges are judged by graduated non-convexity (truncated least squares) at every pose
+    # graph, all of a map's kept edges together: one the rest contradicts gets no weight and is reported
+    # rejected (False: Huber, which still pulls).
+    gnc: bool = True
+    gnc_inlier_probability: float = 0.99
 
 
 @dataclass(frozen=True)
