@@ -144,7 +144,7 @@ def split_map(
     for part, mine in ((kept, False), (new, True)):
         part.point_redirects = dict(m.point_redirects)
         part.merge_history = [*m.merge_history, record]
-        for pk, mp in m.points.items():
+        for mp in m.points.values():
             if (mp.agent_id in side) == mine:
                 mp.observations = {}
                 part.add_point(mp)

@@ -411,7 +411,7 @@ class Map:
         self._loops.setdefault(b, set()).add(a)
 
     def remove_loop_edge(self, a: KfKey, b: KfKey) -> None:
-        """Drop the loop edge ``a``-``b`` (a loop the robust pose graph rejected); absent edges are ignored."""
+        """Drop the loop edge ``a``-``b`` (a loop the robust pose graph rejected); absent ones are ignored."""
         a, b = _key(a), _key(b)
         for x, y in ((a, b), (b, a)):
             nbs = self._loops.get(x)

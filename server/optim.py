@@ -10,6 +10,7 @@ Both are independent of the map model so they can run in a background worker on 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -114,6 +115,14 @@ def _edge_noise(e: PoseGraphEdge, tail: list[float], options: PoseGraphOptions) 
     return noise
 
 
+def _loose_noise(dim: int) -> Any:
+    """A prior that only keeps a part of the graph from floating (its gauge) when every robust edge to
+    the rest is rejected: 1 rad, 100 m (and log-scale 1)."""
+    import gtsam
+
+    return gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0] * 3 + [100.0] * 3 + [1.0] * (dim - 6)))
+
+
 def _solve_lm(graph: Any, initial: Any, options: PoseGraphOptions) -> Any:
     import gtsam
 
@@ -166,12 +175,16 @@ def solve_pose_graph_sim3(
     edges: list[PoseGraphEdge],
     fixed: set[int] | frozenset[int],
     options: PoseGraphOptions = PoseGraphOptions(),
+    loose: Sequence[int] = (),
 ) -> PoseGraphResult:
     """Optimise keyframe poses under relative Sim(3) constraints.
 
     world_from_cam: (N, 4, 4) initial SE(3) poses. ``fixed``: indices held constant (at least one).
+    ``loose``: indices held by a very loose prior at their initial pose (parts of the graph joined to the
+    rest only by robust edges, which may all be rejected).
     Returns N ``Sim3`` ``world_from_cam`` (scale may differ from 1 where drift was in scale) and the
-    edges' verdicts. Points anchored to keyframe ``i`` follow with ``new[i] @ Sim3.from_se3(old_i).inverse()``.
+    edges' verdicts. Points anchored to keyframe ``i`` follow with
+    ``new[i] @ Sim3.from_se3(old_i).inverse()``.
     """
     import gtsam
 
@@ -186,10 +199,12 @@ def solve_pose_graph_sim3(
         initial.insert(k, Sim3.from_se3(poses[k]).to_gtsam())
     for k in sorted(fixed):
         graph.add(gtsam.NonlinearEqualitySimilarity3(k, Sim3.from_se3(poses[k]).to_gtsam()))
+    for k in loose:
+        graph.add(gtsam.PriorFactorSimilarity3(k, Sim3.from_se3(poses[k]).to_gtsam(), _loose_noise(7)))
     for e in edges:
         noise = _edge_noise(e, [e.sigma_trans] * 3 + [e.sigma_logscale], options)
         graph.add(gtsam.BetweenFactorSimilarity3(e.i, e.j, e.i_from_j.to_gtsam(), noise))
-    result, inlier, chi2 = _solve(graph, initial, len(fixed), edges, options)
+    result, inlier, chi2 = _solve(graph, initial, len(fixed) + len(loose), edges, options)
     out = [Sim3.from_gtsam(result.atSimilarity3(k)) for k in range(n)]
     log.debug(
         "pose graph: %d keyframes, %d edges, error %.3g -> %.3g",
@@ -216,6 +231,7 @@ def solve_pose_graph_se3(
     edges: list[PoseGraphEdge],
     fixed: set[int] | frozenset[int],
     options: PoseGraphOptions = PoseGraphOptions(),
+    loose: Sequence[int] = (),
 ) -> PoseGraphResult:
     """:func:`solve_pose_graph_sim3` for metric maps: SE(3) poses and edges (gtsam Pose3; the edges'
     scale and ``sigma_logscale`` are ignored). Poses come back as Sim3 with scale 1."""
@@ -232,11 +248,13 @@ def solve_pose_graph_se3(
         initial.insert(k, gtsam.Pose3(poses[k]))
     for k in sorted(fixed):
         graph.add(gtsam.NonlinearEqualityPose3(k, gtsam.Pose3(poses[k])))
+    for k in loose:
+        graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(poses[k]), _loose_noise(6)))
     for e in edges:
         noise = _edge_noise(e, [e.sigma_trans] * 3, options)
         rel = se3(e.i_from_j.R, e.i_from_j.t)
         graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(rel), noise))
-    result, inlier, chi2 = _solve(graph, initial, len(fixed), edges, options)
+    result, inlier, chi2 = _solve(graph, initial, len(fixed) + len(loose), edges, options)
     return PoseGraphResult([Sim3.from_se3(result.atPose3(k).matrix()) for k in range(n)], inlier, chi2)
 
 

@@ -48,6 +48,8 @@ class Evidence:
     merge: MergeHypothesis | None = None
     rejected: bool = False
     judged: int = 0  # pose graphs that judged it
+    fuse: list[tuple[Any, Any]] = field(default_factory=list)  # a loop's duplicate points, fused once kept
+    fused: bool = False
 
 
 @dataclass
@@ -68,8 +70,10 @@ class EvidenceBook:
         self.merges: dict[int, list[MergeHypothesis]] = {}
         self._next_id = 0
 
-    def add_loop(self, map_id: int, edge: NewEdge, record: dict[str, Any]) -> Evidence:
-        ev = Evidence(edge, "loop", record)
+    def add_loop(
+        self, map_id: int, edge: NewEdge, record: dict[str, Any], fuse: list[tuple[Any, Any]]
+    ) -> Evidence:
+        ev = Evidence(edge, "loop", record, fuse=fuse)
         self.edges.setdefault(map_id, []).append(ev)
         return ev
 
@@ -112,7 +116,8 @@ class EvidenceBook:
 
     def kept_edges(self, map_id: int, keys: Any) -> list[Evidence]:
         """The map's kept edges whose keyframes are still in it."""
-        return [ev for ev in self.edges.get(map_id, []) if ev.edge.candidate in keys and ev.edge.query in keys]
+        edges = self.edges.get(map_id, [])
+        return [ev for ev in edges if ev.edge.candidate in keys and ev.edge.query in keys]
 
     def judge(
         self, map_id: int, judged: list[Evidence], inlier: list[bool], chi2: list[float], confirmations: int
@@ -154,7 +159,9 @@ class EvidenceBook:
         """After ``hyp`` was undone (its source agents now in map ``new_id``): the edges within each side
         stay with it, those across are dropped and returned; the hypothesis is gone."""
         side = hyp.source_agents
-        stay, move, dropped = [], [], []
+        stay: list[Evidence] = []
+        move: list[Evidence] = []
+        dropped: list[Evidence] = []
         for ev in self.edges.pop(map_id, []):
             a, b = ev.edge.candidate[0] in side, ev.edge.query[0] in side
             (move if a and b else stay if not a and not b else dropped).append(ev)

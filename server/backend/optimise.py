@@ -5,7 +5,7 @@ optimisation thread (pure functions, no map access) and turned into per-keyframe
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -80,6 +80,7 @@ class PoseGraphProblem:
     ups: F64 | None
     # for each of ``new_edges``, its index in the ``edges`` the problem was built from
     new_edge_source: list[int] = field(default_factory=list)
+    loose: list[int] = field(default_factory=list)  # one keyframe per side held apart (a loose prior)
 
 
 def pose_graph_problem(
@@ -89,7 +90,7 @@ def pose_graph_problem(
     pre: tuple[Sim3, list[KfKey]] | None,
     fixed: list[int],
     o: OptimiseOptions,
-    apart: list[tuple[frozenset[str], frozenset[str]]] = (),  # type: ignore[assignment]
+    apart: Sequence[tuple[frozenset[str], frozenset[str]]] = (),
 ) -> PoseGraphProblem:
     """The pose graph of ``m``'s essential graph plus ``edges``, from ``snap``; ``pre``: a correction that
     the listed keyframes start from (a loop's query neighbourhood), ``fixed``: the held keyframes.
@@ -108,6 +109,8 @@ def pose_graph_problem(
         if a in index and b in index and frozenset((a, b)) not in new_pairs and not across(a, b)
     ]
     kept = [n for n, e in enumerate(edges) if e.candidate in index and e.query in index]
+    loose = sorted({next(i for i, k in enumerate(snap.keys) if k[0] in s) for s, _ in apart
+                    if any(k[0] in s for k in snap.keys)} - set(fixed))  # fmt: skip
     new_edges = [
         (index[edges[n].candidate], index[edges[n].query], edges[n].measured, edges[n].sigma_rot,
          edges[n].sigma_trans)
@@ -119,7 +122,7 @@ def pose_graph_problem(
             if k in index and index[k] not in fixed:
                 initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
-    return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept)
+    return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose)
 
 
 def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey, Sim3], float]:
@@ -139,7 +142,7 @@ def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseO
         p.initial, poses, p.graph_edges, p.new_edges, p.fixed, metric,
         sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
         sigma_yaw=o.pose_graph_sigma_yaw if o.pose_graph_sigma_yaw > 0 else None, ups=p.ups,
-        options=PoseGraphOptions(gnc=o.gnc, gnc_inlier_probability=o.gnc_inlier_probability),
+        options=PoseGraphOptions(gnc=o.gnc, gnc_inlier_probability=o.gnc_inlier_probability), loose=p.loose,
     )  # fmt: skip
     n = len(p.graph_edges)
     return PoseGraphResult(res.poses, res.inlier[n:], res.chi2[n:])
@@ -175,6 +178,7 @@ def pose_graph_result(
     sigma_yaw: float | None = None,
     ups: F64 | None = None,
     options: PoseGraphOptions | None = None,
+    loose: Sequence[int] = (),
 ) -> PoseGraphResult:
     """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
     with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust (Huber,
@@ -208,8 +212,8 @@ def pose_graph_result(
     edges += [PoseGraphEdge(i, j, s, sr, st, robust=True) for i, j, s, sr, st in new_edges]
     opts = options or PoseGraphOptions()
     if metric:
-        return solve_pose_graph_se3(initial, edges, set(fixed), opts)
-    return solve_pose_graph_sim3(initial, edges, set(fixed), opts)
+        return solve_pose_graph_se3(initial, edges, set(fixed), opts, loose)
+    return solve_pose_graph_sim3(initial, edges, set(fixed), opts, loose)
 
 
 @dataclass

@@ -17,7 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, corrections, detect, fit, gnss, optimise, selfcheck
+from hivemap.server.backend import accept, corrections, detect, fit, gnss, optimise, robust, selfcheck
+from hivemap.server.backend.evidence import EvidenceBook
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.backend.startprior import StartPrior
@@ -64,6 +65,7 @@ class Pipeline:
         self._retry_at: dict[tuple[int, int], float] = {}  # map pair -> last GNSS-guided retry
         self._gnss_scale: dict[int, tuple[int, float]] = {}  # map -> (fixes at its last CV, chosen scale)
         self._consistency = accept.Consistency()
+        self.evidence = EvidenceBook()  # the maps' loop and merge edges, judged again at each pose graph
         self._opt_again: dict[int, list[NewEdge]] = {}
         self._tokens = self.options.scheduler.verifications_per_s
         self._last_refill = time.monotonic()
@@ -145,6 +147,7 @@ class Pipeline:
         self._generation.pop(source, None)
         self._prior.merged(target, source, target_from_source)
         self.selfcheck.pop(source, None)
+        self.evidence.on_merge(target, source)
         self._enu_maps.discard(source)  # the merged map keeps the target's frame
         self._gnss_unbend.pop(source, None)  # its keyframes' poses count as visual from now on
         if self.recognizer is not None:
@@ -234,7 +237,7 @@ class Pipeline:
             return
         # the loop's duplicate points become one only now (fused earlier, their covisibility edges would
         # hold the uncorrected relative poses in the pose graph); the fusion is committed at once
-        await server.fuse_points(map_id, fuse)
+        await server.fuse_points(map_id, fuse + robust.fusable(self, map_id))
         m = server.stack.maps.get(map_id)
         if m is None:
             return
@@ -270,16 +273,24 @@ class Pipeline:
         o, map_id = self.options.optimise, m.id
         snap = self._snapshot(m)
         fixed = optimise.anchor(m, snap.keys, self._agent_kind, set(), POSE_GRAPH_ANCHORS_PER_AGENT)
-        problem = optimise.pose_graph_problem(m, snap, edges, pre, fixed, o)
+        # robust: every kept loop and merge edge of the map is judged again, merges on trial held only by
+        # their measured edges
+        judged = self.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
+        apart = self.evidence.apart(map_id) if o.gnc else []
+        problem = optimise.pose_graph_problem(
+            m, snap, [ev.edge for ev in judged] if judged else edges, pre, fixed, o, apart
+        )
         t0 = time.perf_counter()
-        sims = await asyncio.get_running_loop().run_in_executor(
+        res = await asyncio.get_running_loop().run_in_executor(
             self._opt_exec, optimise.solve_pose_graph, problem, snap.poses, self.options.fix_scale, o
         )
         pg_ms = (time.perf_counter() - t0) * 1e3
         cur = self._current(snap)
         if cur is None:
             return False
-        corr, moved = optimise.pose_graph_corrections(snap, sims)
+        if judged and not await robust.apply_verdict(self, cur, judged, problem, res):
+            return False
+        corr, moved = optimise.pose_graph_corrections(snap, res.poses)
         if moved > o.pose_graph_max_move_m:
             self.server.events.add("pose_graph", f"map {map_id}: pose graph refused (a keyframe would move "
                                    f"{moved:.1f} m > {o.pose_graph_max_move_m} m)", map_id=map_id,

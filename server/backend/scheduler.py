@@ -194,6 +194,7 @@ class Backend(Pipeline):
         target = surgery.target_of(maps, det.query_map, det.candidate_map, self._agent_kind)
         target_id, source_id, sim, pairs = det.merge_args(target)
         self._consistency.forget_maps(source_id, target_id)
+        sides = (set(maps[target_id].agents), set(maps[source_id].agents))
         merged, merge_ms = await self._apply_merge(target_id, source_id, sim, pairs)
         # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
         edge = NewEdge(det.candidate_key, det.query_key, fit.edge_measure(merged, det), *sigmas)
@@ -210,6 +211,8 @@ class Backend(Pipeline):
         if prior is not None:
             rec.update(by="place_recognition+prior" if prior["agrees"] else "place_recognition", prior=prior)
         self.merges.append(rec)
+        if self.options.optimise.gnc:  # on trial until loops between its sides confirm it
+            self.evidence.add_merge(target_id, source_id, edge, sim, sides, rec)
         server.events.add(
             "merge_detail",
             f"merge {source_id} -> {target_id}: scale {sim.s:.4f}, {len(pairs)} duplicate points fused, "
@@ -245,12 +248,18 @@ class Backend(Pipeline):
         m.add_loop_edge(det.candidate_key, det.query_key)
         rec = surgery.loop_record(m, det, measured, tilt, levelled is not None, len(pairs), sigmas)
         self.loops.append(rec)
+        pre = (det.target_from_source, surgery.loop_neighbourhood(m, det.query_key))
+        edge = NewEdge(det.candidate_key, det.query_key, measured, *sigmas)
+        if o.optimise.gnc:
+            # the robust pose graph judges it first: its event (kept or rejected, and why) and the fusion
+            # of its duplicate points follow that verdict
+            self.evidence.add_loop(m.id, edge, rec, pairs)
+            self._schedule_optimisation(m.id, [edge], t_det, pre=pre)
+            return
         self.server.events.add(
             "loop",
             f"loop {det.query_key} -> {det.candidate_key} in map {m.id} ({det.n_inliers} inliers)",
             map_id=m.id,
             data=rec,
         )
-        pre = (det.target_from_source, surgery.loop_neighbourhood(m, det.query_key))
-        edge = NewEdge(det.candidate_key, det.query_key, measured, *sigmas)
         self._schedule_optimisation(m.id, [edge], t_det, fuse=pairs, pre=pre)
