@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from collections.abc import Iterable, Sequence
@@ -125,14 +126,14 @@ def split_map(
     """Undo a merge: the keyframes and points of ``agents`` leave map ``map_id`` for a new map of the
     stack, moved by ``source_from_target`` (back into their own map's frame). Returns (kept, new).
 
-    Both maps are rebuilt from the keyframes' point references (the model's source of truth), so
+    Both maps are rebuilt (from copies) from the keyframes' point references (the model's source of truth), so
     covisibility and spanning trees are those of each side alone. A reference across the sides (a
     point fused by the merge or by a loop between them) stays in its keyframe as a pending reference:
     nothing is lost, and a later merge links it again. Loop edges within a side stay, those across go;
     ``record`` is appended to both maps' ``merge_history``. Raises ``ValueError`` (before changing
     anything) if ``agents`` leaves either side without keyframes.
     """
-    from hivemap.maps.model import Map
+    from hivemap.maps.model import Map, MapPoint
 
     m = stack.maps[map_id]
     side = set(agents)
@@ -144,13 +145,16 @@ def split_map(
     for part, mine in ((kept, False), (new, True)):
         part.point_redirects = dict(m.point_redirects)
         part.merge_history = [*m.merge_history, record]
+        # copies: the place-recognition thread may still be reading the merged map's objects
         for mp in m.points.values():
             if (mp.agent_id in side) == mine:
-                mp.observations = {}
-                part.add_point(mp)
+                part.add_point(MapPoint(mp.agent_id, mp.id, mp.xyz, mp.descriptor))
         for k, kf in m.keyframes.items():
             if (k[0] in side) == mine:
-                part.add_keyframe(kf)
+                kf2 = copy.copy(kf)
+                kf2.world_from_cam = kf.world_from_cam.copy()
+                kf2.point_ids, kf2.point_agents = kf.point_ids.copy(), dict(kf.point_agents)
+                part.add_keyframe(kf2)
         for a, b in m.loop_edges():
             if (a[0] in side) == mine and (b[0] in side) == mine:
                 part.add_loop_edge(a, b)

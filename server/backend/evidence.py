@@ -19,7 +19,8 @@ KfKey = tuple[str, int]
 @dataclass
 class MergeHypothesis:
     """A merge on trial: ``source_agents`` were moved by ``target_from_source`` into the map of
-    ``target_agents``. ``confirmations``: query keyframes of the loops between the two sides kept with it."""
+    ``target_agents``. ``confirmations``: query keyframes of the independent loops between the two sides
+    kept with it (:meth:`EvidenceBook.dependent_on`)."""
 
     id: int
     target: int
@@ -28,6 +29,7 @@ class MergeHypothesis:
     source_agents: frozenset[str]
     target_agents: frozenset[str]
     record: dict[str, Any]
+    edge: NewEdge | None = None
     confirmations: set[KfKey] = field(default_factory=set)
     confirmed: bool = False
 
@@ -50,6 +52,8 @@ class Evidence:
     judged: int = 0  # pose graphs that judged it
     fuse: list[tuple[Any, Any]] = field(default_factory=list)  # a loop's duplicate points, fused once kept
     fused: bool = False
+    # a loop across a merge on trial seen at the merge's own place: the same evidence again, not a vote
+    dependent: MergeHypothesis | None = None
 
 
 @dataclass
@@ -71,9 +75,17 @@ class EvidenceBook:
         self._next_id = 0
 
     def add_loop(
-        self, map_id: int, edge: NewEdge, record: dict[str, Any], fuse: list[tuple[Any, Any]]
+        self,
+        map_id: int,
+        edge: NewEdge,
+        record: dict[str, Any],
+        fuse: list[tuple[Any, Any]],
+        dependent: MergeHypothesis | None = None,
     ) -> Evidence:
-        ev = Evidence(edge, "loop", record, fuse=fuse)
+        ev = Evidence(edge, "loop", record, fuse=fuse, dependent=dependent)
+        if dependent is not None:
+            record["merge_evidence"] = dependent.id
+            dependent.record["dependent_loops"] = dependent.record.get("dependent_loops", 0) + 1
         self.edges.setdefault(map_id, []).append(ev)
         return ev
 
@@ -90,7 +102,7 @@ class EvidenceBook:
         source's agents at merge time. The maps' kept edges and hypotheses are now the merged map's."""
         self.on_merge(map_id, source)
         hyp = MergeHypothesis(self._next_id, map_id, source, target_from_source,
-                              frozenset(agents[1]), frozenset(agents[0]), record)  # fmt: skip
+                              frozenset(agents[1]), frozenset(agents[0]), record, edge)  # fmt: skip
         self._next_id += 1
         record["merge_id"] = hyp.id
         record["on_trial"] = True
@@ -114,10 +126,25 @@ class EvidenceBook:
         """The agent groups whose essential edges the pose graph leaves out (merges on trial)."""
         return [(h.source_agents, h.target_agents) for h in self.on_trial(map_id)]
 
+    def dependent_on(self, m: Any, a: KfKey, b: KfKey) -> MergeHypothesis | None:
+        """The merge on trial that a loop ``a``-``b`` across its sides merely repeats: either end is one of
+        the merge's keyframes or covisible with it (the same place, e.g. the rest of a room that looks like
+        another). Such a loop is no independent confirmation, nor a separate vote in the pose graph."""
+        for hyp in self.on_trial(m.id):
+            if hyp.edge is None or not hyp.across(a, b):
+                continue
+            for end in (hyp.edge.query, hyp.edge.candidate):
+                place = {end, *m.covisibility(end)} if end in m.keyframes else {end}
+                if a in place or b in place:
+                    return hyp
+        return None
+
     def kept_edges(self, map_id: int, keys: Any) -> list[Evidence]:
-        """The map's kept edges whose keyframes are still in it."""
+        """The map's kept edges (not those repeating a merge) whose keyframes are still in it."""
         edges = self.edges.get(map_id, [])
-        return [ev for ev in edges if ev.edge.candidate in keys and ev.edge.query in keys]
+        return [
+            ev for ev in edges if ev.dependent is None and ev.edge.candidate in keys and ev.edge.query in keys
+        ]
 
     def judge(
         self, map_id: int, judged: list[Evidence], inlier: list[bool], chi2: list[float], confirmations: int

@@ -278,7 +278,7 @@ class Pipeline:
         judged = self.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
         apart = self.evidence.apart(map_id) if o.gnc else []
         problem = optimise.pose_graph_problem(
-            m, snap, [ev.edge for ev in judged] if judged else edges, pre, fixed, o, apart
+            m, snap, [ev.edge for ev in judged] if o.gnc else edges, pre, fixed, o, apart
         )
         t0 = time.perf_counter()
         res = await asyncio.get_running_loop().run_in_executor(

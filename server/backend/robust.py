@@ -76,7 +76,7 @@ def fusable(bk: Any, map_id: int) -> list[PointPair]:
     """The duplicate points of the map's kept loops not fused yet (a rejected loop's stay apart)."""
     out: list[PointPair] = []
     for ev in bk.evidence.edges.get(map_id, []):
-        if ev.judged and not ev.rejected and not ev.fused:
+        if (ev.judged or ev.dependent is not None) and not ev.rejected and not ev.fused:
             out += ev.fuse
             ev.fused = True
     return out

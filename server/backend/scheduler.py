@@ -250,12 +250,17 @@ class Backend(Pipeline):
         self.loops.append(rec)
         pre = (det.target_from_source, surgery.loop_neighbourhood(m, det.query_key))
         edge = NewEdge(det.candidate_key, det.query_key, measured, *sigmas)
-        if o.optimise.gnc:
+        gnc = o.optimise.gnc
+        dependent = self.evidence.dependent_on(m, det.candidate_key, det.query_key) if gnc else None
+        if gnc and dependent is None:
             # the robust pose graph judges it first: its event (kept or rejected, and why) and the fusion
             # of its duplicate points follow that verdict
             self.evidence.add_loop(m.id, edge, rec, pairs)
             self._schedule_optimisation(m.id, [edge], t_det, pre=pre)
             return
+        if dependent is not None:  # it stands or falls with the merge it repeats
+            self.evidence.add_loop(m.id, edge, rec, pairs, dependent)
+            pairs = []
         self.server.events.add(
             "loop",
             f"loop {det.query_key} -> {det.candidate_key} in map {m.id} ({det.n_inliers} inliers)",

@@ -31,15 +31,15 @@ def room(rng: np.random.Generator, n: int = 2500) -> tuple[np.ndarray, np.ndarra
     return make_world(rng, n, (-20, 30))
 
 
-def twin(ps: PointSet, id0: int) -> PointSet:
-    """The same room TWIN_SHIFT away, its points under new ids."""
-    return PointSet(ps.xyz + TWIN_SHIFT, ps.desc, id0)
+def twin(ps: PointSet, id0: int, shift: np.ndarray = TWIN_SHIFT) -> PointSet:
+    """The same room ``shift`` away, its points under new ids."""
+    return PointSet(ps.xyz + shift, ps.desc, id0)
 
 
-def doorway(rng: np.random.Generator, id0: int) -> PointSet:
-    """Points with their own descriptors that both rooms' cameras see near x = 6..10 (the agent's path
-    from one room into the other passes it): they connect the two passes in the map."""
-    xyz = np.column_stack([rng.uniform(2, 14, 400), rng.uniform(-6, 4, 400), rng.uniform(12, 30, 400)])
+def doorway(rng: np.random.Generator, id0: int, x0: float = 2.0) -> PointSet:
+    """Points with their own descriptors at x = x0 .. x0 + 12 that the cameras on both sides of a door
+    see (the agent's path from one room into the next passes it): they connect its two passes."""
+    xyz = np.column_stack([rng.uniform(x0, x0 + 12, 400), rng.uniform(-6, 4, 400), rng.uniform(12, 30, 400)])
     return PointSet(xyz, rng.integers(0, 256, size=(400, 32), dtype=np.uint8), id0)
 
 
