@@ -10,7 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from hivemap.maps.geometry import Sim3
+import numpy as np
+
+from hivemap.maps.geometry import Sim3, rotation_angle_deg
 from hivemap.server.backend.optimise import NewEdge
 
 KfKey = tuple[str, int]
@@ -73,6 +75,24 @@ class EvidenceBook:
         self.edges: dict[int, list[Evidence]] = {}
         self.merges: dict[int, list[MergeHypothesis]] = {}
         self._next_id = 0
+        self.refuted: list[MergeHypothesis] = []  # undone merges: the same detection again is refused
+
+    def refuted_like(
+        self, agents: tuple[set[str], set[str]], target_from_source: Sim3
+    ) -> MergeHypothesis | None:
+        """An undone merge between the same agents by (nearly) the same transform (1 m at the source's
+        frame origin, 5 deg): the detection that made it, found again."""
+        for h in self.refuted:
+            same_agents = h.target_agents & agents[0] and h.source_agents & agents[1]
+            flipped = h.target_agents & agents[1] and h.source_agents & agents[0]
+            if not (same_agents or flipped):
+                continue
+            rel = h.target_from_source.inverse() @ (
+                target_from_source if same_agents else target_from_source.inverse()
+            )
+            if float(np.linalg.norm(rel.t)) < 1.0 and rotation_angle_deg(rel.R) < 5.0:
+                return h
+        return None
 
     def add_loop(
         self,
@@ -193,6 +213,7 @@ class EvidenceBook:
             a, b = ev.edge.candidate[0] in side, ev.edge.query[0] in side
             (move if a and b else stay if not a and not b else dropped).append(ev)
         self.edges[map_id], self.edges[new_id] = stay, move
+        self.refuted.append(hyp)
         hyps = [h for h in self.merges.pop(map_id, []) if h is not hyp]
         self.merges[map_id] = [h for h in hyps if not h.source_agents <= side]
         self.merges[new_id] = [h for h in hyps if h.source_agents <= side]

@@ -51,6 +51,10 @@ class AcceptOptions:
     # a merge stays on trial (undone if the robust pose graph rejects its edge) until this many loops
     # between its two sides, with distinct query keyframes, are kept alongside it
     merge_confirmations: int = 3
+    # ... or if one rigid alignment of the agents' GNSS fixes leaves a median residual this many times,
+    # and at least this many metres, larger than each side's own alignment
+    merge_gnss_factor: float = 3.0
+    merge_gnss_min_m: float = 2.0
 
 
 @dataclass(frozen=True)

@@ -252,6 +252,8 @@ class Pipeline:
         if m is None:
             return
         if self.options.gnss.enabled:
+            if self.options.optimise.gnc and not await robust.gnss_check(self, m):
+                return  # a merge was undone: the maps are new
             if ba_ok:
                 await self._gnss_stage(m)
             if unbend is not None and map_id not in self._gnss_unbend:

@@ -11,13 +11,18 @@ import logging
 import time
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from hivemap.maps.merge import split_map
 from hivemap.server.backend.evidence import Evidence, MergeHypothesis
+from hivemap.server.backend.fit import umeyama
 from hivemap.server.optim import PoseGraphResult
 
 logger = logging.getLogger(__name__)
 
 PointPair = tuple[Any, Any]
+F64 = NDArray[np.float64]
 
 
 def loop_message(ev: Evidence) -> str:
@@ -142,6 +147,57 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
     t = time.monotonic()
     await bk._send_corrections(map_id, {}, t)
     await bk._send_corrections(new.id, {}, t)
+
+
+def gnss_disagreement(
+    m: Any,
+    hyp: MergeHypothesis,
+    lever_of: Any,
+    with_scale: bool,
+    min_fixes: int = 5,
+    min_spread_m: float = 2.0,
+) -> tuple[float, float] | None:
+    """How the agents' GNSS fixes judge merge ``hyp`` of map ``m``: (median residual of one rigid
+    alignment of all its fixes, the worse of each side's own), in m; None while a side has fewer than
+    ``min_fixes`` fixes or they lie within ``min_spread_m`` of their centre (nothing to align)."""
+    ant: dict[bool, list[F64]] = {True: [], False: []}
+    fix: dict[bool, list[F64]] = {True: [], False: []}
+    for k, kf in m.keyframes.items():
+        if kf.gnss_enu is None or not (k[0] in hyp.source_agents or k[0] in hyp.target_agents):
+            continue
+        side = k[0] in hyp.source_agents
+        ant[side].append(kf.world_from_cam[:3, :3] @ lever_of(k[0]) + kf.world_from_cam[:3, 3])
+        fix[side].append(np.asarray(kf.gnss_enu, dtype=np.float64))
+
+    def residual(a: F64, f: F64) -> float:
+        T = umeyama(a, f, with_scale=with_scale)
+        return float(np.median(np.linalg.norm(T.apply(a) - f, axis=1)))
+
+    own = []
+    for side in (True, False):
+        a = np.array(ant[side]).reshape(-1, 3)
+        if len(a) < min_fixes or np.median(np.linalg.norm(a - a.mean(axis=0), axis=1)) < min_spread_m:
+            return None
+        own.append(residual(a, np.array(fix[side])))
+    both = residual(np.array(ant[True] + ant[False]), np.array(fix[True] + fix[False]))
+    return both, max(own)
+
+
+async def gnss_check(bk: Any, m: Any) -> bool:
+    """Before the GNSS stage: undo a merge on trial that the agents' fixes contradict (one alignment of
+    all of them is off by ``AcceptOptions.merge_gnss_factor`` times, and at least ``merge_gnss_min_m``,
+    more than each side's own). False if a merge was undone."""
+    o = bk.options.accept
+    for hyp in bk.evidence.on_trial(m.id):
+        d = gnss_disagreement(m, hyp, bk._cam_from_antenna, not bk.options.fix_scale)
+        if d is None or not (d[0] > o.merge_gnss_min_m and d[0] > o.merge_gnss_factor * d[1]):
+            continue
+        reason = (f"GNSS: the agents' fixes fit the merged map to {d[0]:.2f} m (median), each side alone to "
+                  f"{d[1]:.2f} m")  # fmt: skip
+        hyp.record["gnss_residuals_m"] = list(d)
+        await undo_merge(bk, m.id, hyp, reason)
+        return False
+    return True
 
 
 def relabel(recognizer: Any, keys: list[Any], map_id: int) -> None:

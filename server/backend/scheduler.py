@@ -193,8 +193,16 @@ class Backend(Pipeline):
             det = replace(det, target_from_source=levelled)
         target = surgery.target_of(maps, det.query_map, det.candidate_map, self._agent_kind)
         target_id, source_id, sim, pairs = det.merge_args(target)
-        self._consistency.forget_maps(source_id, target_id)
         sides = (set(maps[target_id].agents), set(maps[source_id].agents))
+        refuted = self.evidence.refuted_like(sides, sim) if self.options.optimise.gnc else None
+        if refuted is not None:
+            why = f"it repeats merge {refuted.id}, undone ({refuted.record.get('undo_reason')})"
+            data = {"refused": True, "repeats_merge": refuted.id, **det.to_dict()}
+            server.events.add(
+                "merge", f"merge {source_id} -> {target_id} refused: {why}", map_id=target_id, data=data
+            )
+            return
+        self._consistency.forget_maps(source_id, target_id)
         merged, merge_ms = await self._apply_merge(target_id, source_id, sim, pairs)
         # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
         edge = NewEdge(det.candidate_key, det.query_key, fit.edge_measure(merged, det), *sigmas)

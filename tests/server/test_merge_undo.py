@@ -26,9 +26,12 @@ B_SHIFT = np.array([10.0, 0.0, 0.0])  # the room the UGV sees second
 A2_SHIFT = np.array([20.0, 0.0, 0.0])  # the twin of the UGV's first room, where the UAV starts
 
 
-def agents(seed: int = 31) -> tuple[list, list, np.ndarray]:
-    """UGV: room A, door, room B. UAV: room A2 (A's twin), a door, room B backwards. Returns both streams
-    and the UAV's true poses in the world."""
+def agents(
+    seed: int = 31, gnss_sigma: float | None = None, uav_b: bool = True
+) -> tuple[list, list, np.ndarray]:
+    """UGV: room A, door, room B. UAV: room A2 (A's twin), a door, room B backwards (``uav_b``; else
+    room A2 only). Returns both streams and the UAV's true poses in the world; with ``gnss_sigma`` every
+    keyframe carries a fix."""
     rng = np.random.default_rng(seed)
     a = tr.PointSet(*tr.room(rng), 0)
     bx, bd = tr.room(rng)
@@ -37,13 +40,15 @@ def agents(seed: int = 31) -> tuple[list, list, np.ndarray]:
     door, door2 = tr.doorway(rng, 200000), tr.doorway(rng, 400000, x0=12.0)
     ugv_a = tr.path(rng, np.linspace(-6, 8, 10))
     ugv_b = tr.path(rng, np.linspace(-6, 8, 10), offset=B_SHIFT)
-    ugv = tr.stream(rng, ugv_a + ugv_b, [[a, door] if k in (7, 8, 9) else [a] for k in range(10)]
-                    + [[b, door] if k < 3 else [b] for k in range(10)], UGV_FROM_WORLD, 0)  # fmt: skip
+    ugv_sees = [[a, door] if k in (7, 8, 9) else [a] for k in range(10)]
+    ugv_sees += [[b, door] if k < 3 else [b] for k in range(10)]
+    ugv = tr.stream(rng, ugv_a + ugv_b, ugv_sees, UGV_FROM_WORLD, 0, gnss_sigma)
     uav_a2 = tr.path(rng, np.linspace(8, -6, 10), offset=A2_SHIFT)  # x 28 .. 14
-    uav_b = tr.path(rng, np.linspace(8, -6, 10), offset=B_SHIFT)  # x 18 .. 4
-    uav = tr.stream(rng, uav_a2 + uav_b, [[a2, door2] if k in (7, 8, 9) else [a2] for k in range(10)]
-                    + [[b, door2] if k < 3 else [b] for k in range(10)], UAV_FROM_WORLD, 0)  # fmt: skip
-    return ugv, uav, np.array(uav_a2 + uav_b)
+    uav_path = uav_a2 + (tr.path(rng, np.linspace(8, -6, 10), offset=B_SHIFT) if uav_b else [])  # x 18 .. 4
+    sees = [[a2, door2] if k in (7, 8, 9) else [a2] for k in range(10)]
+    sees += [[b, door2] if k < 3 else [b] for k in range(10)] if uav_b else []
+    uav = tr.stream(rng, uav_path, sees, UAV_FROM_WORLD, 0, gnss_sigma)
+    return ugv, uav, np.array(uav_path)
 
 
 def test_merge_contradicted_by_later_loops_is_undone(tmp_path: Path) -> None:
@@ -93,3 +98,29 @@ def test_merge_contradicted_by_later_loops_is_undone(tmp_path: Path) -> None:
     }
     for mid, (_, kfs) in maps.items():
         assert set(loaded.maps[mid].keyframes) == set(kfs)
+
+
+def test_merge_contradicted_by_the_agents_gnss_fixes_is_undone(tmp_path: Path) -> None:
+    """The same wrong merge with GNSS fixes (5 cm) on both agents, the UAV staying in the twin room: no loop
+    contradicts it, but one alignment of all fixes leaves ~10 m residuals where each agent's own leaves
+    centimetres. The merge is undone and the same match, found again, is refused: the UAV stays alone."""
+    ugv, uav, _ = agents(gnss_sigma=0.05, uav_b=False)
+    srv = Server(tmp_path / "data", preset("default", scheduler=FAST, accept=NO_GATE))
+    try:
+        with stream(srv, "ugv1", "ugv", ugv):
+            srv.wait_idle()
+        with stream(srv, "uav1", "uav", uav):
+            srv.wait_idle()
+        merges = srv.call(lambda: [dict(r) for r in srv.backend.merges])
+        maps = srv.call(lambda: sorted(sorted(m.agents) for m in srv.hive.stack.maps.values()))
+        base = f"http://127.0.0.1:{srv.port}/events"
+        undone = httpx.get(base, params={"kind": "merge_undone", "limit": 100}).json()["events"]
+        refused = [e for e in httpx.get(base, params={"kind": "merge", "limit": 1000}).json()["events"]
+                   if (e["data"] or {}).get("refused")]  # fmt: skip
+    finally:
+        srv.stop()
+    assert merges and merges[0].get("undone") and merges[0]["undo_reason"].startswith("GNSS"), merges
+    both, own = merges[0]["gnss_residuals_m"]
+    assert both > 5.0 and own < 0.2, (both, own)
+    assert undone and all(m.get("undone") for m in merges), (undone, merges)
+    assert maps == [["uav1"], ["ugv1"]], (maps, [e["message"] for e in refused])

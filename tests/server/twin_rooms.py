@@ -58,10 +58,13 @@ def stream(
     sees: list[list[PointSet]],
     local_from_world: Sim3,
     id0: int,
+    gnss_sigma: float | None = None,
 ) -> list[Message]:
     """One agent's messages (points first, then keyframes ``id0``...): keyframe ``k`` at true pose
     ``poses[k]`` observes the points of ``sees[k]`` that project into its image (0.5 px noise, 3 flipped
-    descriptor bits, 150 clutter keypoints). Poses and points are sent exact, in ``local_from_world``."""
+    descriptor bits, 150 clutter keypoints). Poses and points are sent exact, in ``local_from_world``.
+    ``gnss_sigma``: each keyframe carries a fix, its true camera centre (the world taken as ENU) plus
+    noise of this standard deviation."""
     obs: dict[tuple[int, int], list[tuple[int, np.ndarray]]] = {}  # (set index, point) -> [(kf, uv)]
     sets: list[PointSet] = []
     for k, (T, seen) in enumerate(zip(poses, sees, strict=True)):
@@ -102,6 +105,8 @@ def stream(
             octaves=octs,
             descriptors=d,
             point_ids=pids,
+            gnss_enu=None if gnss_sigma is None else T[:3, 3] + rng.normal(0, gnss_sigma, 3),
+            gnss_cov=None if gnss_sigma is None else np.eye(3) * gnss_sigma**2,
         )
         msgs.append(kf)
     return msgs
