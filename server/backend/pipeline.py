@@ -17,7 +17,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, corrections, detect, fit, gnss, optimise, robust, selfcheck
+from hivemap.server.backend import (
+    accept,
+    corrections,
+    detect,
+    evidence_store,
+    fit,
+    gnss,
+    optimise,
+    robust,
+    selfcheck,
+)
 from hivemap.server.backend.evidence import EvidenceBook
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import BackendOptions
@@ -261,9 +271,11 @@ class Pipeline:
         # 4. persist (poses, and the loop edges this optimisation added, in one commit), 5. corrections
         kfs, pts = list(m.keyframes.values()), list(m.points.values())
         graph = GraphSnapshot(m)
+        book = evidence_store.to_json(self.evidence)  # the verdicts go with the poses they led to
         await server.persist_exclusive(
-            lambda store: (store.maps.update_poses(map_id, kfs, pts), store.sync_graph(graph))
-        )
+            lambda store: (store.maps.update_poses(map_id, kfs, pts), store.sync_graph(graph),
+                           store.maps.set_meta(evidence_store.META_KEY, book))
+        )  # fmt: skip
         await self._send_corrections(map_id, before, t_det)
         if map_id in self._enu_maps:
             await self._gnss_retry(map_id)

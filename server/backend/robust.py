@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.merge import split_map
+from hivemap.server.backend import evidence_store
 from hivemap.server.backend.evidence import Evidence, MergeHypothesis
 from hivemap.server.backend.fit import umeyama
 from hivemap.server.optim import PoseGraphResult
@@ -83,7 +84,7 @@ def fusable(bk: Any, map_id: int) -> list[PointPair]:
     for ev in bk.evidence.edges.get(map_id, []):
         if (ev.judged or ev.dependent is not None) and not ev.rejected and not ev.fused:
             out += ev.fuse
-            ev.fused = True
+            ev.fuse, ev.fused = [], True
     return out
 
 
@@ -111,12 +112,16 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
         for am in moved:
             am.global_from_vio = source_from_target @ am.global_from_vio
         rows = [am.row() for am in moved]
+        dropped = bk.evidence.split(map_id, new.id, hyp)
+        hyp.record.update(undone=True, undo_reason=reason, on_trial=False, split_into=new.id)
+        book = evidence_store.to_json(bk.evidence)
 
         def op(store: Any) -> None:
             store.maps.save_map(kept)
             store.maps.save_map(new)
             for row in rows:
                 store.put_agent_map(row)
+            store.maps.set_meta(evidence_store.META_KEY, book)
 
         await server.writer.call(op)
     finally:
@@ -129,8 +134,6 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
     for a, (mid, c) in list(bk._anchors.items()):
         if mid == map_id and a in side:
             bk._anchors[a] = (new.id, c)
-    dropped = bk.evidence.split(map_id, new.id, hyp)
-    hyp.record.update(undone=True, undo_reason=reason, on_trial=False, split_into=new.id)
     if bk.recognizer is not None:
         keys = list(new.keyframes)
         await asyncio.get_running_loop().run_in_executor(bk._pr_exec, relabel, bk.recognizer, keys, new.id)

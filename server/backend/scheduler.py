@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, detect, fit, surgery
+from hivemap.server.backend import accept, detect, evidence_store, fit, surgery
 from hivemap.server.backend.optimise import NewEdge
 from hivemap.server.backend.pipeline import Pipeline
 from hivemap.server.placerec import Detection
@@ -54,11 +54,26 @@ class Backend(Pipeline):
             self.recognizer = detect.make_recognizer(self._vocabulary, self.options)
 
         await loop.run_in_executor(self._pr_exec, init)
+        await self._load_evidence(server)
         # keyframes reloaded from the store are indexed by the worker first (no detection on them); the
         # server is ready meanwhile
         keys = [(m.id, k) for m in server.stack.maps.values() for k in m.keyframes]
         self._worker = asyncio.create_task(self._run(keys), name="hive-backend")
         server.events.add("info", f"back-end started ({len(keys)} reloaded keyframes to index)")
+
+    async def _load_evidence(self, server: Any) -> None:
+        """The evidence book of the stored maps (merges on trial stay on trial across a restart)."""
+        data = await server.persist(lambda store: store.maps.get_meta(evidence_store.META_KEY))
+        try:
+            book = evidence_store.from_json(data)
+        except (ValueError, KeyError, TypeError) as exc:
+            server.events.add("error", f"stored back-end evidence not usable ({exc}): starting without it")
+            return
+        live = set(server.stack.maps)
+        for table in (book.edges, book.merges):
+            for mid in [mid for mid in table if mid not in live]:
+                del table[mid]
+        self.evidence = book
 
     async def stop(self, server: Any) -> None:
         if self._worker is not None:
@@ -221,6 +236,8 @@ class Backend(Pipeline):
         self.merges.append(rec)
         if self.options.optimise.gnc:  # on trial until loops between its sides confirm it
             self.evidence.add_merge(target_id, source_id, edge, sim, sides, rec)
+            book = evidence_store.to_json(self.evidence)
+            await server.persist(lambda store: store.maps.set_meta(evidence_store.META_KEY, book))
         server.events.add(
             "merge_detail",
             f"merge {source_id} -> {target_id}: scale {sim.s:.4f}, {len(pairs)} duplicate points fused, "

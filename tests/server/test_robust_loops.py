@@ -75,3 +75,12 @@ def test_twin_room_loop_is_rejected_and_the_map_stays(tmp_path: Path, gnc: bool)
     # (the sent poses are exact here)
     assert loop_edges == [] and redirects == {}
     assert err.max() < 0.05, err
+    # the verdicts are stored with the map: a restarted server still holds every loop, rejected
+    again = Server(tmp_path / "data", opts)
+    try:
+        book, maps = again.backend.evidence, again.hive.stack.maps
+        kept = again.call(lambda: [(ev.kind, ev.rejected, ev.edge.query) for m in maps.values()
+                                   for ev in book.kept_edges(m.id, m.keyframes)])  # fmt: skip
+    finally:
+        again.stop()
+    assert sorted(kept) == sorted(("loop", True, tuple(rec["query"])) for rec in loops), kept
