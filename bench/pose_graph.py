@@ -66,8 +66,8 @@ def main(sizes: list[int], drifts: tuple[float, ...] = (0.005, 0.01, 0.02)) -> N
                 true_kept = kept[0::2] if wrong else kept
                 wrong_kept = kept[1::2] if wrong else []
                 print(f"  {n} keyframes, {len(edges)} edges, {name}: {ms:.0f} ms; true loops kept "
-                      f"{sum(true_kept)}/{len(true_kept)}, wrong loops kept {sum(wrong_kept)}/{len(wrong_kept)}; "
-                      f"worst position error {err:.2f} m")  # fmt: skip
+                      f"{sum(true_kept)}/{len(true_kept)}, wrong loops kept {sum(wrong_kept)}/"
+                      f"{len(wrong_kept)}; worst position error {err:.2f} m")  # fmt: skip
 
 
 if __name__ == "__main__":
