@@ -109,8 +109,11 @@ def pose_graph_problem(
         if a in index and b in index and frozenset((a, b)) not in new_pairs and not across(a, b)
     ]
     kept = [n for n, e in enumerate(edges) if e.candidate in index and e.query in index]
-    loose = sorted({next(i for i, k in enumerate(snap.keys) if k[0] in s) for s, _ in apart
-                    if any(k[0] in s for k in snap.keys)} - set(fixed))  # fmt: skip
+    # each side of a merge on trial without a held keyframe gets a loose prior on its first keyframe
+    held = {snap.keys[i][0] for i in fixed}
+    sides = [side for pair in apart for side in pair if not side & held]
+    loose = sorted({next(i for i, k in enumerate(snap.keys) if k[0] in side) for side in sides
+                    if any(k[0] in side for k in snap.keys)})  # fmt: skip
     new_edges = [
         (index[edges[n].candidate], index[edges[n].query], edges[n].measured, edges[n].sigma_rot,
          edges[n].sigma_trans)
