@@ -1,6 +1,6 @@
 """Global optimisation primitives of the back-end, as pure functions over arrays.
 
-- :func:`optimize_pose_graph_sim3`: Sim(3) pose-graph optimisation over keyframe poses (gtsam
+- :func:`solve_pose_graph_sim3` (and ``_se3``): Sim(3) pose-graph optimisation over keyframe poses (gtsam
   ``BetweenFactorSimilarity3``), as ORB-SLAM's essential-graph optimisation after a loop or merge.
 - :func:`global_bundle_adjustment`: full BA of keyframe poses and points with pycolmap (Ceres).
 
@@ -160,16 +160,6 @@ def _solve(
     return result, [bool(w > 0.5) for w in weights], chi2
 
 
-def optimize_pose_graph_sim3(
-    world_from_cam: F64,
-    edges: list[PoseGraphEdge],
-    fixed: set[int] | frozenset[int],
-    options: PoseGraphOptions = PoseGraphOptions(),
-) -> list[Sim3]:
-    """Optimise keyframe poses under relative Sim(3) constraints (:func:`solve_pose_graph_sim3`'s poses)."""
-    return solve_pose_graph_sim3(world_from_cam, edges, fixed, options).poses
-
-
 def solve_pose_graph_sim3(
     world_from_cam: F64,
     edges: list[PoseGraphEdge],
@@ -192,7 +182,7 @@ def solve_pose_graph_sim3(
     n = len(poses)
     if n == 0:
         return PoseGraphResult([], [True] * len(edges), [0.0] * len(edges))
-    _check_graph("optimize_pose_graph_sim3", n, edges, fixed)
+    _check_graph("solve_pose_graph_sim3", n, edges, fixed)
     graph = gtsam.NonlinearFactorGraph()
     initial = gtsam.Values()
     for k in range(n):
@@ -216,16 +206,6 @@ def solve_pose_graph_sim3(
     return PoseGraphResult(out, inlier, chi2)
 
 
-def optimize_pose_graph_se3(
-    world_from_cam: F64,
-    edges: list[PoseGraphEdge],
-    fixed: set[int] | frozenset[int],
-    options: PoseGraphOptions = PoseGraphOptions(),
-) -> list[Sim3]:
-    """The metric-map variant of :func:`optimize_pose_graph_sim3` (:func:`solve_pose_graph_se3`'s poses)."""
-    return solve_pose_graph_se3(world_from_cam, edges, fixed, options).poses
-
-
 def solve_pose_graph_se3(
     world_from_cam: F64,
     edges: list[PoseGraphEdge],
@@ -241,7 +221,7 @@ def solve_pose_graph_se3(
     n = len(poses)
     if n == 0:
         return PoseGraphResult([], [True] * len(edges), [0.0] * len(edges))
-    _check_graph("optimize_pose_graph_se3", n, edges, fixed)
+    _check_graph("solve_pose_graph_se3", n, edges, fixed)
     graph = gtsam.NonlinearFactorGraph()
     initial = gtsam.Values()
     for k in range(n):

@@ -139,9 +139,9 @@ def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey
 
 
 def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseOptions) -> PoseGraphResult:
-    """Optimisation thread: :func:`pose_graph_result` on a :class:`PoseGraphProblem`; the result's
+    """Optimisation thread: :func:`pose_graph` on a :class:`PoseGraphProblem`; the result's
     ``inlier`` and ``chi2`` are those of ``p.new_edges`` (the essential edges are always kept)."""
-    res = pose_graph_result(
+    res = pose_graph(
         p.initial, poses, p.graph_edges, p.new_edges, p.fixed, metric,
         sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
         sigma_yaw=o.pose_graph_sigma_yaw if o.pose_graph_sigma_yaw > 0 else None, ups=p.ups,
@@ -152,24 +152,6 @@ def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseO
 
 
 def pose_graph(
-    initial: F64,
-    poses: F64,
-    graph_edges: list[tuple[int, int]],
-    new_edges: list[tuple[int, int, Sim3, float, float]],
-    fixed: list[int],
-    metric: bool,
-    *,
-    sigmas: tuple[float, float],
-    sigma_yaw: float | None = None,
-    ups: F64 | None = None,
-) -> list[Sim3]:
-    """:func:`pose_graph_result`'s poses, with Huber-robust new edges."""
-    return pose_graph_result(
-        initial, poses, graph_edges, new_edges, fixed, metric, sigmas=sigmas, sigma_yaw=sigma_yaw, ups=ups
-    ).poses
-
-
-def pose_graph_result(
     initial: F64,
     poses: F64,
     graph_edges: list[tuple[int, int]],
