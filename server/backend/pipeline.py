@@ -108,7 +108,9 @@ class Pipeline:
         if m is None:
             return
         enu = map_id in self._enu_maps
-        res = selfcheck.check(m, [*self.merges, *self.loops], self._cam_from_antenna, enu)
+        # loops the robust pose graph rejects and merges undone are no measurements of the map
+        kept = [r for r in [*self.merges, *self.loops] if not r.get("rejected") and not r.get("undone")]
+        res = selfcheck.check(m, kept, self._cam_from_antenna, enu)
         seen = {a["subject"] for a in self.selfcheck.get(map_id, {}).get("alarms", [])}
         self.selfcheck[map_id] = res
         for a in res["alarms"]:

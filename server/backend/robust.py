@@ -131,9 +131,7 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
         bk._gnss_unbend.pop(mid, None)
     bk._enu_maps.discard(new.id)
     bk._consistency.forget_maps(map_id, new.id)
-    for a, (mid, c) in list(bk._anchors.items()):
-        if mid == map_id and a in side:
-            bk._anchors[a] = (new.id, c)
+    bk._prior.split(map_id, new.id, side, hyp.target_from_source)
     if bk.recognizer is not None:
         keys = list(new.keyframes)
         await asyncio.get_running_loop().run_in_executor(bk._pr_exec, relabel, bk.recognizer, keys, new.id)
