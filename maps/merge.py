@@ -1,10 +1,11 @@
-"""Merging one map of a stack into another (``MapStack.merge``)."""
+"""Merging one map of a stack into another (``MapStack.merge``), and splitting a merge apart again."""
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from hivemap.maps.elements import KfKey, PointKey
@@ -117,3 +118,53 @@ def merge_maps(
         (time.perf_counter() - t0) * 1e3,
     )
     return tgt
+
+
+def split_map(
+    stack: MapStack, map_id: int, agents: Iterable[str], source_from_target: Sim3, record: dict[str, Any]
+) -> tuple[Map, Map]:
+    """Undo a merge: the keyframes and points of ``agents`` leave map ``map_id`` for a new map of the
+    stack, moved by ``source_from_target`` (back into their own map's frame). Returns (kept, new).
+
+    Both maps are rebuilt (from copies) from the keyframes' point references (the model's source of truth), so
+    covisibility and spanning trees are those of each side alone. A reference across the sides (a
+    point fused by the merge or by a loop between them) stays in its keyframe as a pending reference:
+    nothing is lost, and a later merge links it again. Loop edges within a side stay, those across go;
+    ``record`` is appended to both maps' ``merge_history``. Raises ``ValueError`` (before changing
+    anything) if ``agents`` leaves either side without keyframes.
+    """
+    from hivemap.maps.model import Map, MapPoint
+
+    m = stack.maps[map_id]
+    side = set(agents)
+    moving = [k for k in m.keyframes if k[0] in side]
+    if not moving or len(moving) == len(m.keyframes):
+        raise ValueError(f"map {map_id}: agents {sorted(side)} do not split it in two")
+    t0 = time.perf_counter()
+    kept, new = Map(map_id), Map(stack.next_map_id)
+    for part, mine in ((kept, False), (new, True)):
+        part.point_redirects = dict(m.point_redirects)
+        part.merge_history = [*m.merge_history, record]
+        # copies: the place-recognition thread may still be reading the merged map's objects
+        for mp in m.points.values():
+            if (mp.agent_id in side) == mine:
+                part.add_point(MapPoint(mp.agent_id, mp.id, mp.xyz, mp.descriptor))
+        for k, kf in m.keyframes.items():
+            if (k[0] in side) == mine:
+                kf2 = copy.copy(kf)
+                kf2.world_from_cam = kf.world_from_cam.copy()
+                kf2.point_ids, kf2.point_agents = kf.point_ids.copy(), dict(kf.point_agents)
+                part.add_keyframe(kf2)
+        for a, b in m.loop_edges():
+            if (a[0] in side) == mine and (b[0] in side) == mine:
+                part.add_loop_edge(a, b)
+        part.agents |= {a for a in m.agents if (a in side) == mine}
+        part._tree_changed.update(part.keyframes)
+    new.transform(source_from_target)
+    stack.maps[map_id] = kept
+    stack.add_map(new)
+    logger.info(
+        "split map %d: %d keyframes of %s into map %d (%.1f ms)",
+        map_id, len(moving), sorted(side), new.id, (time.perf_counter() - t0) * 1e3,
+    )  # fmt: skip
+    return kept, new

@@ -215,7 +215,10 @@ class Map:
                 kf.set_point_key(idx, None)
             else:
                 self._link(kf, idx, mp)
+        # orphan trees that this keyframe's points just attached to it hang below it: no parent candidates
         cov = self._covis[key]
+        if self._children[key]:
+            cov = {k: w for k, w in cov.items() if self._root_of(k) != key}
         if cov:
             best = max(cov.items(), key=lambda kv: kv[1])[0]
             self._set_parent_unchecked(key, best)
@@ -406,6 +409,16 @@ class Map:
             raise KeyError(f"loop edge {a} - {b}: keyframe not in map {self.id}")
         self._loops.setdefault(a, set()).add(b)
         self._loops.setdefault(b, set()).add(a)
+
+    def remove_loop_edge(self, a: KfKey, b: KfKey) -> None:
+        """Drop the loop edge ``a``-``b`` (a loop the robust pose graph rejected); absent ones are ignored."""
+        a, b = _key(a), _key(b)
+        for x, y in ((a, b), (b, a)):
+            nbs = self._loops.get(x)
+            if nbs is not None:
+                nbs.discard(y)
+                if not nbs:
+                    del self._loops[x]
 
     def loop_neighbours(self, key: KfKey) -> set[KfKey]:
         return set(self._loops.get(_key(key), ()))

@@ -1,6 +1,6 @@
 """Global optimisation primitives of the back-end, as pure functions over arrays.
 
-- :func:`optimize_pose_graph_sim3`: Sim(3) pose-graph optimisation over keyframe poses (gtsam
+- :func:`solve_pose_graph_sim3` (and ``_se3``): Sim(3) pose-graph optimisation over keyframe poses (gtsam
   ``BetweenFactorSimilarity3``), as ORB-SLAM's essential-graph optimisation after a loop or merge.
 - :func:`global_bundle_adjustment`: full BA of keyframe poses and points with pycolmap (Ceres).
 
@@ -10,6 +10,7 @@ Both are independent of the map model so they can run in a background worker on 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,9 +61,28 @@ class PoseGraphEdge:
 
 @dataclass(frozen=True)
 class PoseGraphOptions:
+    """``gnc``: the robust edges are judged by graduated non-convexity with a truncated-least-squares loss
+    (gtsam ``GncOptimizer``, the other edges and the gauge being known inliers), so an edge the rest of the
+    graph contradicts gets weight 0 and no pull at all; else they get a Huber loss, which still pulls.
+    ``gnc_inlier_probability``: an edge whose whitened residual is within this quantile of the chi-square
+    distribution of its dimension counts as an inlier."""
+
     max_iterations: int = 100
     huber_k: float = 1.345
     relative_error_tol: float = 1e-7
+    gnc: bool = False
+    gnc_inlier_probability: float = 0.99
+
+
+@dataclass
+class PoseGraphResult:
+    """The solved poses and, per edge (in the order given), whether it was kept: robust edges that the
+    GNC rejected are False, every other edge True. ``chi2``: each edge's whitened squared residual at the
+    solution (what the GNC judged)."""
+
+    poses: list[Sim3]
+    inlier: list[bool]
+    chi2: list[float]
 
 
 def _check_graph(name: str, n: int, edges: list[PoseGraphEdge], fixed: set[int] | frozenset[int]) -> None:
@@ -89,10 +109,18 @@ def _edge_noise(e: PoseGraphEdge, tail: list[float], options: PoseGraphOptions) 
         cov = np.diag(np.r_[np.zeros(3), np.square(tail)])
         cov[:3, :3] = e.rotation_covariance()
         noise = gtsam.noiseModel.Gaussian.Covariance(cov)
-    if e.robust:
+    if e.robust and not options.gnc:
         huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k)
         noise = gtsam.noiseModel.Robust.Create(huber, noise)
     return noise
+
+
+def _loose_noise(dim: int) -> Any:
+    """A prior that only keeps a part of the graph from floating (its gauge) when every robust edge to
+    the rest is rejected: 1 rad, 100 m (and log-scale 1)."""
+    import gtsam
+
+    return gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0] * 3 + [100.0] * 3 + [1.0] * (dim - 6)))
 
 
 def _solve_lm(graph: Any, initial: Any, options: PoseGraphOptions) -> Any:
@@ -104,35 +132,69 @@ def _solve_lm(graph: Any, initial: Any, options: PoseGraphOptions) -> Any:
     return gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
 
 
-def optimize_pose_graph_sim3(
+def _solve(
+    graph: Any, initial: Any, n_fixed: int, edges: list[PoseGraphEdge], options: PoseGraphOptions
+) -> tuple[Any, list[bool], list[float]]:
+    """Solve the graph (the ``n_fixed`` gauge factors first, then one factor per edge): plain LM, or GNC
+    over the robust edges when ``options.gnc``. Returns the values, each edge's inlier flag and chi2."""
+    import gtsam
+
+    robust = [k for k, e in enumerate(edges) if e.robust]
+    weights = np.ones(len(edges))
+    if options.gnc and robust:
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(options.max_iterations)
+        lm.setRelativeErrorTol(options.relative_error_tol)
+        params = gtsam.GncLMParams(lm)
+        params.setLossType(gtsam.GncLossType.TLS)
+        robust_set = set(robust)
+        known = list(range(n_fixed)) + [n_fixed + k for k in range(len(edges)) if k not in robust_set]
+        params.setKnownInliers(known)
+        gnc = gtsam.GncLMOptimizer(graph, initial, params)
+        gnc.setInlierCostThresholdsAtProbability(options.gnc_inlier_probability)
+        result = gnc.optimize()
+        weights = np.asarray(gnc.getWeights(), dtype=np.float64)[n_fixed:]
+    else:
+        result = _solve_lm(graph, initial, options)
+    chi2 = [2.0 * float(graph.at(n_fixed + k).error(result)) for k in range(len(edges))]
+    return result, [bool(w > 0.5) for w in weights], chi2
+
+
+def solve_pose_graph_sim3(
     world_from_cam: F64,
     edges: list[PoseGraphEdge],
     fixed: set[int] | frozenset[int],
     options: PoseGraphOptions = PoseGraphOptions(),
-) -> list[Sim3]:
+    loose: Sequence[int] = (),
+) -> PoseGraphResult:
     """Optimise keyframe poses under relative Sim(3) constraints.
 
     world_from_cam: (N, 4, 4) initial SE(3) poses. ``fixed``: indices held constant (at least one).
-    Returns N ``Sim3`` ``world_from_cam`` (scale may differ from 1 where drift was in scale).
-    Points anchored to keyframe ``i`` follow with ``new[i] @ Sim3.from_se3(old_i).inverse()``.
+    ``loose``: indices held by a very loose prior at their initial pose (parts of the graph joined to the
+    rest only by robust edges, which may all be rejected).
+    Returns N ``Sim3`` ``world_from_cam`` (scale may differ from 1 where drift was in scale) and the
+    edges' verdicts. Points anchored to keyframe ``i`` follow with
+    ``new[i] @ Sim3.from_se3(old_i).inverse()``.
     """
     import gtsam
 
     poses = np.asarray(world_from_cam, dtype=np.float64)
     n = len(poses)
     if n == 0:
-        return []
-    _check_graph("optimize_pose_graph_sim3", n, edges, fixed)
+        return PoseGraphResult([], [True] * len(edges), [0.0] * len(edges))
+    _check_graph("solve_pose_graph_sim3", n, edges, fixed)
     graph = gtsam.NonlinearFactorGraph()
     initial = gtsam.Values()
     for k in range(n):
         initial.insert(k, Sim3.from_se3(poses[k]).to_gtsam())
     for k in sorted(fixed):
         graph.add(gtsam.NonlinearEqualitySimilarity3(k, Sim3.from_se3(poses[k]).to_gtsam()))
+    for k in loose:
+        graph.add(gtsam.PriorFactorSimilarity3(k, Sim3.from_se3(poses[k]).to_gtsam(), _loose_noise(7)))
     for e in edges:
         noise = _edge_noise(e, [e.sigma_trans] * 3 + [e.sigma_logscale], options)
         graph.add(gtsam.BetweenFactorSimilarity3(e.i, e.j, e.i_from_j.to_gtsam(), noise))
-    result = _solve_lm(graph, initial, options)
+    result, inlier, chi2 = _solve(graph, initial, len(fixed) + len(loose), edges, options)
     out = [Sim3.from_gtsam(result.atSimilarity3(k)) for k in range(n)]
     log.debug(
         "pose graph: %d keyframes, %d edges, error %.3g -> %.3g",
@@ -141,36 +203,39 @@ def optimize_pose_graph_sim3(
         graph.error(initial),
         graph.error(result),
     )
-    return out
+    return PoseGraphResult(out, inlier, chi2)
 
 
-def optimize_pose_graph_se3(
+def solve_pose_graph_se3(
     world_from_cam: F64,
     edges: list[PoseGraphEdge],
     fixed: set[int] | frozenset[int],
     options: PoseGraphOptions = PoseGraphOptions(),
-) -> list[Sim3]:
-    """The metric-map variant of :func:`optimize_pose_graph_sim3`: SE(3) poses and edges (gtsam Pose3;
-    the edges' scale and ``sigma_logscale`` are ignored). Returns Sim3 with scale 1."""
+    loose: Sequence[int] = (),
+) -> PoseGraphResult:
+    """:func:`solve_pose_graph_sim3` for metric maps: SE(3) poses and edges (gtsam Pose3; the edges'
+    scale and ``sigma_logscale`` are ignored). Poses come back as Sim3 with scale 1."""
     import gtsam
 
     poses = np.asarray(world_from_cam, dtype=np.float64)
     n = len(poses)
     if n == 0:
-        return []
-    _check_graph("optimize_pose_graph_se3", n, edges, fixed)
+        return PoseGraphResult([], [True] * len(edges), [0.0] * len(edges))
+    _check_graph("solve_pose_graph_se3", n, edges, fixed)
     graph = gtsam.NonlinearFactorGraph()
     initial = gtsam.Values()
     for k in range(n):
         initial.insert(k, gtsam.Pose3(poses[k]))
     for k in sorted(fixed):
         graph.add(gtsam.NonlinearEqualityPose3(k, gtsam.Pose3(poses[k])))
+    for k in loose:
+        graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(poses[k]), _loose_noise(6)))
     for e in edges:
         noise = _edge_noise(e, [e.sigma_trans] * 3, options)
         rel = se3(e.i_from_j.R, e.i_from_j.t)
         graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(rel), noise))
-    result = _solve_lm(graph, initial, options)
-    return [Sim3.from_se3(result.atPose3(k).matrix()) for k in range(n)]
+    result, inlier, chi2 = _solve(graph, initial, len(fixed) + len(loose), edges, options)
+    return PoseGraphResult([Sim3.from_se3(result.atPose3(k).matrix()) for k in range(n)], inlier, chi2)
 
 
 def relative_sim3(world_from_i: F64, world_from_j: F64) -> Sim3:

@@ -5,8 +5,8 @@ optimisation thread (pure functions, no map access) and turned into per-keyframe
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
 from hivemap.server.backend.options import OptimiseOptions
+from hivemap.server.optim import PoseGraphOptions, PoseGraphResult
 
 KfKey = tuple[str, int]
 F64 = NDArray[np.float64]
@@ -77,6 +78,9 @@ class PoseGraphProblem:
     new_edges: list[tuple[int, int, Sim3, float, float]]
     fixed: list[int]
     ups: F64 | None
+    # for each of ``new_edges``, its index in the ``edges`` the problem was built from
+    new_edge_source: list[int] = field(default_factory=list)
+    loose: list[int] = field(default_factory=list)  # one keyframe per side held apart (a loose prior)
 
 
 def pose_graph_problem(
@@ -86,28 +90,42 @@ def pose_graph_problem(
     pre: tuple[Sim3, list[KfKey]] | None,
     fixed: list[int],
     o: OptimiseOptions,
+    apart: Sequence[tuple[frozenset[str], frozenset[str]]] = (),
 ) -> PoseGraphProblem:
     """The pose graph of ``m``'s essential graph plus ``edges``, from ``snap``; ``pre``: a correction that
-    the listed keyframes start from (a loop's query neighbourhood), ``fixed``: the held keyframes."""
+    the listed keyframes start from (a loop's query neighbourhood), ``fixed``: the held keyframes.
+    ``apart``: pairs of agent groups joined only by merges still on trial; the essential edges between
+    them (their merges' fused points) are left out, so only the measured edges, which the robust solve
+    can reject, hold the groups together."""
     index = {k: i for i, k in enumerate(snap.keys)}
     new_pairs = {frozenset((e.candidate, e.query)) for e in edges}
+
+    def across(a: KfKey, b: KfKey) -> bool:
+        return any((a[0] in s and b[0] in t) or (a[0] in t and b[0] in s) for s, t in apart)
+
     graph_edges = [
         (index[a], index[b])
         for a, b in m.essential_edges()
-        if a in index and b in index and frozenset((a, b)) not in new_pairs
+        if a in index and b in index and frozenset((a, b)) not in new_pairs and not across(a, b)
     ]
+    kept = [n for n, e in enumerate(edges) if e.candidate in index and e.query in index]
+    # each side of a merge on trial without a held keyframe gets a loose prior on its first keyframe
+    held = {snap.keys[i][0] for i in fixed}
+    sides = [side for pair in apart for side in pair if not side & held]
+    loose = sorted({next(i for i, k in enumerate(snap.keys) if k[0] in side) for side in sides
+                    if any(k[0] in side for k in snap.keys)})  # fmt: skip
     new_edges = [
-        (index[e.candidate], index[e.query], e.measured, e.sigma_rot, e.sigma_trans)
-        for e in edges
-        if e.candidate in index and e.query in index
-    ]
+        (index[edges[n].candidate], index[edges[n].query], edges[n].measured, edges[n].sigma_rot,
+         edges[n].sigma_trans)
+        for n in kept
+    ]  # fmt: skip
     initial = snap.poses.copy()
     if pre is not None:
         for k in pre[1]:
             if k in index and index[k] not in fixed:
                 initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
-    return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups)
+    return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose)
 
 
 def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey, Sim3], float]:
@@ -120,13 +138,17 @@ def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey
     return corr, moved
 
 
-def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseOptions) -> list[Sim3]:
-    """Optimisation thread: :func:`pose_graph` on a :class:`PoseGraphProblem`."""
-    return pose_graph(
+def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseOptions) -> PoseGraphResult:
+    """Optimisation thread: :func:`pose_graph` on a :class:`PoseGraphProblem`; the result's
+    ``inlier`` and ``chi2`` are those of ``p.new_edges`` (the essential edges are always kept)."""
+    res = pose_graph(
         p.initial, poses, p.graph_edges, p.new_edges, p.fixed, metric,
         sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
         sigma_yaw=o.pose_graph_sigma_yaw if o.pose_graph_sigma_yaw > 0 else None, ups=p.ups,
+        options=PoseGraphOptions(gnc=o.gnc, gnc_inlier_probability=o.gnc_inlier_probability), loose=p.loose,
     )  # fmt: skip
+    n = len(p.graph_edges)
+    return PoseGraphResult(res.poses, res.inlier[n:], res.chi2[n:])
 
 
 def pose_graph(
@@ -140,9 +162,12 @@ def pose_graph(
     sigmas: tuple[float, float],
     sigma_yaw: float | None = None,
     ups: F64 | None = None,
-) -> list[Sim3]:
+    options: PoseGraphOptions | None = None,
+    loose: Sequence[int] = (),
+) -> PoseGraphResult:
     """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
-    with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust.
+    with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust (Huber,
+    or judged by GNC with ``options.gnc``; the result's ``inlier`` has one flag per edge, graph's first).
     ``sigma_yaw`` with ``ups`` ((N, 3) up directions in the keyframes' camera frames, NaN rows where there
     is none): the graph's edges hold the rotation about the far keyframe's up with this sigma instead.
 
@@ -150,12 +175,7 @@ def pose_graph(
     graph let scale creep in at each of the dozens of loop closures of a factory run until poses
     overflowed, and holding its scale with a tiny log-scale sigma made it ill-conditioned (rotations
     came out scaled by ~100)."""
-    from hivemap.server.optim import (
-        PoseGraphEdge,
-        optimize_pose_graph_se3,
-        optimize_pose_graph_sim3,
-        relative_sim3,
-    )
+    from hivemap.server.optim import PoseGraphEdge, relative_sim3, solve_pose_graph_se3, solve_pose_graph_sim3
 
     def up(j: int) -> tuple[float, float, float] | None:
         if sigma_yaw is None or ups is None or not np.all(np.isfinite(ups[j])):
@@ -175,9 +195,10 @@ def pose_graph(
         for i, j in graph_edges
     ]
     edges += [PoseGraphEdge(i, j, s, sr, st, robust=True) for i, j, s, sr, st in new_edges]
+    opts = options or PoseGraphOptions()
     if metric:
-        return optimize_pose_graph_se3(initial, edges, set(fixed))
-    return optimize_pose_graph_sim3(initial, edges, set(fixed))
+        return solve_pose_graph_se3(initial, edges, set(fixed), opts, loose)
+    return solve_pose_graph_sim3(initial, edges, set(fixed), opts, loose)
 
 
 @dataclass

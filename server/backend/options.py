@@ -48,6 +48,13 @@ class AcceptOptions:
     loop_max_correction_deg: float = 5.0
     # a loop whose rotation disagrees with both keyframes' IMU up directions by more is refused (0: off)
     loop_max_gravity_deg: float = 1.0
+    # a merge stays on trial (undone if the robust pose graph rejects its edge) until this many loops
+    # between its two sides, with distinct query keyframes, are kept alongside it
+    merge_confirmations: int = 3
+    # ... or if one rigid alignment of the agents' GNSS fixes leaves a median residual this many times,
+    # and at least this many metres, larger than each side's own alignment
+    merge_gnss_factor: float = 3.0
+    merge_gnss_min_m: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -73,6 +80,11 @@ class OptimiseOptions:
     pose_graph_sigma_rot: float = 0.01  # rad, essential edges
     pose_graph_sigma_trans: float = 0.05  # m, essential edges
     pose_graph_sigma_yaw: float = 0.0  # rad about the keyframe's up direction; 0: sigma_rot (isotropic)
+    # Loop and merge edges are judged by graduated non-convexity (truncated least squares) at every pose
+    # graph, all of a map's kept edges together: one the rest contradicts gets no weight and is reported
+    # rejected (False: Huber, which still pulls).
+    gnc: bool = True
+    gnc_inlier_probability: float = 0.99
 
 
 @dataclass(frozen=True)

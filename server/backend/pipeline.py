@@ -17,7 +17,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, corrections, detect, fit, gnss, optimise, selfcheck
+from hivemap.server.backend import (
+    accept,
+    corrections,
+    detect,
+    evidence_store,
+    fit,
+    gnss,
+    optimise,
+    robust,
+    selfcheck,
+)
+from hivemap.server.backend.evidence import EvidenceBook
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.backend.startprior import StartPrior
@@ -64,6 +75,7 @@ class Pipeline:
         self._retry_at: dict[tuple[int, int], float] = {}  # map pair -> last GNSS-guided retry
         self._gnss_scale: dict[int, tuple[int, float]] = {}  # map -> (fixes at its last CV, chosen scale)
         self._consistency = accept.Consistency()
+        self.evidence = EvidenceBook()  # the maps' loop and merge edges, judged again at each pose graph
         self._opt_again: dict[int, list[NewEdge]] = {}
         self._tokens = self.options.scheduler.verifications_per_s
         self._last_refill = time.monotonic()
@@ -96,7 +108,9 @@ class Pipeline:
         if m is None:
             return
         enu = map_id in self._enu_maps
-        res = selfcheck.check(m, [*self.merges, *self.loops], self._cam_from_antenna, enu)
+        # loops the robust pose graph rejects and merges undone are no measurements of the map
+        kept = [r for r in [*self.merges, *self.loops] if not r.get("rejected") and not r.get("undone")]
+        res = selfcheck.check(m, kept, self._cam_from_antenna, enu)
         seen = {a["subject"] for a in self.selfcheck.get(map_id, {}).get("alarms", [])}
         self.selfcheck[map_id] = res
         for a in res["alarms"]:
@@ -145,6 +159,7 @@ class Pipeline:
         self._generation.pop(source, None)
         self._prior.merged(target, source, target_from_source)
         self.selfcheck.pop(source, None)
+        self.evidence.on_merge(target, source)
         self._enu_maps.discard(source)  # the merged map keeps the target's frame
         self._gnss_unbend.pop(source, None)  # its keyframes' poses count as visual from now on
         if self.recognizer is not None:
@@ -234,7 +249,7 @@ class Pipeline:
             return
         # the loop's duplicate points become one only now (fused earlier, their covisibility edges would
         # hold the uncorrected relative poses in the pose graph); the fusion is committed at once
-        await server.fuse_points(map_id, fuse)
+        await server.fuse_points(map_id, fuse + robust.fusable(self, map_id))
         m = server.stack.maps.get(map_id)
         if m is None:
             return
@@ -249,6 +264,8 @@ class Pipeline:
         if m is None:
             return
         if self.options.gnss.enabled:
+            if self.options.optimise.gnc and not await robust.gnss_check(self, m):
+                return  # a merge was undone: the maps are new
             if ba_ok:
                 await self._gnss_stage(m)
             if unbend is not None and map_id not in self._gnss_unbend:
@@ -256,9 +273,11 @@ class Pipeline:
         # 4. persist (poses, and the loop edges this optimisation added, in one commit), 5. corrections
         kfs, pts = list(m.keyframes.values()), list(m.points.values())
         graph = GraphSnapshot(m)
+        book = evidence_store.to_json(self.evidence)  # the verdicts go with the poses they led to
         await server.persist_exclusive(
-            lambda store: (store.maps.update_poses(map_id, kfs, pts), store.sync_graph(graph))
-        )
+            lambda store: (store.maps.update_poses(map_id, kfs, pts), store.sync_graph(graph),
+                           store.maps.set_meta(evidence_store.META_KEY, book))
+        )  # fmt: skip
         await self._send_corrections(map_id, before, t_det)
         if map_id in self._enu_maps:
             await self._gnss_retry(map_id)
@@ -270,16 +289,24 @@ class Pipeline:
         o, map_id = self.options.optimise, m.id
         snap = self._snapshot(m)
         fixed = optimise.anchor(m, snap.keys, self._agent_kind, set(), POSE_GRAPH_ANCHORS_PER_AGENT)
-        problem = optimise.pose_graph_problem(m, snap, edges, pre, fixed, o)
+        # robust: every kept loop and merge edge of the map is judged again, merges on trial held only by
+        # their measured edges
+        judged = self.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
+        apart = self.evidence.apart(map_id) if o.gnc else []
+        problem = optimise.pose_graph_problem(
+            m, snap, [ev.edge for ev in judged] if o.gnc else edges, pre, fixed, o, apart
+        )
         t0 = time.perf_counter()
-        sims = await asyncio.get_running_loop().run_in_executor(
+        res = await asyncio.get_running_loop().run_in_executor(
             self._opt_exec, optimise.solve_pose_graph, problem, snap.poses, self.options.fix_scale, o
         )
         pg_ms = (time.perf_counter() - t0) * 1e3
         cur = self._current(snap)
         if cur is None:
             return False
-        corr, moved = optimise.pose_graph_corrections(snap, sims)
+        if judged and not await robust.apply_verdict(self, cur, judged, problem, res):
+            return False
+        corr, moved = optimise.pose_graph_corrections(snap, res.poses)
         if moved > o.pose_graph_max_move_m:
             self.server.events.add("pose_graph", f"map {map_id}: pose graph refused (a keyframe would move "
                                    f"{moved:.1f} m > {o.pose_graph_max_move_m} m)", map_id=map_id,

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, detect, fit, surgery
+from hivemap.server.backend import accept, detect, evidence_store, fit, surgery
 from hivemap.server.backend.optimise import NewEdge
 from hivemap.server.backend.pipeline import Pipeline
 from hivemap.server.placerec import Detection
@@ -54,11 +54,26 @@ class Backend(Pipeline):
             self.recognizer = detect.make_recognizer(self._vocabulary, self.options)
 
         await loop.run_in_executor(self._pr_exec, init)
+        await self._load_evidence(server)
         # keyframes reloaded from the store are indexed by the worker first (no detection on them); the
         # server is ready meanwhile
         keys = [(m.id, k) for m in server.stack.maps.values() for k in m.keyframes]
         self._worker = asyncio.create_task(self._run(keys), name="hive-backend")
         server.events.add("info", f"back-end started ({len(keys)} reloaded keyframes to index)")
+
+    async def _load_evidence(self, server: Any) -> None:
+        """The evidence book of the stored maps (merges on trial stay on trial across a restart)."""
+        data = await server.persist(lambda store: store.maps.get_meta(evidence_store.META_KEY))
+        try:
+            book = evidence_store.from_json(data)
+        except (ValueError, KeyError, TypeError) as exc:
+            server.events.add("error", f"stored back-end evidence not usable ({exc}): starting without it")
+            return
+        live = set(server.stack.maps)
+        for table in (book.edges, book.merges):
+            for mid in [mid for mid in table if mid not in live]:
+                del table[mid]
+        self.evidence = book
 
     async def stop(self, server: Any) -> None:
         if self._worker is not None:
@@ -193,6 +208,15 @@ class Backend(Pipeline):
             det = replace(det, target_from_source=levelled)
         target = surgery.target_of(maps, det.query_map, det.candidate_map, self._agent_kind)
         target_id, source_id, sim, pairs = det.merge_args(target)
+        sides = (set(maps[target_id].agents), set(maps[source_id].agents))
+        refuted = self.evidence.refuted_like(sides, sim) if self.options.optimise.gnc else None
+        if refuted is not None:
+            why = f"it repeats merge {refuted.id}, undone ({refuted.record.get('undo_reason')})"
+            data = {"refused": True, "repeats_merge": refuted.id, **det.to_dict()}
+            server.events.add(
+                "merge", f"merge {source_id} -> {target_id} refused: {why}", map_id=target_id, data=data
+            )
+            return
         self._consistency.forget_maps(source_id, target_id)
         merged, merge_ms = await self._apply_merge(target_id, source_id, sim, pairs)
         # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
@@ -210,6 +234,10 @@ class Backend(Pipeline):
         if prior is not None:
             rec.update(by="place_recognition+prior" if prior["agrees"] else "place_recognition", prior=prior)
         self.merges.append(rec)
+        if self.options.optimise.gnc:  # on trial until loops between its sides confirm it
+            self.evidence.add_merge(target_id, source_id, edge, sim, sides, rec)
+            book = evidence_store.to_json(self.evidence)
+            await server.persist(lambda store: store.maps.set_meta(evidence_store.META_KEY, book))
         server.events.add(
             "merge_detail",
             f"merge {source_id} -> {target_id}: scale {sim.s:.4f}, {len(pairs)} duplicate points fused, "
@@ -245,12 +273,23 @@ class Backend(Pipeline):
         m.add_loop_edge(det.candidate_key, det.query_key)
         rec = surgery.loop_record(m, det, measured, tilt, levelled is not None, len(pairs), sigmas)
         self.loops.append(rec)
+        pre = (det.target_from_source, surgery.loop_neighbourhood(m, det.query_key))
+        edge = NewEdge(det.candidate_key, det.query_key, measured, *sigmas)
+        gnc = o.optimise.gnc
+        dependent = self.evidence.dependent_on(m, det.candidate_key, det.query_key) if gnc else None
+        if gnc and dependent is None:
+            # the robust pose graph judges it first: its event (kept or rejected, and why) and the fusion
+            # of its duplicate points follow that verdict
+            self.evidence.add_loop(m.id, edge, rec, pairs)
+            self._schedule_optimisation(m.id, [edge], t_det, pre=pre)
+            return
+        if dependent is not None:  # it stands or falls with the merge it repeats
+            self.evidence.add_loop(m.id, edge, rec, pairs, dependent)
+            pairs = []
         self.server.events.add(
             "loop",
             f"loop {det.query_key} -> {det.candidate_key} in map {m.id} ({det.n_inliers} inliers)",
             map_id=m.id,
             data=rec,
         )
-        pre = (det.target_from_source, surgery.loop_neighbourhood(m, det.query_key))
-        edge = NewEdge(det.candidate_key, det.query_key, measured, *sigmas)
         self._schedule_optimisation(m.id, [edge], t_det, fuse=pairs, pre=pre)

@@ -87,6 +87,18 @@ class StartPrior:
             elif mid == target and g == gen - 1:
                 self._frames[a] = (target, gen, c)
 
+    def split(self, map_id: int, new_id: int, agents: set[str], target_from_source: Sim3) -> None:
+        """A merge was undone: ``agents`` left map ``map_id`` for ``new_id``, moved back by the inverse of
+        ``target_from_source`` (both maps' frame counters have just been bumped)."""
+        for a, (mid, g, c) in list(self._frames.items()):
+            if mid == map_id and g == self._generation.get(map_id, 0) - 1:
+                to = new_id if a in agents else map_id
+                self._frames[a] = (
+                    to,
+                    self._generation.get(to, 0),
+                    c @ target_from_source if a in agents else c,
+                )
+
     def common_from(self, map_id: int, prefer: str) -> tuple[str, Sim3] | None:
         """(agent, ``common_from_map``) of map ``map_id`` from its agent ``prefer`` if it has a valid one,
         else from another agent of that map."""

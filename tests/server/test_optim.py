@@ -9,8 +9,8 @@ from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3, se3_inverse, so
 from hivemap.server.optim import (
     PoseGraphEdge,
     global_bundle_adjustment,
-    optimize_pose_graph_sim3,
     relative_sim3,
+    solve_pose_graph_sim3,
 )
 
 
@@ -45,7 +45,7 @@ def test_pose_graph_closes_loop_with_drift() -> None:
     edges.append(
         PoseGraphEdge(n - 1, 0, relative_sim3(truth[n - 1], truth[0]), 0.001, 0.005, 0.001, robust=True)
     )
-    out = optimize_pose_graph_sim3(drifted_arr, edges, fixed={0})
+    out = solve_pose_graph_sim3(drifted_arr, edges, fixed={0}).poses
     after = np.array([np.linalg.norm(s.t - truth[k, :3, 3]) for k, s in enumerate(out)])
     assert before > 1.0, before  # the drift is real
     assert after.max() < 0.2 * before, (before, after.max())
