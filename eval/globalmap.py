@@ -25,7 +25,8 @@ def loop_errors(
     ``sensor="cam0"``). Per loop or merge (``kind``): agents, translation error (m; its vertical part in
     the candidate camera's world orientation), rotation error (deg) and its tilt part (deg: how far the
     error turns the true up direction). Those whose keyframes have no ground truth within ``max_diff`` s
-    are left out."""
+    are left out, and so are the ones the server took back: a loop whose last verdict is
+    ``loop_rejected`` (until a ``loop_readmitted``) and a merge a ``merge_undone`` event names."""
     from hivemap.maps.geometry import rotation_angle_deg, se3_inverse
 
     def pose_at(agent: str, t: float) -> F64 | None:
@@ -36,11 +37,28 @@ def loop_errors(
         j = int(np.argmin(np.abs(ts - t)))
         return None if abs(ts[j] - t) > max_diff else np.asarray(gt.poses_se3[j])
 
+    def edge_key(d: dict[str, Any]) -> tuple[str, ...]:
+        return (*map(str, d.get("query") or ()), "|", *map(str, d.get("candidate") or ()))
+
+    rejected: set[tuple[str, ...]] = set()
+    undone: set[int] = set()
+    for e in events:
+        d = e.get("data") or {}
+        if e.get("kind") == "loop_rejected":
+            rejected.add(edge_key(d))
+        elif e.get("kind") == "loop_readmitted":
+            rejected.discard(edge_key(d))
+        elif e.get("kind") == "merge_undone" and d.get("merge_id") is not None:
+            undone.add(int(d["merge_id"]))
     out: list[dict[str, Any]] = []
     for e in events:
         d = e.get("data") or {}
         kind = {"loop": "loop", "merge_detail": "merge"}.get(str(e.get("kind")))
         if kind is None or "candidate_from_query" not in d or d.get("refused"):
+            continue
+        if (kind == "loop" and edge_key(d) in rejected) or (
+            kind == "merge" and d.get("merge_id") is not None and int(d["merge_id"]) in undone
+        ):
             continue
         qa, ca = str(d["query"][0]).split("#")[0], str(d["candidate"][0]).split("#")[0]
         Tq, Tc = pose_at(qa, float(d["query_t"])), pose_at(ca, float(d["candidate_t"]))

@@ -58,3 +58,29 @@ def test_merges_are_measured_like_loops() -> None:
     (e,) = loop_errors(events, gt)
     assert e["kind"] == "merge" and (e["query"], e["candidate"]) == ("a", "b")
     assert abs(e["trans_err_m"] - 0.3) < 1e-9 and e["rot_err_deg"] < 1e-6 and e["n_inliers"] == 80
+
+
+def test_loops_and_merges_the_server_took_back_are_left_out() -> None:
+    """A loop the robust pose graph rejected after the fact (and did not readmit) and a merge that was
+    undone are not accepted loops or merges; a readmitted loop is."""
+    t = np.arange(0.0, 4.0, 0.5)
+    a = np.array([se3(np.eye(3), np.array([i, 0.0, 0.0])) for i in t])
+    gt = {"a": trajectory_from_poses(t, a)}
+    rel = (np.linalg.inv(a[1]) @ a[6]).tolist()  # exact for the query at 3.0 s
+    rel_back = (np.linalg.inv(a[1]) @ a[7]).tolist()  # exact for the query at 3.5 s
+    gone = {"query": ["a", 6], "candidate": ["a", 1], "query_t": 3.0, "candidate_t": 0.5}
+    back = {"query": ["a", 7], "candidate": ["a", 1], "query_t": 3.5, "candidate_t": 0.5}
+    merge = {"query": ["a", 6], "candidate": ["a", 1], "query_t": 3.0, "candidate_t": 0.5, "merge_id": 4}
+    events = [
+        {"kind": "loop", "data": {**gone, "candidate_from_query": rel}},
+        {"kind": "loop", "data": {**back, "candidate_from_query": rel_back}},
+        {"kind": "merge_detail", "data": {**merge, "candidate_from_query": rel}},
+        {"kind": "loop_rejected", "data": dict(gone)},
+        {"kind": "loop_rejected", "data": dict(back)},
+        {"kind": "loop_readmitted", "data": dict(back)},
+        {"kind": "merge_undone", "data": {"merge_id": 4, "reason": "gnss"}},
+    ]
+    (e,) = loop_errors(events, gt)
+    assert e["kind"] == "loop" and e["distance_m"] > 2.0 and e["trans_err_m"] < 1e-9
+    # the readmitted loop is the one at 3.5 s: 3 m from its candidate
+    assert abs(e["distance_m"] - 3.0) < 1e-9
