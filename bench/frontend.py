@@ -43,7 +43,7 @@ def main() -> None:
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--frames", type=int, default=300, help="synthetic sequence length")
     ap.add_argument("--no-imu", action="store_true")
-    ap.add_argument("--contrast", default=None, help="dim-image step: stretch | clahe | off (default: the front-end's)")
+    ap.add_argument("--contrast", default=None, help="stretch | clahe | off (default: the front-end's)")
     ap.add_argument("--tum-out", default=None, help="write the VIO body trajectory (TUM) here")
     args = ap.parse_args()
     cv2.setNumThreads(1)
