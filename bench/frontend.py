@@ -43,6 +43,7 @@ def main() -> None:
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--frames", type=int, default=300, help="synthetic sequence length")
     ap.add_argument("--no-imu", action="store_true")
+    ap.add_argument("--contrast", default=None, help="stretch | clahe | off (default: the front-end's)")
     ap.add_argument("--tum-out", default=None, help="write the VIO body trajectory (TUM) here")
     args = ap.parse_args()
     cv2.setNumThreads(1)
@@ -86,7 +87,12 @@ def main() -> None:
         imu_params = None if args.no_imu else {}
         name = "synthetic"
     assert rig is not None
-    fe = Frontend(rig, imu_params=imu_params)
+    from dataclasses import replace
+
+    from hivemap.client.frontend.options import FrontendOptions
+
+    opts = FrontendOptions() if args.contrast is None else replace(FrontendOptions(), contrast=args.contrast)
+    fe = Frontend(rig, opts, imu_params=imu_params)
     busy = 0.0
     cpu = 0.0
     refs = []

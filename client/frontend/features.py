@@ -1,4 +1,4 @@
-"""ORB extraction with a spatial grid and an adaptive FAST threshold (dim scenes)."""
+"""ORB extraction with a spatial grid and an adaptive FAST threshold; contrast normalisation of dim images."""
 
 from __future__ import annotations
 
@@ -11,6 +11,46 @@ from numpy.typing import NDArray
 from hivemap.client.frontend.options import FrontendOptions
 
 log = logging.getLogger(__name__)
+U8 = NDArray[np.uint8]
+CONTRAST_MODES = ("stretch", "clahe", "off")
+
+
+class ContrastNormaliser:
+    """Low-contrast (somber, foggy) stereo pairs made fit for FAST before extraction.
+
+    Only pairs whose grey-level spread is below ``low_contrast_std`` are touched. ``stretch`` (the
+    default) maps both images by the same linear gain, so LK stereo sees the same brightness on both
+    sides; ``clahe`` equalises each image cell's histogram on its own, which restores texture in
+    crushed shadows but tracked worse in the worst case over worlds (docs/decisions.md). Both end with
+    a light blur so that FAST at a low threshold does not fire on the amplified sensor noise.
+    """
+
+    def __init__(self, options: FrontendOptions) -> None:
+        if options.contrast not in CONTRAST_MODES:
+            raise ValueError(f"contrast must be one of {CONTRAST_MODES}, not {options.contrast!r}")
+        self.options = options
+        self._clahe = cv2.createCLAHE(
+            clipLimit=options.clahe_clip_limit, tileGridSize=(options.grid_cols, options.grid_rows)
+        )
+
+    def __call__(self, left: U8, right: U8) -> tuple[U8, U8]:
+        o = self.options
+        if o.contrast == "off" or o.low_contrast_std <= 0:
+            return left, right
+        sub = left[::4, ::4]
+        if float(sub.std()) >= o.low_contrast_std:
+            return left, right
+        if o.contrast == "clahe":
+            pair = [self._clahe.apply(img) for img in (left, right)]
+        else:
+            lo, hi = np.percentile(sub, (1.0, 99.0))
+            gain = min(o.max_contrast_gain, 200.0 / max(float(hi - lo), 1.0))
+            # the same mapping on both images keeps LK stereo consistent
+            pair = [
+                cv2.convertScaleAbs(img, alpha=gain, beta=-gain * float(lo) + 20.0) for img in (left, right)
+            ]
+        out = [np.asarray(cv2.GaussianBlur(img, (5, 5), 1.0), dtype=np.uint8) for img in pair]
+        return out[0], out[1]
 
 
 class OrbExtractor:

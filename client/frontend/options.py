@@ -16,8 +16,10 @@ class FrontendOptions:
     n_levels: int = 8
     fast_threshold: int = 20
     min_fast_threshold: int = 5
-    low_contrast_std: float = 20.0  # below this grey-level std: stretch + blur (dim/fog); 0 = off
-    max_contrast_gain: float = 4.0
+    low_contrast_std: float = 20.0  # below this grey-level std: contrast step + blur (dim/fog); 0 = off
+    contrast: str = "stretch"  # stretch | clahe | off (see features.ContrastNormaliser)
+    clahe_clip_limit: float = 2.0
+    max_contrast_gain: float = 4.0  # stretch only
     grid_cols: int = 8
     grid_rows: int = 6
     # stereo (LK refinement + row check on rectified coordinates)

@@ -20,7 +20,7 @@ from hivemap.client.frontend.events import (
     PoseUpdateEvent,
     TrackingState,
 )
-from hivemap.client.frontend.features import OrbExtractor
+from hivemap.client.frontend.features import ContrastNormaliser, OrbExtractor
 from hivemap.client.frontend.imu import _ImuState
 from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore, hamming
 from hivemap.client.frontend.optim import (
@@ -67,6 +67,7 @@ class Frontend:
         )
         self.k = Intrinsics(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, rig.baseline)
         self.orb = OrbExtractor(o)
+        self.contrast = ContrastNormaliser(o)
         self.imu = _ImuState(imu_params) if imu_params is not None else None
         self.session = 0
         self.stats = FrontendStats()
@@ -191,30 +192,8 @@ class Frontend:
         return self._result(frame, n_tracked, new_kf, state)
 
     # ------------------------------------------------------------------ frames
-    def _enhance(
-        self, left: NDArray[np.uint8], right: NDArray[np.uint8]
-    ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
-        """Dim / foggy images: the same linear stretch on both images + a light blur (sensor noise).
-
-        The same mapping on left and right keeps LK stereo consistent; the blur keeps FAST at a low
-        threshold from firing on noise.
-        """
-        o = self.options
-        if o.low_contrast_std <= 0:
-            return left, right
-        sub = left[::4, ::4]
-        if float(sub.std()) >= o.low_contrast_std:
-            return left, right
-        lo, hi = np.percentile(sub, (1.0, 99.0))
-        gain = min(o.max_contrast_gain, 200.0 / max(float(hi - lo), 1.0))
-        out: list[NDArray[np.uint8]] = []
-        for img in (left, right):
-            f = cv2.convertScaleAbs(img, alpha=gain, beta=-gain * float(lo) + 20.0)
-            out.append(np.asarray(cv2.GaussianBlur(f, (5, 5), 1.0), dtype=np.uint8))
-        return out[0], out[1]
-
     def _make_frame(self, t: float, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> Frame:
-        left, right = self._enhance(left, right)
+        left, right = self.contrast(left, right)
         uv, octv, desc, _ang = self.orb.extract(left)
         kpu = self.cam.undistort_pixels(uv.astype(np.float64)) if len(uv) else np.zeros((0, 2))
         init_d = np.full(len(uv), self._median_disp)
