@@ -1,6 +1,6 @@
-// hivemap live map viewer: points of every map (coarse first, then full), keyframe trajectories and
-// frustums per agent, current agent positions, loop edges, filtered events, and a side panel (agents,
-// maps, bandwidth). Polls the REST API.
+// hivemap live map viewer: points of every map (progressively, one level-of-detail part after the other),
+// keyframe trajectories and frustums per agent, current agent positions, loop edges, ground truth when the
+// server has it (a toggle), filtered events, and a side panel (agents, maps, bandwidth). Polls the REST API.
 import * as THREE from "three";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
 
@@ -9,13 +9,15 @@ const POLL_MS = 1000;
 // same on every page load and in Foxglove (hivemap.server.foxglove.agent_color uses this hash too).
 export const PALETTE = [0x1f77b4, 0xff7f0e, 0x2ca02c, 0xd62728, 0x9467bd, 0x8c564b, 0xe377c2, 0x7f7f7f,
   0xbcbd22, 0x17becf, 0x66ffcc, 0x99cc33, 0xb266ff, 0xffcc00, 0x4da6ff, 0xcc6666];
-const COARSE_POINTS = 150000; // first level of detail per map, drawn before the full cloud arrives
+// points per level-of-detail part: a map of N points comes in ceil(N / PART_POINTS) parts, each an even
+// subsample of the whole map (GET /maps/ID/points?part=K&parts=P), drawn as it arrives
+const PART_POINTS = 150000;
 const LOOP_COLOR = 0xff00ff;
 // events shown by default; the rest (candidates, BA and consistency details, info) with "all events"
 const DEFAULT_EVENTS = new Set(["merge", "loop", "correction", "gnss_stage", "session", "error", "refused",
   "connect", "disconnect", "mission", "start_anchor"]);
 const state = { maps: [], agents: [], events: [], colors: {}, drawnPoints: 0, allEvents: false,
-  kfCounts: "", fullLoaded: {} };
+  kfCounts: "", pointsKey: null, pointsLoading: false, showGt: true };
 
 const canvas = document.getElementById("view");
 const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
@@ -37,7 +39,8 @@ const trajGroup = new THREE.Group();
 const agentGroup = new THREE.Group();
 const frustumGroup = new THREE.Group();
 const edgeGroup = new THREE.Group();
-scene.add(pointGroup, trajGroup, agentGroup, frustumGroup, edgeGroup);
+const gtGroup = new THREE.Group();
+scene.add(pointGroup, trajGroup, agentGroup, frustumGroup, edgeGroup, gtGroup);
 
 // FNV-1a, 32 bit, over the UTF-8 bytes of the id
 export function hashId(id) {
@@ -97,48 +100,76 @@ export function parsePly(buffer) {
   return xyz;
 }
 
-async function refreshPoints(full) {
-  const children = [];
+// First data: frame the map on robust bounds (5th-95th percentile per axis; far outliers ignored).
+function fitCamera(arrays) {
+  const lo = [], hi = [];
+  for (let ax = 0; ax < 3; ax++) {
+    const v = [];
+    for (const a of arrays) for (let i = ax; i < a.length; i += 3 * Math.max(1, Math.floor(a.length / 30000))) if (Number.isFinite(a[i])) v.push(a[i]);
+    v.sort((x, y) => x - y);
+    lo.push(v[Math.floor(0.05 * (v.length - 1))] ?? 0);
+    hi.push(v[Math.floor(0.95 * (v.length - 1))] ?? 0);
+  }
+  const center = new THREE.Vector3((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2);
+  const size = Math.max(10, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
+  state.sceneSize = size;
+  controls.target.copy(center);
+  camera.position.set(center.x - 0.5 * size, center.y - 0.7 * size, center.z + 0.8 * size);
+  controls.update();
+  state.fitted = true;
+}
+
+// Every map's points, part after part (level of detail): the first load draws each part as it arrives, so
+// the whole map shows at low density after one request per map; a reload (the counts changed) builds the
+// new cloud aside and swaps it in once complete, so the drawn map never thins out.
+async function loadPoints(key) {
+  state.pointsLoading = true;
+  const progressive = pointGroup.children.length === 0;
+  const group = new THREE.Group();
+  if (progressive) pointGroup.add(group);
+  const mat = new THREE.PointsMaterial({ size: 0.12, color: 0xd0d4da, sizeAttenuation: true });
+  const maps = state.maps.map((m) => ({ id: m.id, parts: Math.max(1, Math.ceil((m.points || 0) / PART_POINTS)), gone: false }));
+  const maxParts = Math.max(0, ...maps.map((m) => m.parts));
   let total = 0;
-  let subsampled = false;
-  for (const m of state.maps) {
-    const lod = full || m.points <= COARSE_POINTS ? "" : `&max_points=${COARSE_POINTS}`;
-    if (lod) subsampled = true;
-    const r = await fetch(`/maps/${m.id}/points?format=ply${lod}`);
-    if (!r.ok) continue; // merged away since /maps was read
-    const xyz = parsePly(await r.arrayBuffer());
-    const geom = new THREE.BufferGeometry();
-    geom.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
-    const mat = new THREE.PointsMaterial({ size: 0.12, color: 0xd0d4da, sizeAttenuation: true });
-    const pts = new THREE.Points(geom, mat);
-    pts.userData.mapId = m.id;
-    children.push(pts);
-    total += xyz.length / 3;
-  }
-  pointGroup.clear();
-  for (const c of children) pointGroup.add(c);
-  if (!state.fitted && total > 0) {
-    // First data: frame the map on robust bounds (5th-95th percentile per axis; far outliers ignored).
-    const all = children.map((c) => c.geometry.getAttribute("position").array);
-    const lo = [], hi = [];
-    for (let ax = 0; ax < 3; ax++) {
-      const v = [];
-      for (const a of all) for (let i = ax; i < a.length; i += 3 * Math.max(1, Math.floor(a.length / 30000))) if (Number.isFinite(a[i])) v.push(a[i]);
-      v.sort((x, y) => x - y);
-      lo.push(v[Math.floor(0.05 * (v.length - 1))] ?? 0);
-      hi.push(v[Math.floor(0.95 * (v.length - 1))] ?? 0);
+  document.body.dataset.pointsLevel = "coarse";
+  try {
+    for (let k = 0; k < maxParts; k++) {
+      for (const m of maps) {
+        if (k >= m.parts || m.gone) continue;
+        const r = await fetch(`/maps/${m.id}/points?part=${k}&parts=${m.parts}`);
+        if (!r.ok) { m.gone = true; continue; } // merged away since /maps was read
+        const xyz = parsePly(await r.arrayBuffer());
+        if (!xyz.length) continue;
+        const geom = new THREE.BufferGeometry();
+        geom.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
+        const pts = new THREE.Points(geom, mat);
+        pts.userData.mapId = m.id;
+        group.add(pts);
+        total += xyz.length / 3;
+        if (progressive) {
+          if (!state.fitted) fitCamera([xyz]);
+          state.drawnPoints = total;
+          document.body.dataset.points = String(total);
+          if (!document.body.dataset.pointsFirstMs) document.body.dataset.pointsFirstMs = String(Math.round(performance.now()));
+        }
+      }
     }
-    const center = new THREE.Vector3((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2);
-    const size = Math.max(10, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
-    state.sceneSize = size;
-    controls.target.copy(center);
-    camera.position.set(center.x - 0.5 * size, center.y - 0.7 * size, center.z + 0.8 * size);
-    controls.update();
-    state.fitted = true;
+  } finally {
+    state.pointsLoading = false;
   }
+  if (!progressive) {
+    pointGroup.clear();
+    pointGroup.add(group);
+  }
+  if (!state.fitted && total > 0) fitCamera(group.children.map((c) => c.geometry.getAttribute("position").array));
+  state.pointsKey = key;
   state.drawnPoints = total;
   document.body.dataset.points = String(total);
-  document.body.dataset.pointsLevel = subsampled ? "coarse" : "full";
+  document.body.dataset.pointsLevel = "full";
+  if (total && !document.body.dataset.pointsAllMs) {
+    document.body.dataset.pointsFirstMs ??= String(Math.round(performance.now()));
+    document.body.dataset.pointsAllMs = String(Math.round(performance.now()));
+  }
 }
 
 // A pyramid per keyframe (apex at the camera centre, 60 x 45 degree field of view), as line segments.
@@ -194,6 +225,34 @@ async function refreshKeyframes() {
   state.kfCounts = counts;
   document.body.dataset.frustums = String(n);
   document.body.dataset.loopEdges = String(loops.length);
+  await refreshGroundTruth();
+}
+
+// Ground truth of each map's agents (when the server was given a ground-truth folder), aligned to the map
+// by the server, drawn dashed in the agent's colour; the "ground truth" toggle shows or hides it.
+async function refreshGroundTruth() {
+  const lines = [];
+  let configured = false;
+  for (const m of state.maps) {
+    let gt;
+    try { gt = await getJSON(`/maps/${m.id}/groundtruth`); } catch { continue; }
+    configured ||= gt.configured;
+    for (const a of gt.agents || []) {
+      if (a.positions.length < 2) continue;
+      const geom = new THREE.BufferGeometry();
+      geom.setAttribute("position", new THREE.BufferAttribute(new Float32Array(a.positions.flat()), 3));
+      const line = new THREE.Line(geom, new THREE.LineDashedMaterial({ color: colorOf(a.agent_id), dashSize: 0.6, gapSize: 0.4 }));
+      line.computeLineDistances();
+      line.userData.agentId = a.agent_id;
+      lines.push(line);
+    }
+  }
+  gtGroup.clear();
+  for (const l of lines) gtGroup.add(l);
+  gtGroup.visible = state.showGt;
+  document.getElementById("gt-toggle").hidden = !configured;
+  document.body.dataset.groundtruth = String(lines.length);
+  document.body.dataset.groundtruthShown = String(state.showGt ? lines.length : 0);
 }
 
 async function refreshTrajectories() {
@@ -250,16 +309,10 @@ async function poll() {
     state.events = events.events || events;
     const counts = JSON.stringify(state.maps.map((m) => [m.id, m.points]));
     const now = Date.now();
-    if (counts !== state.lastCounts && now - lastPointsFetch > 2000) {
-      state.lastCounts = counts;
+    if (counts !== state.pointsKey && !state.pointsLoading && now - lastPointsFetch > 2000) {
       lastPointsFetch = now;
-      // level of detail: a coarse cloud shows within seconds even for millions of points, the full one
-      // replaces it on the next poll
-      await refreshPoints(state.coarseDrawn === counts);
-      state.coarseDrawn = counts;
-      if (document.body.dataset.pointsLevel === "coarse") state.lastCounts = "";
-    } else if (counts === state.coarseDrawn && document.body.dataset.pointsLevel === "coarse") {
-      await refreshPoints(true);
+      // not awaited: the panel, trajectories and frustums go on updating while the parts arrive
+      loadPoints(counts).catch((err) => { document.getElementById("status").textContent = `points: ${err.message}`; });
     }
     await refreshTrajectories();
     await refreshKeyframes();
@@ -279,5 +332,10 @@ function animate() {
 }
 
 document.getElementById("all-events").addEventListener("change", (e) => { state.allEvents = e.target.checked; renderPanel(); });
+document.getElementById("show-gt").addEventListener("change", (e) => {
+  state.showGt = e.target.checked;
+  gtGroup.visible = state.showGt;
+  document.body.dataset.groundtruthShown = String(state.showGt ? gtGroup.children.length : 0);
+});
 animate();
 poll();
