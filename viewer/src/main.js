@@ -30,6 +30,10 @@ camera.position.set(-60, -80, 90);
 const controls = new OrbitControls(camera, canvas);
 controls.target.set(0, 0, 0);
 controls.update();
+// the camera's position and orbit target, for tests and scripts that drive the view
+controls.addEventListener("change", () => {
+  document.body.dataset.camera = JSON.stringify([camera.position.toArray(), controls.target.toArray()]);
+});
 const grid = new THREE.GridHelper(200, 20, 0x3a3f47, 0x262a30);
 grid.rotation.x = Math.PI / 2;
 scene.add(grid);
