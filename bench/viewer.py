@@ -17,6 +17,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -43,18 +44,32 @@ def write_store(path: Path, n: int, seed: int = 0) -> None:
     store.close()
 
 
+def _attrs(driver: Any) -> tuple[str | None, ...]:
+    """The viewer's timing attributes (None while the page is too busy to answer a script)."""
+    from selenium.common.exceptions import TimeoutException
+
+    names = ("pointsFirstMs", "pointsAllMs", "points", "pointsLevel")
+    try:
+        script = "return [" + ", ".join(f"document.body.dataset.{n}" for n in names) + "]"
+        return tuple(driver.execute_script(script))
+    except TimeoutException:
+        return (None,) * len(names)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--points", type=int, default=3_000_000)
     ap.add_argument("--loads", type=int, default=2, help="page loads (the first one after the start is cold)")
     ap.add_argument("--timeout", type=float, default=120.0, help="per page load, seconds")
+    ap.add_argument("--store", type=Path, help="store folder to reuse (written when absent)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="hivemap-bench-viewer-") as tmp:
-        data = Path(tmp) / "data"
-        data.mkdir()
-        t = time.perf_counter()
-        write_store(data / "hivemap.sqlite", args.points)
-        print(f"store: {args.points} points written in {time.perf_counter() - t:.1f} s")
+        data = args.store or Path(tmp) / "data"
+        data.mkdir(parents=True, exist_ok=True)
+        if not (data / "hivemap.sqlite").exists():
+            t = time.perf_counter()
+            write_store(data / "hivemap.sqlite", args.points)
+            print(f"store: {args.points} points written in {time.perf_counter() - t:.1f} s")
         server = ServerProcess(data, write_config(Path(tmp) / "server.toml"))
         t = time.perf_counter()
         server.start(timeout=1800.0)
@@ -64,12 +79,10 @@ def main() -> None:
                 driver = _browser()
                 try:
                     driver.get(server.url + "/")
-                    body = driver.find_element("tag name", "body")
                     deadline = time.monotonic() + args.timeout
-                    while time.monotonic() < deadline and body.get_attribute("data-points-level") != "full":
+                    while time.monotonic() < deadline and _attrs(driver)[3] != "full":
                         time.sleep(0.05)
-                    attrs = ("data-points-first-ms", "data-points-all-ms", "data-points")
-                    first, last, n = (body.get_attribute(a) for a in attrs)
+                    first, last, n, _ = _attrs(driver)
                     kind = "cold" if load == 0 else "warm"
                     print(f"page load {load + 1} ({kind}): first points drawn at {first} ms, all {n} points "
                           f"drawn at {last} ms after navigation")  # fmt: skip

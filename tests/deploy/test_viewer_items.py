@@ -92,6 +92,11 @@ def test_viewer_draws_frustums_loops_and_stable_colours(mission: ServerProcess, 
         assert set(kinds) - DEFAULT_EVENTS, kinds
         time.sleep(1.0)  # a few frames with everything in place
         png = driver.get_screenshot_as_png()
+        # only maps the server lists are asked for (not ids that were merged away)
+        urls = driver.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+        asked = {int(u.split("/maps/")[1].split("/")[0].split("?")[0]) for u in urls if "/maps/" in u
+                 and u.split("/maps/")[1][:1].isdigit()}  # fmt: skip
+        assert asked and asked <= {m["id"] for m in maps}, (asked, maps)
         (tmp_path / "viewer.png").write_bytes(png)
     finally:
         driver.quit()

@@ -64,6 +64,13 @@ def test_parts_partition_the_map_into_even_nested_subsamples(big: Any) -> None:
     for k in (0, 3):
         both = np.concatenate([_part(server, k, 8), _part(server, k + 4, 8)])
         assert np.array_equal(np.unique(both, axis=0), np.unique(parts4[k], axis=0))
+    # the viewer's coarse-to-fine requests (lodSteps in viewer/src/main.js), each doubling the density,
+    # hold every point once
+    steps = [_part(server, k, p) for k, p in ((0, 8), (4, 8), (2, 4), (1, 2))]
+    for x, share in zip(steps, (1 / 8, 1 / 8, 1 / 4, 1 / 2), strict=True):
+        assert abs(len(x) - share * N) < 5 * np.sqrt(N * share * (1 - share))
+    assert sum(map(len, steps)) == N
+    assert len(np.unique(np.concatenate(steps), axis=0)) == len(np.unique(want, axis=0))
     assert server.get("/maps/0/points", part=4, parts=4).status_code == 422
 
 
@@ -80,7 +87,7 @@ def test_viewer_draws_the_map_part_by_part(big: Any) -> None:
             time.sleep(0.1)
         assert body.get_attribute("data-points") == str(N)
         first, last = (int(body.get_attribute(f"data-points-{w}-ms") or -1) for w in ("first", "all"))
-        # two parts of 100k points (the viewer's 150k per part): the first is drawn before the second comes
+        # two levels of 100k points (at most 150k in the first): the first is drawn before the second comes
         assert 0 < first < last, (first, last)
     finally:
         driver.quit()

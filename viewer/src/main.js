@@ -9,8 +9,8 @@ const POLL_MS = 1000;
 // same on every page load and in Foxglove (hivemap.server.foxglove.agent_color uses this hash too).
 export const PALETTE = [0x1f77b4, 0xff7f0e, 0x2ca02c, 0xd62728, 0x9467bd, 0x8c564b, 0xe377c2, 0x7f7f7f,
   0xbcbd22, 0x17becf, 0x66ffcc, 0x99cc33, 0xb266ff, 0xffcc00, 0x4da6ff, 0xcc6666];
-// points per level-of-detail part: a map of N points comes in ceil(N / PART_POINTS) parts, each an even
-// subsample of the whole map (GET /maps/ID/points?part=K&parts=P), drawn as it arrives
+// the first level of detail holds at most this many points of a map; each further request doubles what is
+// drawn (see lodSteps)
 const PART_POINTS = 150000;
 const LOOP_COLOR = 0xff00ff;
 // events shown by default; the rest (candidates, BA and consistency details, info) with "all events"
@@ -32,6 +32,7 @@ controls.target.set(0, 0, 0);
 controls.update();
 // the camera's position and orbit target, for tests and scripts that drive the view
 controls.addEventListener("change", () => {
+  requestRender();
   document.body.dataset.camera = JSON.stringify([camera.position.toArray(), controls.target.toArray()]);
 });
 const grid = new THREE.GridHelper(200, 20, 0x3a3f47, 0x262a30);
@@ -66,6 +67,7 @@ function resize() {
     renderer.setSize(w, h, false);
     camera.aspect = w / h;
     camera.updateProjectionMatrix();
+    requestRender();
   }
 }
 
@@ -94,7 +96,11 @@ export function parsePly(buffer) {
   let stride = 0;
   const off = {};
   for (const p of props) { off[p.name] = { o: stride, t: p.type }; stride += size[p.type]; }
-  const dv = new DataView(buffer, headerEnd + "end_header\n".length);
+  const body = headerEnd + "end_header\n".length;
+  if (props.length === 3 && props.every((p, i) => p.name === "xyz"[i] && (p.type === "float" || p.type === "float32"))) {
+    return new Float32Array(buffer.slice(body, body + 12 * count)); // the level-of-detail parts: as they are
+  }
+  const dv = new DataView(buffer, body);
   const xyz = new Float32Array(count * 3);
   const read = (base, p) => (p.t === "double" || p.t === "float64") ? dv.getFloat64(base + p.o, true) : dv.getFloat32(base + p.o, true);
   for (let i = 0; i < count; i++) {
@@ -121,9 +127,23 @@ function fitCamera(arrays) {
   camera.position.set(center.x - 0.5 * size, center.y - 0.7 * size, center.z + 0.8 * size);
   controls.update();
   state.fitted = true;
+  state.kfCounts = ""; // the loop arcs' height follows the scene size: rebuilt at the next poll
 }
 
-// Every map's points, part after part (level of detail): the first load draws each part as it arrives, so
+// The requests (part K of P, GET /maps/ID/points?part=K&parts=P) that load a map of ``points`` points coarse
+// to fine: part 0 of P (P the power of two that makes it at most PART_POINTS), then P/2 of P, P/4 of P/2,
+// ..., 1 of 2. Part K of P is a point hash's residue K mod P, so these are disjoint, hold every point, and
+// each doubles the density drawn: log2(P) + 1 requests, and the frames drawn while loading cost about twice
+// the full map's.
+export function lodSteps(points) {
+  let p = 1;
+  while (points / p > PART_POINTS) p *= 2;
+  const steps = [[0, p]];
+  for (let q = p; q > 1; q /= 2) steps.push([q / 2, q]);
+  return steps;
+}
+
+// Every map's points, level after level of detail: the first load draws each part as it arrives, so
 // the whole map shows at low density after one request per map; a reload (the counts changed) builds the
 // new cloud aside and swaps it in once complete, so the drawn map never thins out.
 async function loadPoints(key) {
@@ -132,15 +152,16 @@ async function loadPoints(key) {
   const group = new THREE.Group();
   if (progressive) pointGroup.add(group);
   const mat = new THREE.PointsMaterial({ size: 0.12, color: 0xd0d4da, sizeAttenuation: true });
-  const maps = state.maps.map((m) => ({ id: m.id, parts: Math.max(1, Math.ceil((m.points || 0) / PART_POINTS)), gone: false }));
-  const maxParts = Math.max(0, ...maps.map((m) => m.parts));
+  const maps = state.maps.map((m) => ({ id: m.id, steps: lodSteps(m.points || 0), gone: false }));
+  const levels = Math.max(0, ...maps.map((m) => m.steps.length));
   let total = 0;
   document.body.dataset.pointsLevel = "coarse";
   try {
-    for (let k = 0; k < maxParts; k++) {
+    for (let k = 0; k < levels; k++) {
       for (const m of maps) {
-        if (k >= m.parts || m.gone) continue;
-        const r = await fetch(`/maps/${m.id}/points?part=${k}&parts=${m.parts}`);
+        if (k >= m.steps.length || m.gone) continue;
+        const [part, parts] = m.steps[k];
+        const r = await fetch(`/maps/${m.id}/points?part=${part}&parts=${parts}`);
         if (!r.ok) { m.gone = true; continue; } // merged away since /maps was read
         const xyz = parsePly(await r.arrayBuffer());
         if (!xyz.length) continue;
@@ -149,14 +170,16 @@ async function loadPoints(key) {
         const pts = new THREE.Points(geom, mat);
         pts.userData.mapId = m.id;
         group.add(pts);
+        requestRender();
         total += xyz.length / 3;
         if (progressive) {
-          if (!state.fitted) fitCamera([xyz]);
           state.drawnPoints = total;
           document.body.dataset.points = String(total);
           if (!document.body.dataset.pointsFirstMs) document.body.dataset.pointsFirstMs = String(Math.round(performance.now()));
         }
       }
+      // framed on the first level of detail of every map (an even subsample: the same bounds as all)
+      if (k === 0 && progressive && !state.fitted && total > 0) fitCamera(group.children.map((c) => c.geometry.getAttribute("position").array));
     }
   } finally {
     state.pointsLoading = false;
@@ -166,6 +189,7 @@ async function loadPoints(key) {
     pointGroup.add(group);
   }
   if (!state.fitted && total > 0) fitCamera(group.children.map((c) => c.geometry.getAttribute("position").array));
+  requestRender();
   state.pointsKey = key;
   state.drawnPoints = total;
   document.body.dataset.points = String(total);
@@ -227,6 +251,7 @@ async function refreshKeyframes() {
     edgeGroup.add(new THREE.LineSegments(geom, new THREE.LineBasicMaterial({ color: LOOP_COLOR })));
   }
   state.kfCounts = counts;
+  requestRender();
   document.body.dataset.frustums = String(n);
   document.body.dataset.loopEdges = String(loops.length);
   await refreshGroundTruth();
@@ -253,6 +278,7 @@ async function refreshGroundTruth() {
   }
   gtGroup.clear();
   for (const l of lines) gtGroup.add(l);
+  requestRender();
   gtGroup.visible = state.showGt;
   document.getElementById("gt-toggle").hidden = !configured;
   document.body.dataset.groundtruth = String(lines.length);
@@ -260,13 +286,20 @@ async function refreshGroundTruth() {
 }
 
 async function refreshTrajectories() {
-  trajGroup.clear();
-  agentGroup.clear();
+  const fetched = [];
   for (const a of state.agents) {
     if (!a.keyframes) continue; // configured but nothing received yet
-    let traj;
-    try { traj = await getJSON(`/agents/${encodeURIComponent(a.agent_id)}/trajectory?frame=global&format=json`); }
+    try { fetched.push([a, await getJSON(`/agents/${encodeURIComponent(a.agent_id)}/trajectory?frame=global&format=json`)]); }
     catch { continue; }
+  }
+  // redrawn (and the frame rendered) only when a trajectory changed
+  const key = JSON.stringify(fetched.map(([a, traj]) => [a.agent_id, traj.poses || traj]));
+  if (key === state.trajKey) return;
+  state.trajKey = key;
+  requestRender();
+  trajGroup.clear();
+  agentGroup.clear();
+  for (const [a, traj] of fetched) {
     const poses = traj.poses || traj;
     if (!poses.length) continue;
     const pos = new Float32Array(poses.length * 3);
@@ -328,10 +361,18 @@ async function poll() {
   setTimeout(poll, POLL_MS);
 }
 
+// Drawn on demand (the view moved, data arrived, the window changed): a frame of millions of points is
+// expensive, so an idle page draws nothing.
+let needsRender = true;
+function requestRender() { needsRender = true; }
+
 function animate() {
   resize();
   controls.update();
-  renderer.render(scene, camera);
+  if (needsRender) {
+    needsRender = false;
+    renderer.render(scene, camera);
+  }
   requestAnimationFrame(animate);
 }
 
@@ -339,6 +380,7 @@ document.getElementById("all-events").addEventListener("change", (e) => { state.
 document.getElementById("show-gt").addEventListener("change", (e) => {
   state.showGt = e.target.checked;
   gtGroup.visible = state.showGt;
+  requestRender();
   document.body.dataset.groundtruthShown = String(state.showGt ? gtGroup.children.length : 0);
 });
 animate();
