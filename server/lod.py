@@ -5,8 +5,9 @@ even random subsample of the map, the parts are disjoint and together hold every
 stays in its part while the map grows (the hash depends on nothing else). A viewer fetches part 0, draws
 it, fetches part 1, ... so the whole map is on screen at 1/parts density after the first request.
 
-The map's positions are gathered once into arrays and reused while its keyframe and point counts stay
-the same (the cheap change detector ``hivemap.server.foxglove`` uses too).
+The map's point list and key hashes are computed once and reused while its keyframe and point counts stay
+the same (the cheap change detector ``hivemap.server.foxglove`` uses too); a part's positions are read
+when it is asked for.
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ U64 = NDArray[np.uint64]
 
 @dataclass(frozen=True)
 class Cloud:
-    """A map's points at one moment: ``xyz`` (N, 3) float32 and each point's 64-bit key hash."""
+    """A map's points at one moment (the point objects, so positions are read when a part is asked for)
+    and each point's 64-bit key hash."""
 
     version: tuple[int, int]
-    xyz: NDArray[np.float32]
+    points: list[Any]
     hash: U64
 
 
@@ -48,7 +50,7 @@ def key_hash(agent_ids: list[str], ids: NDArray[np.int64]) -> U64:
 
 async def cloud(m: Any, cache: dict[int, Cloud], live: set[int]) -> Cloud:
     """The map's :class:`Cloud`, from ``cache`` when the map's counts did not change. Called on the event
-    loop (the maps' thread): the point list is copied there, the arrays are built in a worker thread so
+    loop (the maps' thread): the point list is copied there, the hashes are computed in a worker thread so
     ingest goes on meanwhile. Entries of maps not in ``live`` (merged away) are dropped."""
     import asyncio
 
@@ -65,16 +67,26 @@ async def cloud(m: Any, cache: dict[int, Cloud], live: set[int]) -> Cloud:
 
 
 def _build(version: tuple[int, int], pts: list[Any]) -> Cloud:
-    xyz = (np.concatenate([p.xyz for p in pts]) if pts else np.zeros(0)).reshape(-1, 3).astype(np.float32)
     ids = np.fromiter((p.id for p in pts), np.int64, len(pts))
-    return Cloud(version, xyz, key_hash([p.agent_id for p in pts], ids))
+    return Cloud(version, pts, key_hash([p.agent_id for p in pts], ids))
 
 
-def part(c: Cloud, index: int, parts: int) -> NDArray[np.float32]:
-    """The points of part ``index`` of ``parts`` (see the module docstring)."""
+async def part(c: Cloud, index: int, parts: int) -> NDArray[np.float32]:
+    """The positions (float32) of part ``index`` of ``parts`` (see the module docstring), read in a worker
+    thread: a part costs in proportion to its size, so the first, coarse one comes quickly."""
+    import asyncio
+
     if not 0 <= index < parts:
         raise ValueError(f"part {index} is not in 0..{parts - 1}")
-    return c.xyz[c.hash % np.uint64(parts) == np.uint64(index)]
+    idx = np.flatnonzero(c.hash % np.uint64(parts) == np.uint64(index))
+
+    def gather() -> NDArray[np.float32]:
+        if not len(idx):
+            return np.zeros((0, 3), np.float32)
+        pts = c.points
+        return np.concatenate([pts[i].xyz for i in idx.tolist()]).reshape(-1, 3).astype(np.float32)
+
+    return await asyncio.to_thread(gather)
 
 
 def ply_float(xyz: NDArray[np.float32], comment: str) -> Iterator[bytes]:

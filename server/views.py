@@ -363,7 +363,7 @@ async def points_part_ply(server: HiveServer, map_id: int, part: int, parts: int
     if cache is None:
         cache = server._lod_clouds = {}  # type: ignore[attr-defined]
     c = await lod.cloud(m, cache, set(server.stack.maps))
-    return lod.ply_float(lod.part(c, part, parts), f"hivemap map {map_id} part {part} of {parts}")
+    return lod.ply_float(await lod.part(c, part, parts), f"hivemap map {map_id} part {part} of {parts}")
 
 
 def events(server: HiveServer, since: int, kind: str | None, limit: int) -> schemas.EventList:
