@@ -166,6 +166,13 @@ class ServerSettings(BaseSettings):
     ping_interval_s: float = Field(default=20.0, gt=0.0)
     log_level: str = "info"
 
+    @field_validator("groundtruth")
+    @classmethod
+    def _groundtruth_folder(cls, v: Path | None) -> Path | None:
+        if v is not None and not v.is_dir():
+            raise ValueError(f"{v} is not a folder")
+        return v
+
     @field_validator("backend", mode="before")
     @classmethod
     def _backend_options(cls, v: Any) -> BackendOptions:

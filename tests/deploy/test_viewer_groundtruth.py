@@ -141,3 +141,14 @@ def test_without_groundtruth_the_toggle_is_hidden(tmp_path: Path) -> None:
             driver.quit()
     finally:
         server.stop()
+
+
+def test_a_groundtruth_folder_that_does_not_exist_is_one_line(tmp_path: Path) -> None:
+    import subprocess
+
+    cmd = [sys.executable, "-m", "hivemap.cli.main", "server", "--port", "0", "--data-dir", str(tmp_path),
+           "--groundtruth", str(tmp_path / "nope")]  # fmt: skip
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        f"hivemap: error: field 'groundtruth': {tmp_path / 'nope'} is not a folder"
+    ], res.stderr
