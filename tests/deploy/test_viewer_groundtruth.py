@@ -86,16 +86,11 @@ def test_groundtruth_is_aligned_to_each_map(mission: Any) -> None:
 
 def test_viewer_draws_groundtruth_with_a_toggle(mission: Any) -> None:
     from PIL import Image
-    from test_viewer import _browser
+    from test_viewer import open_viewer
 
     server, _ = mission
-    driver = _browser()
+    driver, body = open_viewer(server.url, "data-groundtruth", "2")
     try:
-        driver.get(server.url + "/")
-        body = driver.find_element("tag name", "body")
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and body.get_attribute("data-groundtruth") != "2":
-            time.sleep(0.2)
         assert body.get_attribute("data-groundtruth") == "2"  # uav1 and ugv1; uav2 has none
         assert driver.find_element("id", "gt-toggle").is_displayed()
         assert body.get_attribute("data-groundtruth-shown") == "2"
@@ -118,7 +113,7 @@ def test_viewer_draws_groundtruth_with_a_toggle(mission: Any) -> None:
 
 
 def test_without_groundtruth_the_toggle_is_hidden(tmp_path: Path) -> None:
-    from test_viewer import _browser
+    from test_viewer import open_viewer
 
     server = ServerProcess(tmp_path / "data", write_config(tmp_path / "server.toml")).start()
     try:
@@ -128,13 +123,8 @@ def test_without_groundtruth_the_toggle_is_hidden(tmp_path: Path) -> None:
             assert ag.send_all(msgs)[1] == []
         gt = server.json(f"/maps/{_map_of(server, 'uav1')}/groundtruth")
         assert gt == {"map_id": gt["map_id"], "configured": False, "aligned": False, "agents": []}
-        driver = _browser()
+        driver, body = open_viewer(server.url, "data-groundtruth", None)
         try:
-            driver.get(server.url + "/")
-            body = driver.find_element("tag name", "body")
-            deadline = time.monotonic() + 30
-            while time.monotonic() < deadline and body.get_attribute("data-groundtruth") is None:
-                time.sleep(0.2)
             assert body.get_attribute("data-groundtruth") == "0"
             assert not driver.find_element("id", "gt-toggle").is_displayed()
         finally:

@@ -117,15 +117,10 @@ def test_viewer_draws_frustums_loops_and_stable_colours(mission: ServerProcess, 
 
 def test_orbit_camera_turns_around_its_target(mission: ServerProcess) -> None:
     from selenium.webdriver import ActionChains
-    from test_viewer import _browser
+    from test_viewer import open_viewer
 
-    driver = _browser()
+    driver, body = open_viewer(mission.url, "data-points-level", "full")
     try:
-        driver.get(mission.url + "/")
-        body = driver.find_element("tag name", "body")
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and body.get_attribute("data-points-level") != "full":
-            time.sleep(0.2)
         canvas = driver.find_element("id", "view")
 
         def drag(dx: int, dy: int) -> str | None:

@@ -5,7 +5,6 @@ by part, the first part long before the last."""
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -75,16 +74,11 @@ def test_parts_partition_the_map_into_even_nested_subsamples(big: Any) -> None:
 
 
 def test_viewer_draws_the_map_part_by_part(big: Any) -> None:
-    from test_viewer import _browser
+    from test_viewer import open_viewer
 
     server, _ = big
-    driver = _browser()
+    driver, body = open_viewer(server.url, "data-points-all-ms", None, timeout=60)
     try:
-        driver.get(server.url + "/")
-        body = driver.find_element("tag name", "body")
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and body.get_attribute("data-points-level") != "full":
-            time.sleep(0.1)
         assert body.get_attribute("data-points") == str(N)
         first, last = (int(body.get_attribute(f"data-points-{w}-ms") or -1) for w in ("first", "all"))
         # two levels of 100k points (at most 150k in the first): the first is drawn before the second comes

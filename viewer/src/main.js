@@ -175,7 +175,6 @@ async function loadPoints(key) {
         if (progressive) {
           state.drawnPoints = total;
           document.body.dataset.points = String(total);
-          if (!document.body.dataset.pointsFirstMs) document.body.dataset.pointsFirstMs = String(Math.round(performance.now()));
         }
       }
       // framed on the first level of detail of every map (an even subsample: the same bounds as all)
@@ -194,10 +193,7 @@ async function loadPoints(key) {
   state.drawnPoints = total;
   document.body.dataset.points = String(total);
   document.body.dataset.pointsLevel = "full";
-  if (total && !document.body.dataset.pointsAllMs) {
-    document.body.dataset.pointsFirstMs ??= String(Math.round(performance.now()));
-    document.body.dataset.pointsAllMs = String(Math.round(performance.now()));
-  }
+  if (total) state.allPoints = true;
 }
 
 // A pyramid per keyframe (apex at the camera centre, 60 x 45 degree field of view), as line segments.
@@ -372,6 +368,10 @@ function animate() {
   if (needsRender) {
     needsRender = false;
     renderer.render(scene, camera);
+    // times from navigation to the first frame with points and to the first with all of them
+    const d = document.body.dataset;
+    if (state.drawnPoints > 0 && !d.pointsFirstMs) d.pointsFirstMs = String(Math.round(performance.now()));
+    if (state.allPoints && !d.pointsAllMs) d.pointsAllMs = String(Math.round(performance.now()));
   }
   requestAnimationFrame(animate);
 }
