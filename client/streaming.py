@@ -1,6 +1,6 @@
 """Streaming agent: a dataset replayed through ``hivemap.client.Agent`` connected to a server.
 
-The replay is the offline one (``hivemap.client.runner.Replay``); the agent's link streams every
+The replay is the offline one (``hivemap.client.replay.Replay``); the agent's link streams every
 front-end event and applies the server's corrections (see :mod:`hivemap.client.agent`).
 """
 
@@ -11,7 +11,8 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hivemap.client.runner import Replay, RunnerOptions, RunSummary, _write_outputs
+from hivemap.client.replay import Replay
+from hivemap.client.runner import RunnerOptions, RunSummary, _write_outputs
 
 if TYPE_CHECKING:
     from hivemap.client.dataset import DatasetSource
