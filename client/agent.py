@@ -11,25 +11,30 @@
     for each GNSS fix:     agent.feed_gnss(t, enu_xyz, sigma_h, sigma_v)        # metres, ENU
     for each stereo pair:  result = agent.feed_stereo(t, left, right)           # uint8 gray images
     agent.pose()           # latest world_from_body 4x4 in the local frame (None before tracking)
-    agent.close()          # flush the front-end, wait for the server's acks, stop the link
+    agent.close()          # flush the front-end, wait for the server's acks and last corrections
 
 Times are seconds on one clock for all sensors. IMU samples must arrive before the frame they lead up
 to (each frame takes the samples after the previous frame up to its own time). A fix is used at the
 first frame within ``RunnerOptions.gnss_max_dt_s`` of it (that frame becomes a keyframe); a fix that
 arrives after its frame is dropped. ``world_from_body`` poses are of the IMU (body) frame, as in EuRoC.
 
-The offline replay (``hivemap agent --offline``) feeds datasets through this class, so what a live agent
-computes is what the replays are tested on. Corrections from the server are applied between frames (on
-the thread that calls ``feed_stereo``), then the callbacks run.
+Both dataset replays (``hivemap agent --offline`` and ``--server``) feed datasets through this class, so
+what a live agent computes is what the replays are tested on. Corrections from the server are applied
+between frames (on the thread that calls ``feed_stereo``; after the last frame on the one that calls
+``close``), then the callbacks run. Corrections for sessions of an earlier process of the same mission
+(a restart on the same outbox) are not this front-end's and are ignored.
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextvars
 import logging
 import threading
+import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,6 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.client.logtags import CorrectionSummary
 from hivemap.client.replay_io import _Gnss
 from hivemap.client.runner import OfflineAgent, RunnerOptions, _make_agent
 from hivemap.maps.camera import PinholeCamera, StereoRig
@@ -125,6 +131,11 @@ class Agent:
         self._pending: list[Any] = []  # protocol Correction messages, applied between frames
         self._callbacks: list[Callable[[CorrectionInfo], None]] = []
         self._stream: _Stream | None = None
+        self._first_session = 0  # the mission's session this process's front-end session 0 is
+        self._last_correction = time.monotonic()
+        self._corrections_log = CorrectionSummary(log)  # DEBUG each, INFO every 10 s
+        self.link_error: BaseException | None = None  # why the link ended (refused, unreachable), if it did
+        self.link_stats: Any = None  # hivemap.client.link.LinkStats of the last connection
         self.frames = 0
 
     # -- construction ---------------------------------------------------------------------------------
@@ -251,13 +262,25 @@ class Agent:
         this itself; call it when you run your own link. Thread-safe."""
         with self._lock:
             self._pending.append(msg)
+            self._last_correction = time.monotonic()
+
+    def apply_corrections(self) -> list[CorrectionInfo]:
+        """Apply the corrections received since the last frame now (``feed_stereo`` does this before each
+        frame), then run the callbacks; returns what was applied."""
+        with self._lock:
+            applied = self._apply_pending()
+        for info in applied:
+            for cb in list(self._callbacks):
+                cb(info)
+        return applied
 
     def _apply_pending(self) -> list[CorrectionInfo]:
         todo, self._pending = self._pending, []
-        first = self._stream.first_session if self._stream is not None else 0
+        first = self._first_session
         out = []
         for c in todo:
-            if c.session < first:  # a session of an earlier process of this mission
+            if c.session < first:  # a session of the process that ran this mission before
+                log.debug("correction for session %d of an earlier process: not this front-end's", c.session)
                 continue
             n = self.core.apply_correction(
                 c.session - first,
@@ -266,34 +289,58 @@ class Agent:
                 c.global_from_local,
                 enu=c.global_frame == "enu",
             )
-            log.debug("correction from map %d (%s frame): %d keyframes", c.map_id, c.global_frame, n)
+            self._corrections_log.add(int(c.map_id), str(c.global_frame), n)
             out.append(CorrectionInfo(int(c.map_id), str(c.global_frame), int(c.session), n,
                                       np.asarray(c.global_from_local, dtype=np.float64)))  # fmt: skip
         return out
 
     # -- streaming ------------------------------------------------------------------------------------
-    def connect(self, server: str, token: str, out_dir: str | Path, max_connect_attempts: int = 10) -> None:
+    def connect(
+        self, server: str, token: str, out_dir: str | Path, max_connect_attempts: int | None = None
+    ) -> None:
         """Stream keyframes and map points to ``server`` (``ws://HOST:PORT/ws``) from a background thread;
-        ``out_dir`` holds the durable outbox (unsent messages survive a restart). Call before the first
-        frame."""
+        ``out_dir`` holds the durable outbox: one outbox is one mission, an unfinished one is resumed
+        (unsent messages survive a restart), a finished one is archived and a new mission begins. The
+        link gives up after ``max_connect_attempts`` failed attempts in a row (default: the runner
+        options'); then ``link_error`` says why. Call before the first frame."""
         from hivemap.client.link import check_server_url
 
         if (bad := check_server_url(server)) is not None:
             raise ValueError(f"server URL: {bad}")
         if self.frames:
             raise RuntimeError("connect() before the first frame: the server needs every keyframe")
-        self._stream = _Stream(self, server, token, Path(out_dir), max_connect_attempts)
+        attempts = max_connect_attempts or self.options.runner.max_connect_attempts
+        self._stream = _Stream(self, server, token, Path(out_dir), attempts)
+        self._first_session = self._stream.first_session
+        self.link_error = None
         self.core.on_event = self._stream.on_event
 
-    def close(self, timeout: float = 60.0) -> int:
-        """Flush the front-end (its last keyframes), then, when connected, wait up to ``timeout`` s for the
-        server's acks and stop the link. Returns the messages left unsent (kept in the outbox)."""
-        with self._lock:
-            self.core.finish()
+    @property
+    def link_failed(self) -> bool:
+        """The link of ``connect`` ended by itself (refused, or gave up reconnecting: see ``link_error``)."""
+        stream = self._stream
+        if stream is not None and stream.task.done():
+            self.link_error = stream.failure()
+        return self.link_error is not None
+
+    def close(self, timeout: float | None = None, *, stop: threading.Event | None = None) -> int:
+        """Flush the front-end (its last keyframes); when connected, wait up to ``timeout`` s (default:
+        ``RunnerOptions.flush_timeout_s``) for the server's acks, then for the corrections the server
+        still owes (``RunnerOptions.corrections_*``; applied here, callbacks included), mark the mission
+        complete when everything was acknowledged and stop the link. Returns the messages left unsent
+        (kept in the outbox for the next start). ``stop`` set (a signal, a shutdown): end at once, with
+        no flush and no waiting; what was produced stays in the outbox."""
+        if stop is None or not stop.is_set():
+            with self._lock:
+                self.core.finish()
         if self._stream is None:
+            self._corrections_log.flush()
             return 0
-        unsent = self._stream.close(timeout)
-        self._stream = None
+        stream, self._stream = self._stream, None
+        unsent = stream.close(self.options.runner.flush_timeout_s if timeout is None else timeout, stop)
+        self.link_error = stream.failure()
+        self.link_stats = stream.link.stats
+        self._corrections_log.flush()
         return unsent
 
 
@@ -306,8 +353,12 @@ class _Stream:
 
         out.mkdir(parents=True, exist_ok=True)
         self.agent = agent
+        self.server = server
         self.box = open_mission_outbox(out, agent.agent_id)
         self.first_session = self.box.start_session()
+        if self.first_session:
+            log.info("agent %s resumes mission %s in session %d", agent.agent_id, self.box.mission,
+                     self.first_session)  # fmt: skip
         self._sessions = {self.first_session}
         T = agent.T_BS
         lever = None
@@ -319,11 +370,13 @@ class _Stream:
             on_correction=agent.submit_correction, cam_from_antenna=lever, session=self.first_session,
             options=LinkOptions(max_connect_attempts=max_attempts),
         )  # fmt: skip
-        self._thread = threading.Thread(target=self._run, name=f"hivemap-link-{agent.agent_id}", daemon=True)
-        self._thread.start()
-        self._task: concurrent.futures.Future[Any] = asyncio.run_coroutine_threadsafe(
-            self.link.run(), self.loop
+        # the link's log lines carry the agent tag of the context that connected (hivemap.client.logtags)
+        ctx = contextvars.copy_context()
+        self._thread = threading.Thread(
+            target=ctx.run, args=(self._run,), name=f"hivemap-link-{agent.agent_id}", daemon=True
         )
+        self._thread.start()
+        self.task: Future[Any] = asyncio.run_coroutine_threadsafe(self.link.run(), self.loop)
 
     def _run(self) -> None:
         asyncio.set_event_loop(self.loop)
@@ -364,22 +417,47 @@ class _Stream:
         elif isinstance(ev, PoseUpdateEvent):
             self._submit(PoseUpdates(ev.kf_ids, ev.world_from_cam, ev.point_ids, ev.xyz, session))
 
-    def close(self, timeout: float) -> int:
-        async def finish() -> None:
-            try:
-                await asyncio.wait_for(self.link.flush(timeout=timeout), timeout + 5.0)
-            except TimeoutError:
+    def failure(self) -> BaseException | None:
+        """Why the link's task ended, if it ended by itself (None while it runs or after a clean close)."""
+        if not self.task.done() or self.task.cancelled():
+            return None
+        return self.task.exception()
+
+    def close(self, timeout: float, stop: threading.Event | None) -> int:
+        from hivemap.client.health import wait_for_server
+
+        def stopping() -> bool:
+            return stop is not None and stop.is_set()
+
+        if not stopping() and not self.task.done():
+            flush = asyncio.run_coroutine_threadsafe(asyncio.wait_for(self.link.flush(), timeout), self.loop)
+            if not _wait(flush, stop, self.task):
                 log.warning("server did not acknowledge everything within %.0f s", timeout)
+        if not stopping() and not self.task.done():
+            agent = self.agent
+            wait_for_server(self.server, agent.options.runner, lambda: agent._last_correction,
+                            agent.apply_corrections, stop)  # fmt: skip
+
+        async def end(finish_mission: bool) -> None:
             # all acknowledged: the next start on this outbox is a new mission (before close shuts it)
-            if not self._task.done() and self.box.finish():
+            if finish_mission and not self.task.done() and self.box.finish():
                 log.info("agent %s: mission %s complete", self.agent.agent_id, self.box.mission)
             await self.link.close()
 
-        asyncio.run_coroutine_threadsafe(finish(), self.loop).result()
-        try:
-            self._task.result(timeout=10.0)
-        except Exception as exc:  # refused or unreachable: what is left stays in the outbox
-            log.warning("link ended: %s", exc)
+        asyncio.run_coroutine_threadsafe(end(not stopping()), self.loop).result()
+        if (exc := self.failure()) is not None:  # refused or unreachable: what is left stays in the outbox
+            log.debug("link ended: %s", exc)
         self.loop.call_soon_threadsafe(self.loop.stop)
         self._thread.join(10.0)
         return int(self.link.unsent)
+
+
+def _wait(fut: Future[Any], stop: threading.Event | None, link: Future[Any]) -> bool:
+    """Wait for ``fut`` until it is done (True if it succeeded), ``stop`` is set or the link ended (then
+    ``fut`` is cancelled)."""
+    while not fut.done():
+        if (stop is not None and stop.is_set()) or link.done():
+            fut.cancel()
+            return False
+        concurrent.futures.wait([fut], timeout=0.1)
+    return not fut.cancelled() and fut.exception() is None

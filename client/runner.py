@@ -434,50 +434,24 @@ def run_offline(
     """Replay one agent dataset without a server; writes the outputs listed in the module docstring."""
     import time
 
-    from tqdm import tqdm
-
-    from hivemap.client.dataset import open_dataset
     from hivemap.client.logtags import tag_agent
 
     options = options or RunnerOptions()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ds = open_dataset(agent_dir)  # a EuRoC folder or a BagSource
-    agent_id = str(ds.agent_id)
-    tag_agent(agent_id)  # log lines say which agent speaks
-    times = _frame_times(ds)
-    if options.max_frames is not None:
-        times = times[: options.max_frames]
-    imu = _imu(ds)
-    gnss = _gnss_table(ds)
-    # the replay drives the live-input API (hivemap.client.Agent), as a camera driver would
-    from hivemap.client.agent import Agent, AgentOptions
+    from hivemap.client.replay import Replay
 
-    live = Agent.from_dataset(ds, options=AgentOptions(options, frontend_options, second_stage_options))
-    selected = np.flatnonzero(select_gnss(gnss.t, gnss.valid, options.gnss, options.seed))
-    summary = RunSummary(agent_id=agent_id, gnss_mode=str(options.gnss))
-    summary.gnss_available = int(gnss.valid.sum())
-    summary.gnss_selected = len(selected)
+    replay = Replay.open(agent_dir, options, frontend_options, second_stage_options)
+    tag_agent(replay.live.agent_id)  # log lines say which agent speaks
     wall0 = time.perf_counter()
-    prev_t, next_fix = -math.inf, 0
-    for i in tqdm(range(len(times)), desc=f"agent {agent_id}", unit="frame", disable=not options.progress):
-        t = float(times[i])
-        left, right = _load_pair(ds, i)
-        if len(imu):
-            live.feed_imu_batch(imu[(imu[:, 0] > prev_t) & (imu[:, 0] <= t)])
-        while next_fix < len(selected) and gnss.t[selected[next_fix]] <= t + options.gnss_max_dt_s:
-            k = selected[next_fix]
-            live.feed_gnss_cov(float(gnss.t[k]), gnss.enu[k], gnss.cov[k])
-            next_fix += 1
-        live.feed_stereo(t, left, right)
-        prev_t = t
-    live.close()
-    agent = live.core
+    n_frames = replay.feed()
+    replay.live.close()
+    summary = replay.summary()
     summary.wall_s = time.perf_counter() - wall0
-    _write_outputs(agent, out, summary, len(times))
+    _write_outputs(replay.live.core, out, summary, n_frames)
     log.info(
         "agent %s: %d frames, %d keyframes, %d tracking losses, GNSS %d used / %d rejected, %.1f fps",
-        agent_id, summary.frames, summary.keyframes, summary.tracking_losses, summary.gnss_used,
+        summary.agent_id, summary.frames, summary.keyframes, summary.tracking_losses, summary.gnss_used,
         summary.gnss_rejected, summary.fps,
     )  # fmt: skip
     return summary
@@ -529,10 +503,15 @@ def _write_frames_csv(path: Path, rows: list[dict[str, float | int | str]]) -> N
 
 
 def __getattr__(name: str) -> Any:
-    """The streaming entry points moved to ``hivemap.client.streaming``; imported lazily (that module
-    imports this one) so ``from hivemap.client.runner import run_streaming`` keeps working."""
-    if name in ("run_streaming", "health_url", "_wait_for_server", "_backend_idle", "_stream"):
+    """The streaming entry points moved to ``hivemap.client.streaming`` and ``hivemap.client.health``;
+    imported lazily (they import this one) so ``from hivemap.client.runner import run_streaming``
+    keeps working."""
+    if name == "run_streaming":
         from hivemap.client import streaming
 
-        return getattr(streaming, name)
+        return streaming.run_streaming
+    if name in ("health_url", "wait_for_server"):
+        from hivemap.client import health
+
+        return getattr(health, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

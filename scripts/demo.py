@@ -63,7 +63,7 @@ def main() -> int:
     log(f"starting the server on {url} (log: {server_dir / 'server.log'})")
     server = subprocess.Popen(
         [*HIVEMAP, "server", "--host", "127.0.0.1", "--port", str(args.port),
-         "--data-dir", str(server_dir / "data"), "--config", str(cfg)],
+         "--data-dir", str(server_dir / "data"), "--config", str(cfg), "--groundtruth", str(scen_dir)],
         stdout=server_log, stderr=subprocess.STDOUT, env=env,
     )  # fmt: skip
     procs: list[subprocess.Popen[bytes]] = []

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Path, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import PlainTextResponse, RedirectResponse, StreamingResponse
 
 from hivemap.server import schemas, views
@@ -130,8 +130,22 @@ async def map_points(
     max_points: Annotated[
         int | None, Query(ge=1, le=100_000_000, description="ply: an even subsample of at most this many")
     ] = None,
+    part: Annotated[
+        int | None,
+        Query(ge=0, le=4095, description="ply: only level-of-detail part PART of PARTS (float x, y, z)"),
+    ] = None,
+    parts: Annotated[
+        int, Query(ge=1, le=4096, description="with part: the number of parts (each an even 1/PARTS)")
+    ] = 1,
 ) -> StreamingResponse:
-    """The map points, streamed."""
+    """The map points, streamed. With ``part``: one of ``parts`` disjoint, evenly spread subsets that
+    together hold every point (a point's part is a hash of its key), for drawing progressively."""
+    if part is not None:
+        if part >= parts:
+            raise HTTPException(422, f"part {part} is not in 0..{parts - 1}")
+        return StreamingResponse(
+            await views.points_part_ply(server, map_id, part, parts), media_type="application/octet-stream"
+        )
     if format == schemas.PointsFormat.ply:
         return StreamingResponse(
             views.points_ply(server, map_id, max_points),
@@ -145,6 +159,15 @@ async def map_points(
 async def map_edges(server: Server, map_id: MapId) -> schemas.MapEdges:
     """Loop edges (within and across agents) with the two keyframes' camera centres."""
     return views.map_edges(server, map_id)
+
+
+@router.get(
+    "/maps/{map_id}/groundtruth", response_model=schemas.MapGroundTruth, responses=NOT_FOUND, tags=["maps"]
+)
+async def map_groundtruth(server: Server, map_id: MapId) -> schemas.MapGroundTruth:
+    """Ground truth of the map's agents when the server was given a ground-truth folder (setting
+    ``groundtruth``, ``--groundtruth``), aligned to the map by one rigid transform (evo's Umeyama)."""
+    return views.map_groundtruth(server, map_id)
 
 
 @router.get("/events", response_model=schemas.EventList, tags=["server"])

@@ -61,6 +61,13 @@ def server_command(
             "--foxglove-port", help="Also publish the mission on a Foxglove WebSocket on this port."
         ),
     ] = None,
+    groundtruth: Annotated[
+        Path | None,
+        typer.Option(
+            "--groundtruth",
+            help="Ground truth for the viewer: a scenario folder (DIR/<agent>/mav0/...) or DIR/<agent>.tum.",
+        ),
+    ] = None,
     print_config: Annotated[
         bool, typer.Option("--print-config", help="Print the effective settings as TOML and exit.")
     ] = False,
@@ -79,7 +86,10 @@ def server_command(
     from hivemap.server.settings import load_settings
 
     try:
-        settings = load_settings(config, host=host, port=port, data_dir=data_dir, foxglove_port=foxglove_port)
+        settings = load_settings(
+            config, host=host, port=port, data_dir=data_dir, foxglove_port=foxglove_port,
+            groundtruth=groundtruth,
+        )  # fmt: skip
     except (tomllib.TOMLDecodeError, ValidationError) as exc:
         raise config_error(config, exc) from exc  # one line naming the file and field
     if print_config:

@@ -179,3 +179,21 @@ class MapEdges(BaseModel):
     map_id: int
     loops: list[tuple[str, int, str, int]] = Field(description="(agent, kf id, agent, kf id) per edge")
     segments: list[list[list[float]]] = Field(description="[[x, y, z], [x, y, z]] per edge, map frame")
+
+
+class AgentGroundTruth(BaseModel):
+    """One agent's ground truth in its map's frame (see ``hivemap.server.groundtruth``)."""
+
+    agent_id: str
+    matched: int = Field(description="keyframes paired with a ground-truth time (used by the alignment)")
+    rmse_m: float | None = Field(description="keyframe camera centres against the aligned ground truth")
+    positions: list[list[float]] = Field(description="[x, y, z] camera positions, map frame, in time order")
+
+
+class MapGroundTruth(BaseModel):
+    """Ground truth of a map's agents, aligned to the map by one rigid transform."""
+
+    map_id: int
+    configured: bool = Field(description="the server was given a ground-truth folder (groundtruth)")
+    aligned: bool = Field(description="an alignment was possible (>= 3 keyframes with ground truth)")
+    agents: list[AgentGroundTruth]

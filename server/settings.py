@@ -154,10 +154,24 @@ class ServerSettings(BaseSettings):
     foxglove_port: int | None = Field(
         default=None, ge=0, le=65535, description="Publish the mission on a Foxglove WebSocket on this port."
     )
+    groundtruth: Path | None = Field(
+        default=None,
+        description=(
+            "Ground truth for the viewer (evaluations): a folder with DIR/<agent>/mav0/"
+            "state_groundtruth_estimate0/data.csv (a rendered scenario) or DIR/<agent>.tum per agent."
+        ),
+    )
     # Inspection.
     event_buffer: int = Field(default=10000, ge=10, description="Events kept in the /events ring buffer.")
     ping_interval_s: float = Field(default=20.0, gt=0.0)
     log_level: str = "info"
+
+    @field_validator("groundtruth")
+    @classmethod
+    def _groundtruth_folder(cls, v: Path | None) -> Path | None:
+        if v is not None and not v.is_dir():
+            raise ValueError(f"{v} is not a folder")
+        return v
 
     @field_validator("backend", mode="before")
     @classmethod

@@ -315,6 +315,57 @@ def map_edges(server: HiveServer, map_id: int) -> schemas.MapEdges:
     return schemas.MapEdges(map_id=map_id, loops=loops, segments=segs)
 
 
+def _groundtruth_source(server: HiveServer) -> Any:
+    from hivemap.server.groundtruth import source_of
+
+    src = getattr(server, "_groundtruth_source", None)
+    if src is None and server.settings.groundtruth is not None:
+        src = source_of(server.settings)
+        server._groundtruth_source = src  # type: ignore[attr-defined]
+    return src
+
+
+def map_groundtruth(server: HiveServer, map_id: int) -> schemas.MapGroundTruth:
+    from hivemap.server.groundtruth import aligned_groundtruth
+
+    m = get_map(server, map_id)
+    src = _groundtruth_source(server)
+    if src is None:
+        return schemas.MapGroundTruth(map_id=map_id, configured=False, aligned=False, agents=[])
+    kfs: dict[str, list[tuple[float, np.ndarray]]] = {}
+    for kf in m.keyframes.values():
+        kfs.setdefault(kf.agent_id, []).append(
+            (float(kf.timestamp), np.asarray(kf.world_from_cam, dtype=np.float64)[:3, 3])
+        )
+    tracks, aligned = aligned_groundtruth(src, kfs)
+    return schemas.MapGroundTruth(
+        map_id=map_id,
+        configured=True,
+        aligned=aligned,
+        agents=[
+            schemas.AgentGroundTruth(
+                agent_id=t.agent_id,
+                matched=t.matched,
+                rmse_m=t.rmse_m if math.isfinite(t.rmse_m) else None,
+                positions=t.xyz.tolist(),
+            )
+            for t in sorted(tracks, key=lambda t: t.agent_id)
+        ],
+    )
+
+
+async def points_part_ply(server: HiveServer, map_id: int, part: int, parts: int) -> Iterator[bytes]:
+    """Part ``part`` of ``parts`` of the map's points (``hivemap.server.lod``) as PLY with float x, y, z."""
+    from hivemap.server import lod
+
+    m = get_map(server, map_id)
+    cache = getattr(server, "_lod_clouds", None)
+    if cache is None:
+        cache = server._lod_clouds = {}  # type: ignore[attr-defined]
+    c = await lod.cloud(m, cache, set(server.stack.maps))
+    return lod.ply_float(await lod.part(c, part, parts), f"hivemap map {map_id} part {part} of {parts}")
+
+
 def events(server: HiveServer, since: int, kind: str | None, limit: int) -> schemas.EventList:
     evs = server.events.since(since, kind, limit)
     return schemas.EventList(

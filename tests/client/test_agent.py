@@ -116,3 +116,27 @@ def test_connected_agent_streams_its_keyframes(tiny_agent: Path, tmp_path: Path)
         assert n_kf > 3 and info["keyframes"] == n_kf and info["pending_keyframes"] == 0
     finally:
         server.stop()
+
+
+def test_streaming_replay_is_the_offline_replay_plus_the_link(tiny_agent: Path, tmp_path: Path) -> None:
+    """Both replays feed the dataset through ``Agent``: without a back-end (no corrections) the streamed
+    run computes the offline run's trajectory exactly, and the server holds every keyframe it made."""
+    from srv_helpers import TOKENS, ServerProcess, write_config
+
+    from hivemap.client.runner import RunnerOptions, run_offline
+    from hivemap.client.streaming import run_streaming
+    from hivemap.eval.trajectory import read_tum
+
+    opts = RunnerOptions(progress=False, corrections_max_wait_s=0.0)
+    offline = run_offline(tiny_agent, tmp_path / "offline", opts)
+    server = ServerProcess(tmp_path / "data", write_config(tmp_path / "server.toml")).start()
+    try:
+        streamed = run_streaming(tiny_agent, tmp_path / "streamed", server.ws_url, None, TOKENS["uav1"], opts)
+        info = server.json("/agents/uav1")
+    finally:
+        server.stop()
+    assert streamed.unsent == 0 and streamed.stopped_by == ""
+    assert info["keyframes"] == streamed.keyframes == offline.keyframes > 3 and info["pending_keyframes"] == 0
+    a, b = read_tum(tmp_path / "offline" / "local.tum"), read_tum(tmp_path / "streamed" / "local.tum")
+    np.testing.assert_array_equal(a.timestamps, b.timestamps)
+    np.testing.assert_allclose(a.positions_xyz, b.positions_xyz, atol=1e-6)

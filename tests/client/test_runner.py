@@ -119,16 +119,15 @@ class _FlakyHealth:
     ],
 )
 def test_wait_for_server_retries_unanswered_health_polls(drop: int, idle: bool | None, expect_health: bool):
-    import asyncio
     import time
 
-    from hivemap.client.runner import _wait_for_server
+    from hivemap.client.health import wait_for_server
 
     srv = _FlakyHealth(drop, idle)
     try:
         opts = RunnerOptions(corrections_grace_s=0.0, corrections_quiet_s=6.0, corrections_max_wait_s=30.0)
         t0 = time.monotonic()
-        asyncio.run(_wait_for_server(srv.url, opts, [0.0], lambda: None))
+        wait_for_server(srv.url, opts, lambda: 0.0, lambda: None)
         took = time.monotonic() - t0
     finally:
         srv.close()

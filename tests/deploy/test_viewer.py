@@ -47,6 +47,25 @@ def _browser(extra_args: list[str] | None = None):  # type: ignore[no-untyped-de
     return webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
 
 
+def open_viewer(url: str, attr: str, value: str | None, timeout: float = 30.0):  # type: ignore[no-untyped-def]
+    """A browser on the viewer at ``url``, once the page's ``body[attr]`` is ``value`` (None: is set) or
+    ``timeout`` s passed; returns (driver, body). The caller quits the driver."""
+    driver = _browser()
+    try:
+        driver.get(url + "/")
+        body = driver.find_element("tag name", "body")
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            got = body.get_attribute(attr)
+            if (got is not None) if value is None else got == value:
+                break
+            time.sleep(0.2)
+    except BaseException:
+        driver.quit()
+        raise
+    return driver, body
+
+
 def test_viewer_draws_the_map_and_agents(server: ServerProcess, tmp_path: Path) -> None:
     total_points = 0
     for agent_id, seed, offset in (("uav1", 1, (0.0, 0.0, 0.0)), ("ugv1", 2, (5.0, 30.0, 0.0))):

@@ -92,6 +92,11 @@ def test_viewer_draws_frustums_loops_and_stable_colours(mission: ServerProcess, 
         assert set(kinds) - DEFAULT_EVENTS, kinds
         time.sleep(1.0)  # a few frames with everything in place
         png = driver.get_screenshot_as_png()
+        # only maps the server lists are asked for (not ids that were merged away)
+        urls = driver.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+        asked = {int(u.split("/maps/")[1].split("/")[0].split("?")[0]) for u in urls if "/maps/" in u
+                 and u.split("/maps/")[1][:1].isdigit()}  # fmt: skip
+        assert asked and asked <= {m["id"] for m in maps}, (asked, maps)
         (tmp_path / "viewer.png").write_bytes(png)
     finally:
         driver.quit()
@@ -108,3 +113,29 @@ def test_viewer_draws_frustums_loops_and_stable_colours(mission: ServerProcess, 
     assert int(magenta.sum()) > 20, "no loop edges on screen"
     for agent_id in ("ugv1", "uav1"):
         assert pixels(colors[agent_id]) > 50, f"{agent_id}'s trajectory/frustums not on screen"
+
+
+def test_orbit_camera_turns_around_its_target(mission: ServerProcess) -> None:
+    from selenium.webdriver import ActionChains
+    from test_viewer import open_viewer
+
+    driver, body = open_viewer(mission.url, "data-points-level", "full")
+    try:
+        canvas = driver.find_element("id", "view")
+
+        def drag(dx: int, dy: int) -> str | None:
+            chain = ActionChains(driver).move_to_element(canvas).click_and_hold()
+            chain.move_by_offset(dx, dy).release().perform()
+            time.sleep(0.5)
+            return body.get_attribute("data-camera")
+
+        before_json = drag(120, 60)  # the first drag also reports the camera (after fitting to the map)
+        after_json = drag(-200, 80)
+    finally:
+        driver.quit()
+    (p0, t0), (p1, t1) = json.loads(before_json or "null"), json.loads(after_json or "null")
+    p0, t0, p1, t1 = map(np.asarray, (p0, t0, p1, t1))
+    # a left drag orbits: the camera moved on a sphere around the unchanged target (in 3D, height too)
+    np.testing.assert_allclose(t1, t0, atol=1e-6)
+    assert np.linalg.norm(p1 - p0) > 1.0 and abs(p1[2] - p0[2]) > 0.1
+    assert abs(np.linalg.norm(p1 - t1) - np.linalg.norm(p0 - t0)) < 1e-3 * np.linalg.norm(p0 - t0)

@@ -1,6 +1,6 @@
-// hivemap live map viewer: points of every map (coarse first, then full), keyframe trajectories and
-// frustums per agent, current agent positions, loop edges, filtered events, and a side panel (agents,
-// maps, bandwidth). Polls the REST API.
+// hivemap live map viewer: points of every map (progressively, one level-of-detail part after the other),
+// keyframe trajectories and frustums per agent, current agent positions, loop edges, ground truth when the
+// server has it (a toggle), filtered events, and a side panel (agents, maps, bandwidth). Polls the REST API.
 import * as THREE from "three";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
 
@@ -9,13 +9,15 @@ const POLL_MS = 1000;
 // same on every page load and in Foxglove (hivemap.server.foxglove.agent_color uses this hash too).
 export const PALETTE = [0x1f77b4, 0xff7f0e, 0x2ca02c, 0xd62728, 0x9467bd, 0x8c564b, 0xe377c2, 0x7f7f7f,
   0xbcbd22, 0x17becf, 0x66ffcc, 0x99cc33, 0xb266ff, 0xffcc00, 0x4da6ff, 0xcc6666];
-const COARSE_POINTS = 150000; // first level of detail per map, drawn before the full cloud arrives
+// the first level of detail holds at most this many points of a map; each further request doubles what is
+// drawn (see lodSteps)
+const PART_POINTS = 150000;
 const LOOP_COLOR = 0xff00ff;
 // events shown by default; the rest (candidates, BA and consistency details, info) with "all events"
 const DEFAULT_EVENTS = new Set(["merge", "loop", "correction", "gnss_stage", "session", "error", "refused",
   "connect", "disconnect", "mission", "start_anchor"]);
 const state = { maps: [], agents: [], events: [], colors: {}, drawnPoints: 0, allEvents: false,
-  kfCounts: "", fullLoaded: {} };
+  kfCounts: "", pointsKey: null, pointsLoading: false, showGt: true };
 
 const canvas = document.getElementById("view");
 const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
@@ -28,6 +30,11 @@ camera.position.set(-60, -80, 90);
 const controls = new OrbitControls(camera, canvas);
 controls.target.set(0, 0, 0);
 controls.update();
+// the camera's position and orbit target, for tests and scripts that drive the view
+controls.addEventListener("change", () => {
+  requestRender();
+  document.body.dataset.camera = JSON.stringify([camera.position.toArray(), controls.target.toArray()]);
+});
 const grid = new THREE.GridHelper(200, 20, 0x3a3f47, 0x262a30);
 grid.rotation.x = Math.PI / 2;
 scene.add(grid);
@@ -37,7 +44,8 @@ const trajGroup = new THREE.Group();
 const agentGroup = new THREE.Group();
 const frustumGroup = new THREE.Group();
 const edgeGroup = new THREE.Group();
-scene.add(pointGroup, trajGroup, agentGroup, frustumGroup, edgeGroup);
+const gtGroup = new THREE.Group();
+scene.add(pointGroup, trajGroup, agentGroup, frustumGroup, edgeGroup, gtGroup);
 
 // FNV-1a, 32 bit, over the UTF-8 bytes of the id
 export function hashId(id) {
@@ -59,6 +67,7 @@ function resize() {
     renderer.setSize(w, h, false);
     camera.aspect = w / h;
     camera.updateProjectionMatrix();
+    requestRender();
   }
 }
 
@@ -87,7 +96,11 @@ export function parsePly(buffer) {
   let stride = 0;
   const off = {};
   for (const p of props) { off[p.name] = { o: stride, t: p.type }; stride += size[p.type]; }
-  const dv = new DataView(buffer, headerEnd + "end_header\n".length);
+  const body = headerEnd + "end_header\n".length;
+  if (props.length === 3 && props.every((p, i) => p.name === "xyz"[i] && (p.type === "float" || p.type === "float32"))) {
+    return new Float32Array(buffer.slice(body, body + 12 * count)); // the level-of-detail parts: as they are
+  }
+  const dv = new DataView(buffer, body);
   const xyz = new Float32Array(count * 3);
   const read = (base, p) => (p.t === "double" || p.t === "float64") ? dv.getFloat64(base + p.o, true) : dv.getFloat32(base + p.o, true);
   for (let i = 0; i < count; i++) {
@@ -97,48 +110,90 @@ export function parsePly(buffer) {
   return xyz;
 }
 
-async function refreshPoints(full) {
-  const children = [];
+// First data: frame the map on robust bounds (5th-95th percentile per axis; far outliers ignored).
+function fitCamera(arrays) {
+  const lo = [], hi = [];
+  for (let ax = 0; ax < 3; ax++) {
+    const v = [];
+    for (const a of arrays) for (let i = ax; i < a.length; i += 3 * Math.max(1, Math.floor(a.length / 30000))) if (Number.isFinite(a[i])) v.push(a[i]);
+    v.sort((x, y) => x - y);
+    lo.push(v[Math.floor(0.05 * (v.length - 1))] ?? 0);
+    hi.push(v[Math.floor(0.95 * (v.length - 1))] ?? 0);
+  }
+  const center = new THREE.Vector3((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2);
+  const size = Math.max(10, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
+  state.sceneSize = size;
+  controls.target.copy(center);
+  camera.position.set(center.x - 0.5 * size, center.y - 0.7 * size, center.z + 0.8 * size);
+  controls.update();
+  state.fitted = true;
+  state.kfCounts = ""; // the loop arcs' height follows the scene size: rebuilt at the next poll
+}
+
+// The requests (part K of P, GET /maps/ID/points?part=K&parts=P) that load a map of ``points`` points coarse
+// to fine: part 0 of P (P the power of two that makes it at most PART_POINTS), then P/2 of P, P/4 of P/2,
+// ..., 1 of 2. Part K of P is a point hash's residue K mod P, so these are disjoint, hold every point, and
+// each doubles the density drawn: log2(P) + 1 requests, and the frames drawn while loading cost about twice
+// the full map's.
+export function lodSteps(points) {
+  let p = 1;
+  while (points / p > PART_POINTS) p *= 2;
+  const steps = [[0, p]];
+  for (let q = p; q > 1; q /= 2) steps.push([q / 2, q]);
+  return steps;
+}
+
+// Every map's points, level after level of detail: the first load draws each part as it arrives, so
+// the whole map shows at low density after one request per map; a reload (the counts changed) builds the
+// new cloud aside and swaps it in once complete, so the drawn map never thins out.
+async function loadPoints(key) {
+  state.pointsLoading = true;
+  const progressive = pointGroup.children.length === 0;
+  const group = new THREE.Group();
+  if (progressive) pointGroup.add(group);
+  const mat = new THREE.PointsMaterial({ size: 0.12, color: 0xd0d4da, sizeAttenuation: true });
+  const maps = state.maps.map((m) => ({ id: m.id, steps: lodSteps(m.points || 0), gone: false }));
+  const levels = Math.max(0, ...maps.map((m) => m.steps.length));
   let total = 0;
-  let subsampled = false;
-  for (const m of state.maps) {
-    const lod = full || m.points <= COARSE_POINTS ? "" : `&max_points=${COARSE_POINTS}`;
-    if (lod) subsampled = true;
-    const r = await fetch(`/maps/${m.id}/points?format=ply${lod}`);
-    if (!r.ok) continue; // merged away since /maps was read
-    const xyz = parsePly(await r.arrayBuffer());
-    const geom = new THREE.BufferGeometry();
-    geom.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
-    const mat = new THREE.PointsMaterial({ size: 0.12, color: 0xd0d4da, sizeAttenuation: true });
-    const pts = new THREE.Points(geom, mat);
-    pts.userData.mapId = m.id;
-    children.push(pts);
-    total += xyz.length / 3;
-  }
-  pointGroup.clear();
-  for (const c of children) pointGroup.add(c);
-  if (!state.fitted && total > 0) {
-    // First data: frame the map on robust bounds (5th-95th percentile per axis; far outliers ignored).
-    const all = children.map((c) => c.geometry.getAttribute("position").array);
-    const lo = [], hi = [];
-    for (let ax = 0; ax < 3; ax++) {
-      const v = [];
-      for (const a of all) for (let i = ax; i < a.length; i += 3 * Math.max(1, Math.floor(a.length / 30000))) if (Number.isFinite(a[i])) v.push(a[i]);
-      v.sort((x, y) => x - y);
-      lo.push(v[Math.floor(0.05 * (v.length - 1))] ?? 0);
-      hi.push(v[Math.floor(0.95 * (v.length - 1))] ?? 0);
+  document.body.dataset.pointsLevel = "coarse";
+  try {
+    for (let k = 0; k < levels; k++) {
+      for (const m of maps) {
+        if (k >= m.steps.length || m.gone) continue;
+        const [part, parts] = m.steps[k];
+        const r = await fetch(`/maps/${m.id}/points?part=${part}&parts=${parts}`);
+        if (!r.ok) { m.gone = true; continue; } // merged away since /maps was read
+        const xyz = parsePly(await r.arrayBuffer());
+        if (!xyz.length) continue;
+        const geom = new THREE.BufferGeometry();
+        geom.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
+        const pts = new THREE.Points(geom, mat);
+        pts.userData.mapId = m.id;
+        group.add(pts);
+        requestRender();
+        total += xyz.length / 3;
+        if (progressive) {
+          state.drawnPoints = total;
+          document.body.dataset.points = String(total);
+        }
+      }
+      // framed on the first level of detail of every map (an even subsample: the same bounds as all)
+      if (k === 0 && progressive && !state.fitted && total > 0) fitCamera(group.children.map((c) => c.geometry.getAttribute("position").array));
     }
-    const center = new THREE.Vector3((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2);
-    const size = Math.max(10, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
-    state.sceneSize = size;
-    controls.target.copy(center);
-    camera.position.set(center.x - 0.5 * size, center.y - 0.7 * size, center.z + 0.8 * size);
-    controls.update();
-    state.fitted = true;
+  } finally {
+    state.pointsLoading = false;
   }
+  if (!progressive) {
+    pointGroup.clear();
+    pointGroup.add(group);
+  }
+  if (!state.fitted && total > 0) fitCamera(group.children.map((c) => c.geometry.getAttribute("position").array));
+  requestRender();
+  state.pointsKey = key;
   state.drawnPoints = total;
   document.body.dataset.points = String(total);
-  document.body.dataset.pointsLevel = subsampled ? "coarse" : "full";
+  document.body.dataset.pointsLevel = "full";
+  if (total) state.allPoints = true;
 }
 
 // A pyramid per keyframe (apex at the camera centre, 60 x 45 degree field of view), as line segments.
@@ -192,18 +247,55 @@ async function refreshKeyframes() {
     edgeGroup.add(new THREE.LineSegments(geom, new THREE.LineBasicMaterial({ color: LOOP_COLOR })));
   }
   state.kfCounts = counts;
+  requestRender();
   document.body.dataset.frustums = String(n);
   document.body.dataset.loopEdges = String(loops.length);
+  await refreshGroundTruth();
+}
+
+// Ground truth of each map's agents (when the server was given a ground-truth folder), aligned to the map
+// by the server, drawn dashed in the agent's colour; the "ground truth" toggle shows or hides it.
+async function refreshGroundTruth() {
+  const lines = [];
+  let configured = false;
+  for (const m of state.maps) {
+    let gt;
+    try { gt = await getJSON(`/maps/${m.id}/groundtruth`); } catch { continue; }
+    configured ||= gt.configured;
+    for (const a of gt.agents || []) {
+      if (a.positions.length < 2) continue;
+      const geom = new THREE.BufferGeometry();
+      geom.setAttribute("position", new THREE.BufferAttribute(new Float32Array(a.positions.flat()), 3));
+      const line = new THREE.Line(geom, new THREE.LineDashedMaterial({ color: colorOf(a.agent_id), dashSize: 0.6, gapSize: 0.4 }));
+      line.computeLineDistances();
+      line.userData.agentId = a.agent_id;
+      lines.push(line);
+    }
+  }
+  gtGroup.clear();
+  for (const l of lines) gtGroup.add(l);
+  requestRender();
+  gtGroup.visible = state.showGt;
+  document.getElementById("gt-toggle").hidden = !configured;
+  document.body.dataset.groundtruth = String(lines.length);
+  document.body.dataset.groundtruthShown = String(state.showGt ? lines.length : 0);
 }
 
 async function refreshTrajectories() {
-  trajGroup.clear();
-  agentGroup.clear();
+  const fetched = [];
   for (const a of state.agents) {
     if (!a.keyframes) continue; // configured but nothing received yet
-    let traj;
-    try { traj = await getJSON(`/agents/${encodeURIComponent(a.agent_id)}/trajectory?frame=global&format=json`); }
+    try { fetched.push([a, await getJSON(`/agents/${encodeURIComponent(a.agent_id)}/trajectory?frame=global&format=json`)]); }
     catch { continue; }
+  }
+  // redrawn (and the frame rendered) only when a trajectory changed
+  const key = JSON.stringify(fetched.map(([a, traj]) => [a.agent_id, traj.poses || traj]));
+  if (key === state.trajKey) return;
+  state.trajKey = key;
+  requestRender();
+  trajGroup.clear();
+  agentGroup.clear();
+  for (const [a, traj] of fetched) {
     const poses = traj.poses || traj;
     if (!poses.length) continue;
     const pos = new Float32Array(poses.length * 3);
@@ -250,16 +342,10 @@ async function poll() {
     state.events = events.events || events;
     const counts = JSON.stringify(state.maps.map((m) => [m.id, m.points]));
     const now = Date.now();
-    if (counts !== state.lastCounts && now - lastPointsFetch > 2000) {
-      state.lastCounts = counts;
+    if (counts !== state.pointsKey && !state.pointsLoading && now - lastPointsFetch > 2000) {
       lastPointsFetch = now;
-      // level of detail: a coarse cloud shows within seconds even for millions of points, the full one
-      // replaces it on the next poll
-      await refreshPoints(state.coarseDrawn === counts);
-      state.coarseDrawn = counts;
-      if (document.body.dataset.pointsLevel === "coarse") state.lastCounts = "";
-    } else if (counts === state.coarseDrawn && document.body.dataset.pointsLevel === "coarse") {
-      await refreshPoints(true);
+      // not awaited: the panel, trajectories and frustums go on updating while the parts arrive
+      loadPoints(counts).catch((err) => { document.getElementById("status").textContent = `points: ${err.message}`; });
     }
     await refreshTrajectories();
     await refreshKeyframes();
@@ -271,13 +357,31 @@ async function poll() {
   setTimeout(poll, POLL_MS);
 }
 
+// Drawn on demand (the view moved, data arrived, the window changed): a frame of millions of points is
+// expensive, so an idle page draws nothing.
+let needsRender = true;
+function requestRender() { needsRender = true; }
+
 function animate() {
   resize();
   controls.update();
-  renderer.render(scene, camera);
+  if (needsRender) {
+    needsRender = false;
+    renderer.render(scene, camera);
+    // times from navigation to the first frame with points and to the first with all of them
+    const d = document.body.dataset;
+    if (state.drawnPoints > 0 && !d.pointsFirstMs) d.pointsFirstMs = String(Math.round(performance.now()));
+    if (state.allPoints && !d.pointsAllMs) d.pointsAllMs = String(Math.round(performance.now()));
+  }
   requestAnimationFrame(animate);
 }
 
 document.getElementById("all-events").addEventListener("change", (e) => { state.allEvents = e.target.checked; renderPanel(); });
+document.getElementById("show-gt").addEventListener("change", (e) => {
+  state.showGt = e.target.checked;
+  gtGroup.visible = state.showGt;
+  requestRender();
+  document.body.dataset.groundtruthShown = String(state.showGt ? gtGroup.children.length : 0);
+});
 animate();
 poll();
