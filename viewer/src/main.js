@@ -15,7 +15,8 @@ const PART_POINTS = 150000;
 const LOOP_COLOR = 0xff00ff;
 // events shown by default; the rest (candidates, BA and consistency details, info) with "all events"
 const DEFAULT_EVENTS = new Set(["merge", "loop", "correction", "gnss_stage", "session", "error", "refused",
-  "connect", "disconnect", "mission", "start_anchor"]);
+  "connect", "disconnect", "mission", "start_anchor", "start_prior", "selfcheck_alarm", "loop_rejected",
+  "loop_readmitted", "merge_undone", "merge_confirmed"]);
 const state = { maps: [], agents: [], events: [], colors: {}, drawnPoints: 0, allEvents: false,
   kfCounts: "", pointsKey: null, pointsLoading: false, showGt: true };
 
