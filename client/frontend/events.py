@@ -16,8 +16,9 @@ I64 = NDArray[np.int64]
 class TrackingState(StrEnum):
     INITIALIZING = "initializing"
     OK = "ok"
+    WEAK = "weak"  # few inliers, the pose held by the IMU prior
     RELOCALIZED = "relocalized"
-    LOST = "lost"
+    LOST = "lost"  # no visual pose taken: the IMU (or the motion model) alone propagates it
     NEW_MAP = "new_map"
 
 
@@ -74,11 +75,19 @@ class PoseUpdateEvent:
 
 @dataclass(frozen=True)
 class NewSessionEvent:
-    """Tracking was lost and relocalisation failed: a new map (session) starts."""
+    """Tracking was lost and relocalisation failed: a new map (session) starts.
+
+    ``old_from_new``: the guess of the new session's VIO frame in the old one's (4x4), with its
+    uncertainty (``sigma_m`` position, ``sigma_deg`` attitude) from the IMU-only propagation that
+    bridged the loss; None when nothing bridged it (no IMU, or not yet gravity-aligned).
+    """
 
     old_session: int
     session: int
     t: float
+    old_from_new: F64 | None = None
+    sigma_m: float = float("inf")
+    sigma_deg: float = float("inf")
 
 
 Event = KeyframeEvent | PoseUpdateEvent | NewSessionEvent
@@ -88,7 +97,9 @@ Event = KeyframeEvent | PoseUpdateEvent | NewSessionEvent
 class FrontendStats:
     frames: int = 0
     keyframes: int = 0
+    weak_frames: int = 0
     lost_frames: int = 0
     relocalizations: int = 0
+    imu_rejections: int = 0  # visual poses not taken because the IMU prediction disagreed
     sessions: int = 1
     timing: dict[str, float] = field(default_factory=dict)

@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.client.frontend import imu, mapping
+from hivemap.client.frontend.emit import emit_keyframe
 from hivemap.client.frontend.events import (
     Event,
     FrameResult,
@@ -22,13 +23,16 @@ from hivemap.client.frontend.events import (
 )
 from hivemap.client.frontend.features import ContrastNormaliser, OrbExtractor
 from hivemap.client.frontend.imu import _ImuState
+from hivemap.client.frontend.inertial import MotionFilter, gyro_bias_step
 from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore, hamming
 from hivemap.client.frontend.optim import (
     Intrinsics,
+    PosePrior,
     optimize_pose,
     project,
 )
 from hivemap.client.frontend.options import FrontendOptions
+from hivemap.client.frontend.relocalize import relocalize
 from hivemap.client.frontend.stereo import StereoMatcher
 from hivemap.maps.camera import StereoRig
 from hivemap.maps.geometry import se3, se3_inverse
@@ -86,6 +90,9 @@ class Frontend:
         self._last_tracked = False
         self._pending_new_map = False
         self._align_failures = 0
+        self._filter: MotionFilter | None = None  # from gravity alignment on
+        self._prior: PosePrior | None = None  # the IMU's prior of the frame being tracked
+        self._lost_since: float | None = None
 
     # ------------------------------------------------------------------ public API
     @property
@@ -105,7 +112,7 @@ class Frontend:
         """Emit every keyframe still held back (end of a run)."""
         for kid in sorted(self._kfs):
             if not self._kfs[kid].emitted:
-                self._emit_keyframe(self._kfs[kid])
+                emit_keyframe(self, self._kfs[kid])
 
     def process(
         self,
@@ -138,49 +145,56 @@ class Frontend:
             self._finish(frame, acc_mean, tracked=new_kf is not None)
             return self._result(frame, len(frame.point_ids[frame.point_ids >= 0]), new_kf, state0)
 
-        T_pred = self._predict(pim)
+        pred = imu.predict(self, pim, frame.t - self._last.t)
+        T_pred = pred.T_cw
+        self._prior = pred.prior
         state = TrackingState.OK
         was_lost = self._state == TrackingState.LOST
-        if was_lost:
-            # lost: global relocalisation against the map first, then the (IMU) prediction bridge
-            ok, n_tracked = self._relocalize(frame, T_pred)
+        if was_lost and self._filter is None:
+            # lost without an IMU: global relocalisation against the map first, then the prediction
+            ok, n_tracked = relocalize(self, frame)
             if not ok:
                 ok, n_tracked = self._track(frame, T_pred)
         else:
+            # the (IMU) prediction first; relocalisation against the agent's own map if it fails
             ok, n_tracked = self._track(frame, T_pred)
             if not ok:
-                ok, n_tracked = self._relocalize(frame, T_pred)
-                was_lost = ok
+                ok, n_tracked = relocalize(self, frame)
+                was_lost = was_lost or ok
+        if ok and pred.prior is not None and pred.prior.chi2(frame.T_cw) > o.imu_gate_chi2:
+            # the visual solution disagrees with the IMU beyond the prediction's uncertainty: not taken
+            log.debug("t=%.3f: visual pose (%d inliers) rejected by the IMU gate", t, n_tracked)
+            self.stats.imu_rejections += 1
+            ok = False
+        self._prior = None
         if ok and was_lost:
             state = TrackingState.RELOCALIZED
             self.stats.relocalizations += 1
             log.info("relocalised at t=%.3f with %d matches", t, n_tracked)
+        elif ok and n_tracked < o.good_min_inliers:
+            state = TrackingState.WEAK
+            self.stats.weak_frames += 1
         t2 = time.perf_counter()
         if ok:
             self._lost_count = 0
+            self._lost_since = None
+            self._inertial_update(frame, pim, state)
             if mapping.need_keyframe(self, frame, n_tracked, gnss_epoch, state):
                 new_kf = mapping.create_keyframe(self, frame, gnss_epoch)
         else:
             self._lost_count += 1
+            if self._lost_since is None:
+                self._lost_since = self._last.t
             self.stats.lost_frames += 1
             frame.T_cw = T_pred
             frame.point_ids[:] = -1
             state = TrackingState.LOST
-            if self._lost_count > o.max_lost_frames:
-                old = self.session
-                self.flush()
-                self.session += 1
-                self.stats.sessions += 1
-                self._reset_map()
-                self._events.append(NewSessionEvent(old, self.session, t))
-                log.warning("tracking lost for %d frames: new map session %d", self._lost_count, self.session)
-                self._lost_count = 0
-                if self._initialize(frame, T_pred):
-                    new_kf = self._kf_last_id
-                    state = TrackingState.NEW_MAP
-                else:
-                    self._pending_new_map = True
-                    state = TrackingState.INITIALIZING
+            if self._filter is not None:
+                give_up = frame.t - self._lost_since > o.imu_hold_s
+            else:
+                give_up = self._lost_count > o.max_lost_frames
+            if give_up:
+                new_kf, state = self._new_session(frame, T_pred)
         t3 = time.perf_counter()
         self._finish(frame, acc_mean, tracked=state != TrackingState.LOST)
         tm = self.stats.timing
@@ -255,6 +269,47 @@ class Frontend:
             self._align_buffer.append((frame.t, frame.T_wc @ self.cam_from_body, acc_mean))
             imu.try_gravity_alignment(self)
 
+    def _new_session(self, frame: Frame, T_pred: F64) -> tuple[int | None, TrackingState]:
+        """Tracking stayed lost: a new map session, started at the propagated pose (so its VIO frame is
+        the old one's, as well as the propagation could keep it)."""
+        old = self.session
+        self.flush()
+        self.session += 1
+        self.stats.sessions += 1
+        self._reset_map()
+        filt = self._filter
+        if filt is not None:
+            guess = NewSessionEvent(
+                old, self.session, frame.t, np.eye(4), float(np.sqrt(filt.P[0, 0])),
+                float(np.degrees(np.sqrt(filt.rot_var))),
+            )  # fmt: skip
+        else:
+            guess = NewSessionEvent(old, self.session, frame.t)
+        self._events.append(guess)
+        log.warning("tracking lost for %d frames: new map session %d", self._lost_count, self.session)
+        self._lost_count = 0
+        self._lost_since = None
+        if self._initialize(frame, T_pred):
+            return self._kf_last_id, TrackingState.NEW_MAP
+        self._pending_new_map = True
+        return None, TrackingState.INITIALIZING
+
+    def _inertial_update(self, frame: Frame, pim: Any, state: TrackingState) -> None:
+        """A visual pose was taken: it corrects the motion filter and (tracked well after a tracked
+        frame) the gyro bias."""
+        if self.imu is None:
+            return
+        T_wb = frame.T_wc @ self.cam_from_body
+        if self._filter is not None:
+            self._filter.update(T_wb[:3, 3], self.options)
+        if pim is not None and state == TrackingState.OK and self._last_tracked and self._last is not None:
+            R_prev = (self._last.T_wc @ self.cam_from_body)[:3, :3]
+            bg = np.asarray(self.imu.bias.gyroscope(), dtype=np.float64)
+            dR = pim.deltaRij().matrix()
+            self.imu.set_gyro_bias(
+                gyro_bias_step(R_prev, T_wb[:3, :3], dR, frame.t - self._last.t, bg, self.options)
+            )
+
     # ------------------------------------------------------------------ map lifecycle
     def _reset_map(self) -> None:
         self._kfs: dict[int, KeyframeData] = {}
@@ -272,10 +327,6 @@ class Frontend:
         mapping.create_keyframe(self, frame, False, first=True)
         log.info("map session %d initialised at t=%.3f with %d points", self.session, frame.t, has.sum())
         return True
-
-    # ------------------------------------------------------------------ prediction / IMU
-    def _predict(self, pim: Any) -> F64:
-        return imu.predict(self, pim)
 
     # ------------------------------------------------------------------ matching
     def _match_projection(
@@ -366,7 +417,9 @@ class Frontend:
                 T = se3(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
                 inl = inl.reshape(-1)
                 pids, kps = pids[inl], kps[inl]
-        T, good = optimize_pose(self.k, T, self._pts.xyz[pids], frame.meas[kps], frame.inv_sigma2[kps])
+        T, good = optimize_pose(
+            self.k, T, self._pts.xyz[pids], frame.meas[kps], frame.inv_sigma2[kps], prior=self._prior
+        )
         return T, pids[good], kps[good]
 
     def _track(self, frame: Frame, T_pred: F64) -> tuple[bool, int]:
@@ -395,7 +448,9 @@ class Frontend:
         p2, k2 = local[sel], match[sel]
         if len(p2) < len(p_in):
             p2, k2 = p_in, k_in
-        T, inl = optimize_pose(self.k, T, self._pts.xyz[p2], frame.meas[k2], frame.inv_sigma2[k2])
+        T, inl = optimize_pose(
+            self.k, T, self._pts.xyz[p2], frame.meas[k2], frame.inv_sigma2[k2], prior=self._prior
+        )
         n_in = int(inl.sum())
         if n_in < o.min_tracked:
             return False, n_in
@@ -406,104 +461,8 @@ class Frontend:
         self._pts.found[p2[inl]] += 1
         return True, n_in
 
-    # ------------------------------------------------------------------ relocalisation
-    def _relocalize(self, frame: Frame, T_pred: F64) -> tuple[bool, int]:
-        o = self.options
-        if frame.n == 0 or not self._kfs:
-            return False, 0
-        kf_ids = sorted(self._kfs)[-o.reloc_keyframes :]
-        pids = np.unique(np.concatenate([self._kfs[k].frame.point_ids for k in kf_ids]))
-        pids = pids[pids >= 0]
-        pids = pids[self._pts.alive[pids]]
-        if len(pids) < o.reloc_min_inliers:
-            return False, 0
-        bf = cv2.BFMatcher(cv2.NORM_HAMMING)
-        knn = bf.knnMatch(frame.desc, self._pts.desc[pids], k=2)
-        qi, ti = [], []
-        for m in knn:
-            if len(m) == 2 and m[0].distance < 0.8 * m[1].distance and m[0].distance <= 64:
-                qi.append(m[0].queryIdx)
-                ti.append(m[0].trainIdx)
-        if len(qi) < o.reloc_min_inliers:
-            return False, len(qi)
-        kps = np.array(qi)
-        mp = pids[np.array(ti)]
-        _, u = np.unique(kps, return_index=True)
-        kps, mp = kps[u], mp[u]
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            self._pts.xyz[mp],
-            frame.kpu[kps],
-            self.cam.K,
-            None,
-            iterationsCount=500,
-            reprojectionError=o.pnp_reprojection_px,
-            confidence=0.999,
-            flags=cv2.SOLVEPNP_P3P,
-        )
-        if not ok or inl is None or len(inl) < o.reloc_min_inliers:
-            return False, 0 if inl is None else len(inl)
-        T = se3(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
-        inl = inl.reshape(-1)
-        return self._finish_tracking(frame, T, mp[inl], kps[inl])
-
     def _triangulate(self, kf: KeyframeData) -> None:
         mapping.triangulate(self, kf)
-
-    def _emit_ready(self) -> None:
-        if not self._gravity_aligned:
-            return
-        ids = sorted(self._kfs)
-        delay = 2
-        for kid in ids[: max(0, len(ids) - delay)]:
-            if not self._kfs[kid].emitted:
-                self._emit_keyframe(self._kfs[kid])
-
-    def _emit_keyframe(self, kf: KeyframeData) -> None:
-        f = kf.frame
-        pids = f.point_ids.copy()
-        ok = pids >= 0
-        ok[ok] = self._pts.alive[pids[ok]]
-        pids[~ok] = -1
-        newp = np.unique(pids[ok])
-        newp = newp[~self._pts.emitted[newp]]
-        self._pts.emitted[newp] = True
-        T_wc = kf.T_wc
-        T_wb = T_wc @ self.cam_from_body
-        rel_body = rel_cov = None
-        prev = self._kfs.get(kf.prev_id) if kf.prev_id is not None else None
-        if prev is not None and kf.rel_cov_cam is not None:
-            prev_wb = prev.T_wc @ self.cam_from_body
-            rel_body = se3_inverse(prev_wb) @ T_wb
-            # right perturbation: xi_body = Ad(body_from_cam) xi_cam
-            Tbc = self.body_from_cam
-            Rb, tb = Tbc[:3, :3], Tbc[:3, 3]
-            tx = np.array([[0, -tb[2], tb[1]], [tb[2], 0, -tb[0]], [-tb[1], tb[0], 0]])
-            Ad = np.zeros((6, 6))
-            Ad[:3, :3] = Rb
-            Ad[3:, 3:] = Rb
-            Ad[3:, :3] = tx @ Rb
-            rel_cov = Ad @ kf.rel_cov_cam @ Ad.T
-        kf.emitted = True
-        self._events.append(
-            KeyframeEvent(
-                session=kf.session,
-                kf_id=kf.id,
-                timestamp=kf.timestamp,
-                world_from_cam=T_wc,
-                world_from_body=T_wb,
-                keypoints=f.uv.copy(),
-                octaves=f.octaves.copy(),
-                descriptors=f.desc.copy(),
-                point_ids=pids,
-                prev_kf_id=kf.prev_id if prev is not None else None,
-                rel_body=rel_body,
-                rel_cov=rel_cov,
-                gnss_epoch=kf.gnss_epoch,
-                new_point_ids=newp,
-                new_point_xyz=self._pts.xyz[newp].copy(),
-                new_point_descriptors=self._pts.desc[newp].copy(),
-            )
-        )
 
 
 __all__ = [
