@@ -70,5 +70,7 @@ def emit_keyframe(fe: Frontend, kf: KeyframeData) -> None:
             new_point_ids=newp,
             new_point_xyz=fe._pts.xyz[newp].copy(),
             new_point_descriptors=fe._pts.desc[newp].copy(),
+            prev_session_from_world=kf.prev_session_from_world,
+            prev_session_sigma=kf.prev_session_sigma,
         )
     )

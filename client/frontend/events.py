@@ -42,6 +42,8 @@ class KeyframeEvent:
     ``rel_body`` = prev_body_from_body (4x4) with ``rel_cov`` (6x6, gtsam order [rot, trans], right
     perturbation of ``rel_body``), both None for the first keyframe of a session.
     New points: those its keypoints reference that were not emitted before.
+    ``prev_session_from_world`` / ``prev_session_sigma`` [m, deg]: on the first keyframe of a session
+    the IMU bridged from the previous one, the guess of this session's frame in that one's.
     """
 
     session: int
@@ -60,6 +62,8 @@ class KeyframeEvent:
     new_point_ids: I64
     new_point_xyz: F64
     new_point_descriptors: NDArray[np.uint8]
+    prev_session_from_world: F64 | None = None
+    prev_session_sigma: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)

@@ -70,6 +70,10 @@ class MotionFilter:
         info[3:, 3:] = np.eye(3) / self.P[0, 0]
         return info
 
+    def sigmas(self) -> tuple[float, float]:
+        """1-sigma position (m) and attitude (deg) of the propagated pose."""
+        return float(np.sqrt(self.P[0, 0])), float(np.degrees(np.sqrt(self.rot_var)))
+
     def rotate(self, R: F64) -> None:
         """The world frame was rotated by ``R`` (gravity alignment)."""
         self.p, self.v, self.c = R @ self.p, R @ self.v, R @ self.c

@@ -60,6 +60,9 @@ class KeyframeData:
     emitted: bool = False
     prev_id: int | None = None
     rel_cov_cam: F64 | None = None  # 6x6 [rot, trans], right perturbation of world_from_cam
+    # first keyframe of a session after a loss: this session's frame in the previous one's + [m, deg]
+    prev_session_from_world: F64 | None = None
+    prev_session_sigma: tuple[float, float] | None = None
 
     @property
     def T_wc(self) -> F64:

@@ -93,6 +93,7 @@ class Frontend:
         self._filter: MotionFilter | None = None  # from gravity alignment on
         self._prior: PosePrior | None = None  # the IMU's prior of the frame being tracked
         self._lost_since: float | None = None
+        self._bridged = False  # the IMU bridged the loss that started the current session
 
     # ------------------------------------------------------------------ public API
     @property
@@ -137,7 +138,15 @@ class Frontend:
         new_kf: int | None = None
         if self._state == TrackingState.INITIALIZING or self._last is None:
             state0 = TrackingState.INITIALIZING
-            if self._initialize(frame, np.eye(4) if self._last is None else self._last.T_cw):
+            if self._last is None:
+                T_init = np.eye(4)
+            elif self._filter is not None and pim is not None:
+                # a new session waiting for images: the IMU keeps propagating into the old frame
+                T_init = imu.predict(self, pim, frame.t - self._last.t).T_cw
+            else:
+                T_init = self._last.T_cw
+            frame.T_cw = T_init
+            if self._initialize(frame, T_init):
                 self._state = TrackingState.OK
                 new_kf = self._kf_last_id
                 state0 = TrackingState.NEW_MAP if self._pending_new_map else TrackingState.OK
@@ -278,14 +287,11 @@ class Frontend:
         self.stats.sessions += 1
         self._reset_map()
         filt = self._filter
+        self._bridged = filt is not None
         if filt is not None:
-            guess = NewSessionEvent(
-                old, self.session, frame.t, np.eye(4), float(np.sqrt(filt.P[0, 0])),
-                float(np.degrees(np.sqrt(filt.rot_var))),
-            )  # fmt: skip
+            self._events.append(NewSessionEvent(old, self.session, frame.t, np.eye(4), *filt.sigmas()))
         else:
-            guess = NewSessionEvent(old, self.session, frame.t)
-        self._events.append(guess)
+            self._events.append(NewSessionEvent(old, self.session, frame.t))
         log.warning("tracking lost for %d frames: new map session %d", self._lost_count, self.session)
         self._lost_count = 0
         self._lost_since = None
@@ -324,7 +330,14 @@ class Frontend:
         if has.sum() < 50:
             return False
         frame.T_cw = T_cw.copy()
-        mapping.create_keyframe(self, frame, False, first=True)
+        kid = mapping.create_keyframe(self, frame, False, first=True)
+        if self._bridged and self._filter is not None:
+            # the map starts at the IMU-propagated pose: the same frame as the old session's, within
+            # the propagation's uncertainty now
+            kf = self._kfs[kid]
+            kf.prev_session_from_world = np.eye(4)
+            kf.prev_session_sigma = self._filter.sigmas()
+        self._bridged = False
         log.info("map session %d initialised at t=%.3f with %d points", self.session, frame.t, has.sum())
         return True
 
