@@ -116,7 +116,7 @@ def main() -> None:
         lost = res.state == TrackingState.LOST
         losses += int(lost and not was_lost)
         was_lost = lost
-        if fe.keyframes and res.state != TrackingState.LOST and res.state != TrackingState.INITIALIZING:
+        if fe.keyframes and res.state.tracked:
             k = max(fe.keyframes)
             refs.append((i, res.session, k, se3_inverse(fe.keyframes[k].T_wc) @ res.world_from_cam))
         fe.poll_events()
@@ -127,7 +127,12 @@ def main() -> None:
         f"agent {name}: {n} frames, {n / busy:.1f} fps wall, {n / cpu:.1f} fps CPU time "
         f"(one thread, process() only), peak RSS {peak_mb:.0f} MB"
     )
-    print(f"  states {states}, tracking losses {losses}, sessions {fe.session + 1}, kfs {fe.stats.keyframes}")
+    st = fe.stats
+    print(f"  states {states}, tracking losses {losses}, sessions {fe.session + 1}, kfs {st.keyframes}")
+    print(
+        f"  weak {st.weak_frames}, lost {st.lost_frames}, relocalised {st.relocalizations}, "
+        f"visual poses refused by the IMU gate {st.imu_rejections}"
+    )
     print("  time per frame (ms): " + ", ".join(f"{k} {1e3 * v / n:.1f}" for k, v in fe.stats.timing.items()))
     if gt is not None and refs:
         sess = fe.session

@@ -21,6 +21,16 @@ class TrackingState(StrEnum):
     LOST = "lost"  # no visual pose taken: the IMU (or the motion model) alone propagates it
     NEW_MAP = "new_map"
 
+    @property
+    def tracked(self) -> bool:
+        """The frame's pose is a visual one (good, weak, relocalised or a new map's first)."""
+        return self in (
+            TrackingState.OK,
+            TrackingState.WEAK,
+            TrackingState.RELOCALIZED,
+            TrackingState.NEW_MAP,
+        )
+
 
 @dataclass(frozen=True)
 class FrameResult:
