@@ -146,9 +146,18 @@ class PosePrior:
         J[3:, :3] = -np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
         return r, J
 
-    def chi2(self, T: F64) -> float:
+    def chi2(self, T: F64, other_info: F64 | None = None) -> float:
+        """Mahalanobis distance^2 of ``T`` from the mean; with ``other_info`` (the information of
+        ``T``'s own estimate) under the sum of both covariances. Only the components the prior
+        constrains count."""
         r, _ = self.residual(T)
-        return float(r @ self.info @ r)
+        use = np.diag(self.info) > 0
+        if other_info is None:
+            return float(r @ self.info @ r)
+        cov = np.linalg.inv(self.info[np.ix_(use, use)])
+        cov = cov + np.linalg.inv(other_info + 1e-9 * np.eye(6))[np.ix_(use, use)]
+        ru = r[use]
+        return float(ru @ np.linalg.solve(cov, ru))
 
 
 def optimize_pose(

@@ -29,6 +29,7 @@ from hivemap.client.frontend.optim import (
     Intrinsics,
     PosePrior,
     optimize_pose,
+    pose_hessian,
     project,
 )
 from hivemap.client.frontend.options import FrontendOptions
@@ -92,6 +93,7 @@ class Frontend:
         self._align_failures = 0
         self._filter: MotionFilter | None = None  # from gravity alignment on
         self._prior: PosePrior | None = None  # the IMU's prior of the frame being tracked
+        self._vis_info = np.eye(6)  # information of the last visual pose solved
         self._lost_since: float | None = None
         self._bridged = False  # the IMU bridged the loss that started the current session
 
@@ -170,8 +172,10 @@ class Frontend:
             if not ok:
                 ok, n_tracked = relocalize(self, frame)
                 was_lost = was_lost or ok
-        if ok and pred.prior is not None and pred.prior.chi2(frame.T_cw) > o.imu_gate_chi2:
-            # the visual solution disagrees with the IMU beyond the prediction's uncertainty: not taken
+        # A weak visual solution that disagrees with the IMU beyond both uncertainties is not taken; a
+        # well supported one only when the disagreement is gross (the IMU integrates the map's tilt).
+        gate = o.imu_gate_chi2 * (1.0 if n_tracked < o.good_min_inliers else o.imu_gate_strong_scale)
+        if ok and pred.prior is not None and pred.prior.chi2(frame.T_cw, self._vis_info) > gate:
             log.debug("t=%.3f: visual pose (%d inliers) rejected by the IMU gate", t, n_tracked)
             self.stats.imu_rejections += 1
             ok = False
@@ -430,9 +434,7 @@ class Frontend:
                 T = se3(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
                 inl = inl.reshape(-1)
                 pids, kps = pids[inl], kps[inl]
-        T, good = optimize_pose(
-            self.k, T, self._pts.xyz[pids], frame.meas[kps], frame.inv_sigma2[kps], prior=self._prior
-        )
+        T, good = optimize_pose(self.k, T, self._pts.xyz[pids], frame.meas[kps], frame.inv_sigma2[kps])
         return T, pids[good], kps[good]
 
     def _track(self, frame: Frame, T_pred: F64) -> tuple[bool, int]:
@@ -461,13 +463,21 @@ class Frontend:
         p2, k2 = local[sel], match[sel]
         if len(p2) < len(p_in):
             p2, k2 = p_in, k_in
-        T, inl = optimize_pose(
-            self.k, T, self._pts.xyz[p2], frame.meas[k2], frame.inv_sigma2[k2], prior=self._prior
-        )
+        T, inl = optimize_pose(self.k, T, self._pts.xyz[p2], frame.meas[k2], frame.inv_sigma2[k2])
         n_in = int(inl.sum())
+        if self._prior is not None and n_in < o.good_min_inliers:
+            # weak vision: the IMU prediction joins the refinement (a well-tracked frame does without it:
+            # the prediction carries the map's tilt and the filter's lag, measured worse on the tiny UAV)
+            T, inl = optimize_pose(
+                self.k, T, self._pts.xyz[p2], frame.meas[k2], frame.inv_sigma2[k2], prior=self._prior
+            )
+            n_in = int(inl.sum())
         if n_in < o.min_tracked:
             return False, n_in
         frame.T_cw = T
+        # the visual pose's own uncertainty, for the IMU gate (the difference of two estimates)
+        ki = k2[inl]
+        self._vis_info = pose_hessian(self.k, T, self._pts.xyz[p2[inl]], frame.meas[ki], frame.inv_sigma2[ki])
         frame.point_ids[:] = -1
         frame.point_ids[k2[inl]] = p2[inl]
         self._pts.visible[local[vis]] += 1
