@@ -10,7 +10,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.client.frontend.inertial import MotionFilter
+from hivemap.client.frontend.events import TrackingState
+from hivemap.client.frontend.inertial import MotionFilter, gyro_bias_step
+from hivemap.client.frontend.mapdata import Frame
 from hivemap.client.frontend.optim import PosePrior
 from hivemap.maps.geometry import se3, se3_inverse, so3_exp
 
@@ -149,3 +151,18 @@ def apply_world_transform(fe: Frontend, A: F64) -> None:
     if fe._filter is not None:
         fe._filter.rotate(A[:3, :3])
         fe._filter.p = fe._filter.p + A[:3, 3]
+
+
+def visual_update(fe: Frontend, frame: Frame, pim: Any, state: TrackingState) -> None:
+    """A visual pose was taken: it corrects the motion filter and (tracked well after a tracked
+    frame) the gyro bias."""
+    if fe.imu is None:
+        return
+    T_wb = frame.T_wc @ fe.cam_from_body
+    if fe._filter is not None:
+        fe._filter.update(T_wb[:3, 3], fe.options)
+    if pim is not None and state == TrackingState.OK and fe._last_tracked and fe._last is not None:
+        R_prev = (fe._last.T_wc @ fe.cam_from_body)[:3, :3]
+        bg = np.asarray(fe.imu.bias.gyroscope(), dtype=np.float64)
+        dR = pim.deltaRij().matrix()
+        fe.imu.set_gyro_bias(gyro_bias_step(R_prev, T_wb[:3, :3], dR, frame.t - fe._last.t, bg, fe.options))

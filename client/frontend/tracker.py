@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import Any
 
 import cv2
 import numpy as np
@@ -23,7 +22,7 @@ from hivemap.client.frontend.events import (
 )
 from hivemap.client.frontend.features import ContrastNormaliser, OrbExtractor
 from hivemap.client.frontend.imu import _ImuState
-from hivemap.client.frontend.inertial import MotionFilter, gyro_bias_step
+from hivemap.client.frontend.inertial import MotionFilter
 from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore, hamming
 from hivemap.client.frontend.optim import (
     Intrinsics,
@@ -191,7 +190,7 @@ class Frontend:
         if ok:
             self._lost_count = 0
             self._lost_since = None
-            self._inertial_update(frame, pim, state)
+            imu.visual_update(self, frame, pim, state)
             if mapping.need_keyframe(self, frame, n_tracked, gnss_epoch, state):
                 new_kf = mapping.create_keyframe(self, frame, gnss_epoch)
         else:
@@ -303,22 +302,6 @@ class Frontend:
             return self._kf_last_id, TrackingState.NEW_MAP
         self._pending_new_map = True
         return None, TrackingState.INITIALIZING
-
-    def _inertial_update(self, frame: Frame, pim: Any, state: TrackingState) -> None:
-        """A visual pose was taken: it corrects the motion filter and (tracked well after a tracked
-        frame) the gyro bias."""
-        if self.imu is None:
-            return
-        T_wb = frame.T_wc @ self.cam_from_body
-        if self._filter is not None:
-            self._filter.update(T_wb[:3, 3], self.options)
-        if pim is not None and state == TrackingState.OK and self._last_tracked and self._last is not None:
-            R_prev = (self._last.T_wc @ self.cam_from_body)[:3, :3]
-            bg = np.asarray(self.imu.bias.gyroscope(), dtype=np.float64)
-            dR = pim.deltaRij().matrix()
-            self.imu.set_gyro_bias(
-                gyro_bias_step(R_prev, T_wb[:3, :3], dR, frame.t - self._last.t, bg, self.options)
-            )
 
     # ------------------------------------------------------------------ map lifecycle
     def _reset_map(self) -> None:
