@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/frontend.py                          # synthetic scene (self-contained)
     .venv/bin/python bench/frontend.py --dataset DATA/factory01/uav1 [--max-frames N] [--no-imu]
+        [--option imu_gate_strong_scale=1.0 ...]                # FrontendOptions fields
 
 Prints frames/s of ``Frontend.process`` alone (images are pre-loaded / pre-rendered outside the
 timed region), peak RSS over the run, and ATE (evo, SE(3) alignment) when ground truth exists.
@@ -45,6 +46,7 @@ def main() -> None:
     ap.add_argument("--no-imu", action="store_true")
     ap.add_argument("--contrast", default=None, help="stretch | clahe | off (default: the front-end's)")
     ap.add_argument("--tum-out", default=None, help="write the VIO body trajectory (TUM) here")
+    ap.add_argument("--option", action="append", default=[], help="FrontendOptions field=value (repeat)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
 
@@ -87,11 +89,13 @@ def main() -> None:
         imu_params = None if args.no_imu else {}
         name = "synthetic"
     assert rig is not None
+    import ast
     from dataclasses import replace
 
     from hivemap.client.frontend.options import FrontendOptions
 
     opts = FrontendOptions() if args.contrast is None else replace(FrontendOptions(), contrast=args.contrast)
+    opts = replace(opts, **{k: ast.literal_eval(v) for k, v in (a.split("=", 1) for a in args.option)})
     fe = Frontend(rig, opts, imu_params=imu_params)
     busy = 0.0
     cpu = 0.0
