@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/frontend.py                          # synthetic scene (self-contained)
     .venv/bin/python bench/frontend.py --dataset DATA/factory01/uav1 [--max-frames N] [--no-imu]
+        [--option imu_gate_strong_scale=1.0 ...]                # FrontendOptions fields
 
 Prints frames/s of ``Frontend.process`` alone (images are pre-loaded / pre-rendered outside the
 timed region), peak RSS over the run, and ATE (evo, SE(3) alignment) when ground truth exists.
@@ -45,6 +46,7 @@ def main() -> None:
     ap.add_argument("--no-imu", action="store_true")
     ap.add_argument("--contrast", default=None, help="stretch | clahe | off (default: the front-end's)")
     ap.add_argument("--tum-out", default=None, help="write the VIO body trajectory (TUM) here")
+    ap.add_argument("--option", action="append", default=[], help="FrontendOptions field=value (repeat)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
 
@@ -87,11 +89,13 @@ def main() -> None:
         imu_params = None if args.no_imu else {}
         name = "synthetic"
     assert rig is not None
+    import ast
     from dataclasses import replace
 
     from hivemap.client.frontend.options import FrontendOptions
 
     opts = FrontendOptions() if args.contrast is None else replace(FrontendOptions(), contrast=args.contrast)
+    opts = replace(opts, **{k: ast.literal_eval(v) for k, v in (a.split("=", 1) for a in args.option)})
     fe = Frontend(rig, opts, imu_params=imu_params)
     busy = 0.0
     cpu = 0.0
@@ -116,7 +120,7 @@ def main() -> None:
         lost = res.state == TrackingState.LOST
         losses += int(lost and not was_lost)
         was_lost = lost
-        if fe.keyframes and res.state != TrackingState.LOST and res.state != TrackingState.INITIALIZING:
+        if fe.keyframes and res.state.tracked:
             k = max(fe.keyframes)
             refs.append((i, res.session, k, se3_inverse(fe.keyframes[k].T_wc) @ res.world_from_cam))
         fe.poll_events()
@@ -127,7 +131,12 @@ def main() -> None:
         f"agent {name}: {n} frames, {n / busy:.1f} fps wall, {n / cpu:.1f} fps CPU time "
         f"(one thread, process() only), peak RSS {peak_mb:.0f} MB"
     )
-    print(f"  states {states}, tracking losses {losses}, sessions {fe.session + 1}, kfs {fe.stats.keyframes}")
+    st = fe.stats
+    print(f"  states {states}, tracking losses {losses}, sessions {fe.session + 1}, kfs {st.keyframes}")
+    print(
+        f"  weak {st.weak_frames}, lost {st.lost_frames}, relocalised {st.relocalizations}, "
+        f"visual poses refused by the IMU gate {st.imu_rejections}"
+    )
     print("  time per frame (ms): " + ", ".join(f"{k} {1e3 * v / n:.1f}" for k, v in fe.stats.timing.items()))
     if gt is not None and refs:
         sess = fe.session

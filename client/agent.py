@@ -199,8 +199,6 @@ class Agent:
 
     def feed_stereo(self, t: float, left: U8, right: U8) -> FrameResult:
         """One rectification-free stereo pair (gray uint8, the calibration's distortion is modelled)."""
-        from hivemap.client.frontend.tracker import TrackingState
-
         with self._lock:
             applied = self._apply_pending()
             imu = self._take_imu(t)
@@ -216,7 +214,7 @@ class Agent:
             res: Any = self.core.step(t, left, right, imu)
             self._prev_t = t
             self.frames += 1
-            tracked = res.state in (TrackingState.OK, TrackingState.RELOCALIZED, TrackingState.NEW_MAP)
+            tracked = res.state.tracked
             out = FrameResult(
                 float(t), str(res.state.value), tracked,
                 None if res.new_keyframe_id is None else int(res.new_keyframe_id),
@@ -411,7 +409,8 @@ class _Stream:
                 Keyframe(
                     ev.kf_id, ev.timestamp, ev.world_from_cam, ev.keypoints, ev.octaves, ev.descriptors,
                     ev.point_ids, None if fix is None else g.enu[fix], None if fix is None else g.cov[fix],
-                    session, core.up_in_cam(ev.session, ev.kf_id),
+                    session, core.up_in_cam(ev.session, ev.kf_id), ev.prev_session_from_world,
+                    None if ev.prev_session_sigma is None else np.asarray(ev.prev_session_sigma, np.float64),
                 )
             )  # fmt: skip
         elif isinstance(ev, PoseUpdateEvent):

@@ -95,6 +95,13 @@ class RunSummary:
     tracked_frames: int = 0
     keyframes: int = 0
     tracking_losses: int = 0
+    # every frame by the front-end's tracking quality (issue 28): few inliers, no visual pose taken
+    # (IMU-only or lost), relocalised; visual poses the IMU gate refused; map sessions
+    weak_frames: int = 0
+    lost_frames: int = 0
+    relocalized_frames: int = 0
+    imu_rejections: int = 0
+    sessions: int = 1
     segments: int = 0
     gnss_available: int = 0
     gnss_selected: int = 0
@@ -208,7 +215,7 @@ class OfflineAgent:
         if lost and not self._was_lost:
             self.losses += 1
         self._was_lost = lost
-        if res.state in (TrackingState.OK, TrackingState.RELOCALIZED, TrackingState.NEW_MAP):
+        if res.state.tracked:
             T_wb = np.asarray(res.world_from_body, dtype=np.float64)
             self.vio_t.append(float(t))
             self.vio_poses.append(T_wb)
@@ -478,6 +485,11 @@ def _write_outputs(agent: OfflineAgent, out: Path, summary: RunSummary, n_frames
     summary.tracked_frames = len(vio_t)
     summary.keyframes = len(agent.stage.keyframe_ids)
     summary.tracking_losses = agent.losses
+    st = agent.frontend.stats
+    summary.weak_frames, summary.lost_frames = st.weak_frames, st.lost_frames
+    summary.relocalized_frames, summary.imu_rejections, summary.sessions = (
+        st.relocalizations, st.imu_rejections, st.sessions,
+    )  # fmt: skip
     summary.segments = agent.stage.segment_count
     summary.gnss_used = agent.gnss_used
     summary.gnss_rejected = agent.gnss_rejected

@@ -318,6 +318,20 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         norm = float(np.linalg.norm(up)) if np.all(np.isfinite(up)) else math.nan
         if not 0.99 <= norm <= 1.01:
             raise FieldError(f"up direction must be a unit vector, its norm is {norm:.3g}", "body.up_cam")
+    guess, sigma, session = b.get("prev_session_from_world"), b.get("prev_session_sigma"), _session(b)
+    if (guess is None) != (sigma is None):
+        missing = "body.prev_session_sigma" if sigma is None else "body.prev_session_from_world"
+        raise FieldError("prev_session_from_world and prev_session_sigma go together", missing)
+    if guess is not None:
+        if session < 1:
+            raise FieldError(
+                "a guess in the previous session needs session >= 1", "body.prev_session_from_world"
+            )
+        guess = _arr(guess, "body.prev_session_from_world", "<f8", (4, 4))
+        _rigid(guess, "body.prev_session_from_world")
+        sigma = _arr(sigma, "body.prev_session_sigma", "<f8", (2,))
+        if not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
+            raise FieldError("sigmas must be finite and positive", "body.prev_session_sigma")
     return Keyframe(
         kf_id=_int(b["kf_id"], "body.kf_id", 0),
         timestamp=_float(b["timestamp"], "body.timestamp"),
@@ -328,8 +342,10 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         point_ids=pids,
         gnss_enu=enu,
         gnss_cov=cov,
-        session=_session(b),
+        session=session,
         up_cam=up,
+        prev_session_from_world=guess,
+        prev_session_sigma=sigma,
     )
 
 

@@ -54,7 +54,11 @@ class Keyframe:
     """Agent -> server. keypoints f32 (N,2), octaves u8 (N,), descriptors u8 (N,32), point_ids i64 (N,)
     (-1 = no map point), world_from_cam f64 (4,4); optional GNSS fix in ENU f64 (3,) + covariance (3,3);
     optional ``up_cam`` f64 (3,): the unit up direction (against gravity) in the camera frame, from the
-    agent's IMU (its second stage), which the server's GNSS stage holds the keyframe's roll/pitch to."""
+    agent's IMU (its second stage), which the server's GNSS stage holds the keyframe's roll/pitch to.
+    Optional on the first keyframe of a session after a tracking loss (``session`` >= 1):
+    ``prev_session_from_world`` f64 (4,4), the agent's guess of this session's frame in the previous
+    session's, from the IMU propagation that bridged the loss, and ``prev_session_sigma`` f64 (2,) its
+    1-sigma uncertainty [position m, attitude deg], so the server can merge the session back."""
 
     TYPE: ClassVar[str] = "keyframe"
     kf_id: int
@@ -68,6 +72,8 @@ class Keyframe:
     gnss_cov: NDArray[np.float64] | None = None
     session: int = 0
     up_cam: NDArray[np.float64] | None = None
+    prev_session_from_world: NDArray[np.float64] | None = None
+    prev_session_sigma: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)

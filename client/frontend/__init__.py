@@ -10,14 +10,21 @@ Usage::
 
 Pipeline per frame: ORB (grid-thinned, adaptive FAST threshold) on the left image; stereo depth by
 pyramidal LK into the right image, checked on rectified rows and forward-backward; prediction by the
-constant-velocity model with the gyro rotation (gtsam preintegration; full IMU prediction once the VIO
-frame is gravity-aligned); guided matching of the local map by projection, P3P RANSAC, motion-only
-Gauss-Newton with Huber and stereo residuals, then track-local-map and a second refinement.
+constant-velocity model with the gyro rotation (gtsam preintegration, gyro bias estimated against the
+visual rotation); once the VIO frame is gravity-aligned, the full IMU prediction from a motion filter
+(position, velocity, world acceleration correction) whose covariance makes it a prior; guided
+matching of the local map by projection, P3P RANSAC, motion-only Gauss-Newton with Huber and stereo
+residuals plus the IMU prior, then track-local-map and a second refinement.  Tracking quality: OK,
+WEAK (fewer than ``good_min_inliers``), or LOST when no visual pose is taken -- too few inliers, or a
+pose beyond the IMU gate (chi2 of the prior, ``imu_gate_chi2``); a lost frame's pose is the IMU's.
 Keyframes: tracked ratio vs reference keyframe, close-point starvation, 0.5 s, GNSS epochs, after a
 relocalisation.  Local mapping: stereo points (all close ones, >= 100), multi-view triangulation with
 3 neighbours, local BA over the 10 best covisible keyframes (+10 fixed) with numpy/scipy Schur LM
-(see ``optim``), observation and point culling.  Lost: relocalisation (BF descriptors of the last 20
-keyframes' points + P3P RANSAC), then the prediction bridge; after ``max_lost_frames`` a new session.
+(see ``optim``), observation and point culling.  Lost: the IMU prediction, then relocalisation (BF
+descriptors of the last 20 keyframes' points and of the bag-of-words candidates + P3P RANSAC), both
+through the IMU gate; after ``imu_hold_s`` of IMU-only propagation (``max_lost_frames`` without an
+IMU) a new session, started at the propagated pose: its first keyframe carries that guess of its
+frame in the old session (``KeyframeEvent.prev_session_from_world``).
 
 Frames: poses are in the agent's VIO frame, z up (gravity) when an IMU is given.  Body = IMU frame
 (``rig.body_from_left`` = EuRoC ``T_BS`` of cam0).

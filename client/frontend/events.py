@@ -16,9 +16,20 @@ I64 = NDArray[np.int64]
 class TrackingState(StrEnum):
     INITIALIZING = "initializing"
     OK = "ok"
+    WEAK = "weak"  # few inliers, the pose held by the IMU prior
     RELOCALIZED = "relocalized"
-    LOST = "lost"
+    LOST = "lost"  # no visual pose taken: the IMU (or the motion model) alone propagates it
     NEW_MAP = "new_map"
+
+    @property
+    def tracked(self) -> bool:
+        """The frame's pose is a visual one (good, weak, relocalised or a new map's first)."""
+        return self in (
+            TrackingState.OK,
+            TrackingState.WEAK,
+            TrackingState.RELOCALIZED,
+            TrackingState.NEW_MAP,
+        )
 
 
 @dataclass(frozen=True)
@@ -41,6 +52,8 @@ class KeyframeEvent:
     ``rel_body`` = prev_body_from_body (4x4) with ``rel_cov`` (6x6, gtsam order [rot, trans], right
     perturbation of ``rel_body``), both None for the first keyframe of a session.
     New points: those its keypoints reference that were not emitted before.
+    ``prev_session_from_world`` / ``prev_session_sigma`` [m, deg]: on the first keyframe of a session
+    the IMU bridged from the previous one, the guess of this session's frame in that one's.
     """
 
     session: int
@@ -59,6 +72,8 @@ class KeyframeEvent:
     new_point_ids: I64
     new_point_xyz: F64
     new_point_descriptors: NDArray[np.uint8]
+    prev_session_from_world: F64 | None = None
+    prev_session_sigma: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -74,11 +89,19 @@ class PoseUpdateEvent:
 
 @dataclass(frozen=True)
 class NewSessionEvent:
-    """Tracking was lost and relocalisation failed: a new map (session) starts."""
+    """Tracking was lost and relocalisation failed: a new map (session) starts.
+
+    ``old_from_new``: the guess of the new session's VIO frame in the old one's (4x4), with its
+    uncertainty (``sigma_m`` position, ``sigma_deg`` attitude) from the IMU-only propagation that
+    bridged the loss; None when nothing bridged it (no IMU, or not yet gravity-aligned).
+    """
 
     old_session: int
     session: int
     t: float
+    old_from_new: F64 | None = None
+    sigma_m: float = float("inf")
+    sigma_deg: float = float("inf")
 
 
 Event = KeyframeEvent | PoseUpdateEvent | NewSessionEvent
@@ -88,7 +111,9 @@ Event = KeyframeEvent | PoseUpdateEvent | NewSessionEvent
 class FrontendStats:
     frames: int = 0
     keyframes: int = 0
+    weak_frames: int = 0
     lost_frames: int = 0
     relocalizations: int = 0
+    imu_rejections: int = 0  # visual poses not taken because the IMU prediction disagreed
     sessions: int = 1
     timing: dict[str, float] = field(default_factory=dict)

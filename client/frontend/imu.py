@@ -4,11 +4,16 @@ gravity alignment of the VIO frame."""
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.client.frontend.events import TrackingState
+from hivemap.client.frontend.inertial import MotionFilter, gyro_bias_step
+from hivemap.client.frontend.mapdata import Frame
+from hivemap.client.frontend.optim import PosePrior
 from hivemap.maps.geometry import se3, se3_inverse, so3_exp
 
 if TYPE_CHECKING:
@@ -49,24 +54,51 @@ class _ImuState:
             self.last_t = t
         return pim if n else None
 
+    def set_gyro_bias(self, gyro: F64) -> None:
+        self.bias = self.gtsam.imuBias.ConstantBias(self.bias.accelerometer(), np.asarray(gyro, float))
 
-def predict(fe: Frontend, pim: Any) -> F64:
+
+@dataclass(frozen=True)
+class Prediction:
+    """The frame's predicted ``cam_from_world``; with a gravity-aligned IMU also the body velocity and
+    the prior on the pose the frame-to-map refinement weighs (None: no prior)."""
+
+    T_cw: F64
+    v_w: F64 | None = None
+    prior: PosePrior | None = None
+
+
+def predict(fe: Frontend, pim: Any, dt: float) -> Prediction:
     """The frame's pose from the motion model, its rotation (and with gravity, its pose) from the IMU."""
     assert fe._last is not None
+    o = fe.options
     motion = fe._motion.copy()
-    if pim is not None:
-        dR_body = pim.deltaRij().matrix()
-        R_cb = fe.cam_from_body[:3, :3]
-        motion[:3, :3] = R_cb @ dR_body @ R_cb.T
-        if fe._gravity_aligned and fe.imu is not None:
-            import gtsam
+    if pim is None:
+        return Prediction(se3_inverse(fe._last.T_wc @ motion))
+    dR_body = pim.deltaRij().matrix()
+    R_cb = fe.cam_from_body[:3, :3]
+    motion[:3, :3] = R_cb @ dR_body @ R_cb.T
+    filt = fe._filter
+    if not (fe._gravity_aligned and fe.imu is not None and filt is not None):
+        T_cw = se3_inverse(fe._last.T_wc @ motion)
+        if not o.imu_prior:
+            return Prediction(T_cw)
+        # attitude only: the gyro without a velocity to integrate the accelerometer from
+        info = np.zeros((6, 6))
+        info[:3, :3] = np.eye(3) / (np.radians(o.vio_rot_sigma_deg) ** 2 * 4.0)
+        return Prediction(T_cw, None, PosePrior(T_cw, info))
+    import gtsam
 
-            T_wb = fe._last.T_wc @ fe.cam_from_body
-            nav = gtsam.NavState(gtsam.Pose3(T_wb), fe._velocity_w)
-            pred = pim.predict(nav, fe.imu.bias)
-            T_wb_pred = pred.pose().matrix()
-            return se3_inverse(T_wb_pred @ fe.body_from_cam)
-    return se3_inverse(fe._last.T_wc @ motion)
+    T_wb = fe._last.T_wc @ fe.cam_from_body
+    T_wb[:3, 3] = filt.p
+    nav = gtsam.NavState(gtsam.Pose3(T_wb), filt.v)
+    pred = pim.predict(nav, fe.imu.bias)
+    filt.predict(np.asarray(pred.position(), dtype=np.float64), np.asarray(pred.velocity()), dt, o)
+    T_wb_pred = pred.pose().matrix()
+    T_wb_pred[:3, 3] = filt.p
+    T_cw = se3_inverse(T_wb_pred @ fe.body_from_cam)
+    prior = PosePrior(T_cw, filt.prior_information()) if o.imu_prior else None
+    return Prediction(T_cw, filt.v.copy(), prior)
 
 
 def try_gravity_alignment(fe: Frontend) -> None:
@@ -99,6 +131,8 @@ def try_gravity_alignment(fe: Frontend) -> None:
     A = se3(R, np.zeros(3))
     apply_world_transform(fe, A)
     fe._gravity_aligned = True
+    p_body = (fe._last.T_wc @ fe.cam_from_body)[:3, 3] if fe._last is not None else np.zeros(3)
+    fe._filter = MotionFilter.start(p_body, fe._velocity_w, fe.options)
     fe._align_buffer = []
     log.info("VIO frame gravity-aligned (%.2f deg correction)", np.degrees(ang))
 
@@ -114,3 +148,21 @@ def apply_world_transform(fe: Frontend, A: F64) -> None:
     if fe._last is not None and not any(kf.frame is fe._last for kf in fe._kfs.values()):
         fe._last.T_cw = fe._last.T_cw @ Ainv
     fe._velocity_w = A[:3, :3] @ fe._velocity_w
+    if fe._filter is not None:
+        fe._filter.rotate(A[:3, :3])
+        fe._filter.p = fe._filter.p + A[:3, 3]
+
+
+def visual_update(fe: Frontend, frame: Frame, pim: Any, state: TrackingState) -> None:
+    """A visual pose was taken: it corrects the motion filter and (tracked well after a tracked
+    frame) the gyro bias."""
+    if fe.imu is None:
+        return
+    T_wb = frame.T_wc @ fe.cam_from_body
+    if fe._filter is not None:
+        fe._filter.update(T_wb[:3, 3], fe.options)
+    if pim is not None and state == TrackingState.OK and fe._last_tracked and fe._last is not None:
+        R_prev = (fe._last.T_wc @ fe.cam_from_body)[:3, :3]
+        bg = np.asarray(fe.imu.bias.gyroscope(), dtype=np.float64)
+        dR = pim.deltaRij().matrix()
+        fe.imu.set_gyro_bias(gyro_bias_step(R_prev, T_wb[:3, :3], dR, frame.t - fe._last.t, bg, fe.options))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -60,6 +61,10 @@ class KeyframeData:
     emitted: bool = False
     prev_id: int | None = None
     rel_cov_cam: F64 | None = None  # 6x6 [rot, trans], right perturbation of world_from_cam
+    # first keyframe of a session after a loss: this session's frame in the previous one's + [m, deg]
+    prev_session_from_world: F64 | None = None
+    prev_session_sigma: tuple[float, float] | None = None
+    bow: Any = None  # bag-of-words vector, computed when relocalisation first needs it
 
     @property
     def T_wc(self) -> F64:

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.client.frontend.emit import emit_ready
 from hivemap.client.frontend.events import PoseUpdateEvent, TrackingState
 from hivemap.client.frontend.mapdata import Frame, KeyframeData
 from hivemap.client.frontend.optim import (
@@ -107,7 +108,7 @@ def create_keyframe(fe: Frontend, frame: Frame, gnss_epoch: bool, first: bool = 
     fe._kf_last_id = kid
     fe._ref_tracked = tracked_before if not first else int((frame.point_ids >= 0).sum())
     fe._update_local_map()
-    fe._emit_ready()
+    emit_ready(fe)
     return kid
 
 

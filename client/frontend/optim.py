@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import so3_exp
+from hivemap.maps.geometry import so3_exp, so3_log
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -129,6 +129,37 @@ def pose_hessian(k: Intrinsics, T_cw: F64, X: F64, meas: F64, inv_sigma2: F64) -
     return (A * W.reshape(-1, 1)).T @ A  # type: ignore[no-any-return]
 
 
+@dataclass(frozen=True)
+class PosePrior:
+    """A Gaussian prior on ``cam_from_world`` (the IMU prediction): mean and 6x6 information of the
+    left tangent ``[w, v]`` (``T = [[Exp(w), v], [0, 1]] @ mean``)."""
+
+    T_cw: F64
+    info: F64
+
+    def residual(self, T: F64) -> tuple[F64, F64]:
+        """(r, dr/dd) of ``T`` against the mean, for a left update ``d`` of ``T``."""
+        E = T @ np.linalg.inv(self.T_cw)
+        r = np.concatenate([so3_log(E[:3, :3]), E[:3, 3]])
+        J = np.eye(6)
+        t = E[:3, 3]
+        J[3:, :3] = -np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+        return r, J
+
+    def chi2(self, T: F64, other_info: F64 | None = None) -> float:
+        """Mahalanobis distance^2 of ``T`` from the mean; with ``other_info`` (the information of
+        ``T``'s own estimate) under the sum of both covariances. Only the components the prior
+        constrains count."""
+        r, _ = self.residual(T)
+        use = np.diag(self.info) > 0
+        if other_info is None:
+            return float(r @ self.info @ r)
+        cov = np.linalg.inv(self.info[np.ix_(use, use)])
+        cov = cov + np.linalg.inv(other_info + 1e-9 * np.eye(6))[np.ix_(use, use)]
+        ru = r[use]
+        return float(ru @ np.linalg.solve(cov, ru))
+
+
 def optimize_pose(
     k: Intrinsics,
     T_cw: F64,
@@ -137,10 +168,13 @@ def optimize_pose(
     inv_sigma2: F64,
     rounds: int = 4,
     iterations: int = 6,
+    prior: PosePrior | None = None,
 ) -> tuple[F64, NDArray[np.bool_]]:
     """Motion-only refinement (ORB-SLAM style: re-classify outliers after each round).
 
-    X (N,3) world points, meas (N,3) [u, v, uR|NaN], inv_sigma2 (N,).  Returns (T_cw, inliers).
+    X (N,3) world points, meas (N,3) [u, v, uR|NaN], inv_sigma2 (N,).  ``prior``: the IMU's pose
+    prediction, a term of the same least squares (as ORB-SLAM3's inertial edge in pose
+    optimisation).  Returns (T_cw, inliers).
     """
     T = T_cw.copy()
     th = chi2_thresholds(meas)
@@ -161,6 +195,11 @@ def optimize_pose(
             AW = A * W.reshape(-1, 1)
             H = AW.T @ A
             g = AW.T @ e.reshape(-1)
+            if prior is not None:
+                r, Jr = prior.residual(T)
+                JI = Jr.T @ prior.info
+                H = H + JI @ Jr
+                g = g + JI @ r
             try:
                 d = np.linalg.solve(H + 1e-9 * np.eye(6), -g)
             except np.linalg.LinAlgError:

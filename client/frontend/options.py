@@ -52,6 +52,24 @@ class FrontendOptions:
     # relocalisation / loss
     reloc_keyframes: int = 20
     reloc_min_inliers: int = 30
-    max_lost_frames: int = 20
+    reloc_bow_candidates: int = 5  # older keyframes found by bag of words, besides the recent ones
+    max_lost_frames: int = 20  # without an IMU (or before gravity alignment): then a new session
+    imu_hold_s: float = 3.0  # with an IMU: IMU-only propagation this long before a new session
+    # tracking quality: OK from this many inliers, WEAK from ``min_tracked``
+    good_min_inliers: int = 50
     # imu
     gravity_init_s: float = 1.0
+    # visual-inertial tracking: the IMU's pose prediction as a prior in the frame-to-map refinement,
+    # and its gate (chi2, 6 DoF, 99.9%): a visual pose beyond it is not taken
+    imu_prior: bool = True
+    imu_gate_chi2: float = 22.46
+    imu_gate_strong_scale: float = 25.0  # from ``good_min_inliers`` inliers the gate is this much wider
+    vio_meas_sigma_m: float = 0.02  # a visual body position, as the filter's measurement
+    vio_init_vel_sigma_mps: float = 0.3
+    vio_init_acc_sigma_mps2: float = 0.2
+    vio_acc_noise: float = 0.1  # unmodelled acceleration (m/s^2 per sqrt(Hz)): vibration, timing
+    vio_acc_correction_walk: float = 0.02  # random walk of the world acceleration correction
+    vio_rot_sigma_deg: float = 0.5  # attitude after a visual pose
+    vio_gyro_drift_dps: float = 0.5  # attitude uncertainty growth while the IMU alone holds it
+    gyro_bias_time_s: float = 3.0  # averaging time of the gyro bias estimate
+    gyro_bias_max_step_dps: float = 3.0  # larger frame-to-frame gyro/visual disagreement: not a bias

@@ -150,12 +150,17 @@ def make_sequence(
     scene_size: float = 50.0,
     focal: float = 420.0,
     dist: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
+    surge_m: float = 0.0,
 ) -> SyntheticSequence:
-    """Body on a circle of ``radius`` at ``height`` (with a gentle bobbing), yaw along the path."""
+    """Body on a circle of ``radius`` at ``height`` (with a gentle bobbing), yaw along the path.
+
+    ``surge_m``: amplitude of a speed oscillation (arc length ``speed t + surge_m sin(t)``), so that a
+    constant-velocity prediction is wrong where the IMU's is not.
+    """
     rig = make_rig(baseline=baseline, pitch=pitch, f=focal, dist=dist)
 
     def pose(t: F64) -> tuple[F64, F64]:
-        ang = speed * t / radius
+        ang = (speed * t + surge_m * np.sin(t)) / radius
         p = np.stack(
             [radius * np.cos(ang) - radius, radius * np.sin(ang), height + 0.3 * np.sin(0.8 * t)], -1
         )
@@ -173,7 +178,7 @@ def make_sequence(
     acc_w = (pp - 2 * p0 + pm) / dt**2 + np.array([0.0, 0.0, 9.81])
     acc_b = np.stack([_rz(y).T @ a for a, y in zip(acc_w, y0, strict=True)])
     gyro = np.zeros((len(ti), 3))
-    gyro[:, 2] = speed / radius
+    gyro[:, 2] = (speed + surge_m * np.cos(ti)) / radius
     imu = np.concatenate([ti[:, None], gyro, acc_b], 1)
     return SyntheticSequence(
         times, Ts, imu, rig, SyntheticScene(seed, size=scene_size, px_per_m=40.0 if scene_size > 60 else 60.0)

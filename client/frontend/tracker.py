@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.client.frontend import imu, mapping
+from hivemap.client.frontend.emit import emit_keyframe
 from hivemap.client.frontend.events import (
     Event,
     FrameResult,
@@ -22,13 +22,17 @@ from hivemap.client.frontend.events import (
 )
 from hivemap.client.frontend.features import ContrastNormaliser, OrbExtractor
 from hivemap.client.frontend.imu import _ImuState
+from hivemap.client.frontend.inertial import MotionFilter
 from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore, hamming
 from hivemap.client.frontend.optim import (
     Intrinsics,
+    PosePrior,
     optimize_pose,
+    pose_hessian,
     project,
 )
 from hivemap.client.frontend.options import FrontendOptions
+from hivemap.client.frontend.relocalize import relocalize
 from hivemap.client.frontend.stereo import StereoMatcher
 from hivemap.maps.camera import StereoRig
 from hivemap.maps.geometry import se3, se3_inverse
@@ -86,6 +90,11 @@ class Frontend:
         self._last_tracked = False
         self._pending_new_map = False
         self._align_failures = 0
+        self._filter: MotionFilter | None = None  # from gravity alignment on
+        self._prior: PosePrior | None = None  # the IMU's prior of the frame being tracked
+        self._vis_info = np.eye(6)  # information of the last visual pose solved
+        self._lost_since: float | None = None
+        self._bridged = False  # the IMU bridged the loss that started the current session
 
     # ------------------------------------------------------------------ public API
     @property
@@ -105,7 +114,7 @@ class Frontend:
         """Emit every keyframe still held back (end of a run)."""
         for kid in sorted(self._kfs):
             if not self._kfs[kid].emitted:
-                self._emit_keyframe(self._kfs[kid])
+                emit_keyframe(self, self._kfs[kid])
 
     def process(
         self,
@@ -130,7 +139,15 @@ class Frontend:
         new_kf: int | None = None
         if self._state == TrackingState.INITIALIZING or self._last is None:
             state0 = TrackingState.INITIALIZING
-            if self._initialize(frame, np.eye(4) if self._last is None else self._last.T_cw):
+            if self._last is None:
+                T_init = np.eye(4)
+            elif self._filter is not None and pim is not None:
+                # a new session waiting for images: the IMU keeps propagating into the old frame
+                T_init = imu.predict(self, pim, frame.t - self._last.t).T_cw
+            else:
+                T_init = self._last.T_cw
+            frame.T_cw = T_init
+            if self._initialize(frame, T_init):
                 self._state = TrackingState.OK
                 new_kf = self._kf_last_id
                 state0 = TrackingState.NEW_MAP if self._pending_new_map else TrackingState.OK
@@ -138,49 +155,58 @@ class Frontend:
             self._finish(frame, acc_mean, tracked=new_kf is not None)
             return self._result(frame, len(frame.point_ids[frame.point_ids >= 0]), new_kf, state0)
 
-        T_pred = self._predict(pim)
+        pred = imu.predict(self, pim, frame.t - self._last.t)
+        T_pred = pred.T_cw
+        self._prior = pred.prior
         state = TrackingState.OK
         was_lost = self._state == TrackingState.LOST
-        if was_lost:
-            # lost: global relocalisation against the map first, then the (IMU) prediction bridge
-            ok, n_tracked = self._relocalize(frame, T_pred)
+        if was_lost and self._filter is None:
+            # lost without an IMU: global relocalisation against the map first, then the prediction
+            ok, n_tracked = relocalize(self, frame)
             if not ok:
                 ok, n_tracked = self._track(frame, T_pred)
         else:
+            # the (IMU) prediction first; relocalisation against the agent's own map if it fails
             ok, n_tracked = self._track(frame, T_pred)
             if not ok:
-                ok, n_tracked = self._relocalize(frame, T_pred)
-                was_lost = ok
+                ok, n_tracked = relocalize(self, frame)
+                was_lost = was_lost or ok
+        # A weak visual solution that disagrees with the IMU beyond both uncertainties is not taken; a
+        # well supported one only when the disagreement is gross (the IMU integrates the map's tilt).
+        gate = o.imu_gate_chi2 * (1.0 if n_tracked < o.good_min_inliers else o.imu_gate_strong_scale)
+        if ok and pred.prior is not None and pred.prior.chi2(frame.T_cw, self._vis_info) > gate:
+            log.debug("t=%.3f: visual pose (%d inliers) rejected by the IMU gate", t, n_tracked)
+            self.stats.imu_rejections += 1
+            ok = False
+        self._prior = None
         if ok and was_lost:
             state = TrackingState.RELOCALIZED
             self.stats.relocalizations += 1
             log.info("relocalised at t=%.3f with %d matches", t, n_tracked)
+        elif ok and n_tracked < o.good_min_inliers:
+            state = TrackingState.WEAK
+            self.stats.weak_frames += 1
         t2 = time.perf_counter()
         if ok:
             self._lost_count = 0
+            self._lost_since = None
+            imu.visual_update(self, frame, pim, state)
             if mapping.need_keyframe(self, frame, n_tracked, gnss_epoch, state):
                 new_kf = mapping.create_keyframe(self, frame, gnss_epoch)
         else:
             self._lost_count += 1
+            if self._lost_since is None:
+                self._lost_since = self._last.t
             self.stats.lost_frames += 1
             frame.T_cw = T_pred
             frame.point_ids[:] = -1
             state = TrackingState.LOST
-            if self._lost_count > o.max_lost_frames:
-                old = self.session
-                self.flush()
-                self.session += 1
-                self.stats.sessions += 1
-                self._reset_map()
-                self._events.append(NewSessionEvent(old, self.session, t))
-                log.warning("tracking lost for %d frames: new map session %d", self._lost_count, self.session)
-                self._lost_count = 0
-                if self._initialize(frame, T_pred):
-                    new_kf = self._kf_last_id
-                    state = TrackingState.NEW_MAP
-                else:
-                    self._pending_new_map = True
-                    state = TrackingState.INITIALIZING
+            if self._filter is not None:
+                give_up = frame.t - self._lost_since > o.imu_hold_s
+            else:
+                give_up = self._lost_count > o.max_lost_frames
+            if give_up:
+                new_kf, state = self._new_session(frame, T_pred)
         t3 = time.perf_counter()
         self._finish(frame, acc_mean, tracked=state != TrackingState.LOST)
         tm = self.stats.timing
@@ -255,6 +281,28 @@ class Frontend:
             self._align_buffer.append((frame.t, frame.T_wc @ self.cam_from_body, acc_mean))
             imu.try_gravity_alignment(self)
 
+    def _new_session(self, frame: Frame, T_pred: F64) -> tuple[int | None, TrackingState]:
+        """Tracking stayed lost: a new map session, started at the propagated pose (so its VIO frame is
+        the old one's, as well as the propagation could keep it)."""
+        old = self.session
+        self.flush()
+        self.session += 1
+        self.stats.sessions += 1
+        self._reset_map()
+        filt = self._filter
+        self._bridged = filt is not None
+        if filt is not None:
+            self._events.append(NewSessionEvent(old, self.session, frame.t, np.eye(4), *filt.sigmas()))
+        else:
+            self._events.append(NewSessionEvent(old, self.session, frame.t))
+        log.warning("tracking lost for %d frames: new map session %d", self._lost_count, self.session)
+        self._lost_count = 0
+        self._lost_since = None
+        if self._initialize(frame, T_pred):
+            return self._kf_last_id, TrackingState.NEW_MAP
+        self._pending_new_map = True
+        return None, TrackingState.INITIALIZING
+
     # ------------------------------------------------------------------ map lifecycle
     def _reset_map(self) -> None:
         self._kfs: dict[int, KeyframeData] = {}
@@ -269,13 +317,16 @@ class Frontend:
         if has.sum() < 50:
             return False
         frame.T_cw = T_cw.copy()
-        mapping.create_keyframe(self, frame, False, first=True)
+        kid = mapping.create_keyframe(self, frame, False, first=True)
+        if self._bridged and self._filter is not None:
+            # the map starts at the IMU-propagated pose: the same frame as the old session's, within
+            # the propagation's uncertainty now
+            kf = self._kfs[kid]
+            kf.prev_session_from_world = np.eye(4)
+            kf.prev_session_sigma = self._filter.sigmas()
+        self._bridged = False
         log.info("map session %d initialised at t=%.3f with %d points", self.session, frame.t, has.sum())
         return True
-
-    # ------------------------------------------------------------------ prediction / IMU
-    def _predict(self, pim: Any) -> F64:
-        return imu.predict(self, pim)
 
     # ------------------------------------------------------------------ matching
     def _match_projection(
@@ -397,113 +448,27 @@ class Frontend:
             p2, k2 = p_in, k_in
         T, inl = optimize_pose(self.k, T, self._pts.xyz[p2], frame.meas[k2], frame.inv_sigma2[k2])
         n_in = int(inl.sum())
+        if self._prior is not None and n_in < o.good_min_inliers:
+            # weak vision: the IMU prediction joins the refinement (a well-tracked frame does without it:
+            # the prediction carries the map's tilt and the filter's lag, measured worse on the tiny UAV)
+            T, inl = optimize_pose(
+                self.k, T, self._pts.xyz[p2], frame.meas[k2], frame.inv_sigma2[k2], prior=self._prior
+            )
+            n_in = int(inl.sum())
         if n_in < o.min_tracked:
             return False, n_in
         frame.T_cw = T
+        # the visual pose's own uncertainty, for the IMU gate (the difference of two estimates)
+        ki = k2[inl]
+        self._vis_info = pose_hessian(self.k, T, self._pts.xyz[p2[inl]], frame.meas[ki], frame.inv_sigma2[ki])
         frame.point_ids[:] = -1
         frame.point_ids[k2[inl]] = p2[inl]
         self._pts.visible[local[vis]] += 1
         self._pts.found[p2[inl]] += 1
         return True, n_in
 
-    # ------------------------------------------------------------------ relocalisation
-    def _relocalize(self, frame: Frame, T_pred: F64) -> tuple[bool, int]:
-        o = self.options
-        if frame.n == 0 or not self._kfs:
-            return False, 0
-        kf_ids = sorted(self._kfs)[-o.reloc_keyframes :]
-        pids = np.unique(np.concatenate([self._kfs[k].frame.point_ids for k in kf_ids]))
-        pids = pids[pids >= 0]
-        pids = pids[self._pts.alive[pids]]
-        if len(pids) < o.reloc_min_inliers:
-            return False, 0
-        bf = cv2.BFMatcher(cv2.NORM_HAMMING)
-        knn = bf.knnMatch(frame.desc, self._pts.desc[pids], k=2)
-        qi, ti = [], []
-        for m in knn:
-            if len(m) == 2 and m[0].distance < 0.8 * m[1].distance and m[0].distance <= 64:
-                qi.append(m[0].queryIdx)
-                ti.append(m[0].trainIdx)
-        if len(qi) < o.reloc_min_inliers:
-            return False, len(qi)
-        kps = np.array(qi)
-        mp = pids[np.array(ti)]
-        _, u = np.unique(kps, return_index=True)
-        kps, mp = kps[u], mp[u]
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            self._pts.xyz[mp],
-            frame.kpu[kps],
-            self.cam.K,
-            None,
-            iterationsCount=500,
-            reprojectionError=o.pnp_reprojection_px,
-            confidence=0.999,
-            flags=cv2.SOLVEPNP_P3P,
-        )
-        if not ok or inl is None or len(inl) < o.reloc_min_inliers:
-            return False, 0 if inl is None else len(inl)
-        T = se3(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
-        inl = inl.reshape(-1)
-        return self._finish_tracking(frame, T, mp[inl], kps[inl])
-
     def _triangulate(self, kf: KeyframeData) -> None:
         mapping.triangulate(self, kf)
-
-    def _emit_ready(self) -> None:
-        if not self._gravity_aligned:
-            return
-        ids = sorted(self._kfs)
-        delay = 2
-        for kid in ids[: max(0, len(ids) - delay)]:
-            if not self._kfs[kid].emitted:
-                self._emit_keyframe(self._kfs[kid])
-
-    def _emit_keyframe(self, kf: KeyframeData) -> None:
-        f = kf.frame
-        pids = f.point_ids.copy()
-        ok = pids >= 0
-        ok[ok] = self._pts.alive[pids[ok]]
-        pids[~ok] = -1
-        newp = np.unique(pids[ok])
-        newp = newp[~self._pts.emitted[newp]]
-        self._pts.emitted[newp] = True
-        T_wc = kf.T_wc
-        T_wb = T_wc @ self.cam_from_body
-        rel_body = rel_cov = None
-        prev = self._kfs.get(kf.prev_id) if kf.prev_id is not None else None
-        if prev is not None and kf.rel_cov_cam is not None:
-            prev_wb = prev.T_wc @ self.cam_from_body
-            rel_body = se3_inverse(prev_wb) @ T_wb
-            # right perturbation: xi_body = Ad(body_from_cam) xi_cam
-            Tbc = self.body_from_cam
-            Rb, tb = Tbc[:3, :3], Tbc[:3, 3]
-            tx = np.array([[0, -tb[2], tb[1]], [tb[2], 0, -tb[0]], [-tb[1], tb[0], 0]])
-            Ad = np.zeros((6, 6))
-            Ad[:3, :3] = Rb
-            Ad[3:, 3:] = Rb
-            Ad[3:, :3] = tx @ Rb
-            rel_cov = Ad @ kf.rel_cov_cam @ Ad.T
-        kf.emitted = True
-        self._events.append(
-            KeyframeEvent(
-                session=kf.session,
-                kf_id=kf.id,
-                timestamp=kf.timestamp,
-                world_from_cam=T_wc,
-                world_from_body=T_wb,
-                keypoints=f.uv.copy(),
-                octaves=f.octaves.copy(),
-                descriptors=f.desc.copy(),
-                point_ids=pids,
-                prev_kf_id=kf.prev_id if prev is not None else None,
-                rel_body=rel_body,
-                rel_cov=rel_cov,
-                gnss_epoch=kf.gnss_epoch,
-                new_point_ids=newp,
-                new_point_xyz=self._pts.xyz[newp].copy(),
-                new_point_descriptors=self._pts.desc[newp].copy(),
-            )
-        )
 
 
 __all__ = [

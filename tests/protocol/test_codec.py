@@ -73,6 +73,8 @@ def keyframes(draw: Any) -> Keyframe:
     n = draw(st.integers(0, 300))
     has_gnss = draw(st.booleans())
     up = draw(st.one_of(st.none(), arr(np.float64, (3,), st.floats(-1, 1))))
+    session = draw(st.integers(0, 100))
+    guess = session >= 1 and draw(st.booleans())
     if up is not None and np.linalg.norm(up) < 0.1:
         up = None
     return Keyframe(
@@ -85,8 +87,10 @@ def keyframes(draw: Any) -> Keyframe:
         point_ids=draw(arr(np.int64, (n,), st.integers(-1, 2**40))),
         gnss_enu=draw(arr(np.float64, (3,), finite)) if has_gnss else None,
         gnss_cov=np.diag(draw(arr(np.float64, (3,), st.floats(1e-4, 10)))) if has_gnss else None,
-        session=draw(st.integers(0, 100)),
+        session=session,
         up_cam=None if up is None else up / np.linalg.norm(up),
+        prev_session_from_world=draw(poses()) if guess else None,
+        prev_session_sigma=draw(arr(np.float64, (2,), st.floats(1e-3, 100))) if guess else None,
     )
 
 
@@ -201,6 +205,30 @@ def _tamper(frame: bytes, **changes: Any) -> bytes:
         (lambda m: replace(m, up_cam=np.array([0.0, 0.0, 2.0])), FieldError, "body.up_cam"),
         (lambda m: replace(m, up_cam=np.array([np.nan, 0.0, 1.0])), FieldError, "body.up_cam"),
         (lambda m: replace(m, up_cam=np.zeros(2)), FieldError, "body.up_cam"),
+        (
+            lambda m: replace(m, session=1, prev_session_from_world=np.eye(4)),
+            FieldError,
+            "body.prev_session_sigma",
+        ),
+        (
+            lambda m: replace(m, prev_session_from_world=np.eye(4), prev_session_sigma=np.ones(2)),
+            FieldError,
+            "body.prev_session_from_world",
+        ),
+        (
+            lambda m: replace(
+                m, session=1, prev_session_from_world=np.full((4, 4), 2.0), prev_session_sigma=np.ones(2)
+            ),
+            FieldError,
+            "body.prev_session_from_world",
+        ),
+        (
+            lambda m: replace(
+                m, session=1, prev_session_from_world=np.eye(4), prev_session_sigma=np.array([0.1, -1.0])
+            ),
+            FieldError,
+            "body.prev_session_sigma",
+        ),
     ],
 )
 def test_bad_keyframe_fields_are_named(mutate: Any, error: type[ProtocolError], field: str) -> None:
