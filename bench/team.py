@@ -230,8 +230,9 @@ async def replay(url: str, streams: list[Stream]) -> list[AgentStats]:
 
 
 # ------------------------------------------------------------------------------------------ server
-def serve(port: int, data_dir: Path, config: Path) -> None:
-    """The hivemap server app plus one bench route, ``/bench/figures``: the back-end's figures."""
+def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) -> None:
+    """The hivemap server app plus one bench route, ``/bench/figures``: the back-end's figures.
+    ``profile``: cProfile every place-recognition query (the back-end's thread) into this file."""
     import uvicorn
 
     from hivemap.server.app import create_app, uvicorn_config_kwargs
@@ -259,7 +260,26 @@ def serve(port: int, data_dir: Path, config: Path) -> None:
             "maps": len(app.state.hive.stack.maps),
         }
 
+    prof = None
+    if profile is not None:
+        import cProfile
+
+        from hivemap.server.backend import detect
+
+        prof = cProfile.Profile()
+        query = detect.detect
+
+        def profiled(*args: Any, **kwargs: Any) -> Any:
+            prof.enable()
+            try:
+                return query(*args, **kwargs)
+            finally:
+                prof.disable()
+
+        detect.detect = profiled  # type: ignore[assignment]
     make_uvicorn_server(uvicorn.Config(app, **uvicorn_config_kwargs(settings))).run()
+    if prof is not None and profile is not None:
+        prof.dump_stats(str(profile))
 
 
 def quality(rec: Path, events: list[dict[str, Any]]) -> dict[str, Any]:
@@ -313,7 +333,7 @@ def _pct(x: list[float], q: float) -> float:
 
 
 def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | None, drain_s: float,
-            start_poses: bool) -> dict[str, Any]:  # fmt: skip
+            start_poses: bool, profile: Path | None = None) -> dict[str, Any]:  # fmt: skip
     streams = make_streams(rec, n, speed, duration_s)
     work = Path(tempfile.mkdtemp(prefix="hivemap-team-"))
     cfg = work / "server.toml"
@@ -327,7 +347,8 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
     log = open(work / "server.log", "wb")  # noqa: SIM115
     proc = subprocess.Popen(
         [sys.executable, __file__, "serve", "--port", str(port), "--data-dir", str(work / "data"),
-         "--config", str(cfg)], stdout=log, stderr=subprocess.STDOUT,
+         "--config", str(cfg)] + ([] if profile is None else ["--profile", str(profile)]),
+        stdout=log, stderr=subprocess.STDOUT,
     )  # fmt: skip
     os.sched_setaffinity(proc.pid, set(sorted(os.sched_getaffinity(0))[:cores]))
     url = f"http://127.0.0.1:{port}"
@@ -416,21 +437,27 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--drain", type=float, default=120.0, help="wait at most S seconds for the queue")
     p.add_argument("--no-start-poses", action="store_true", help="the server is not told the start poses")
     p.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    p.add_argument("--profile", type=Path, default=None, help="cProfile the queries into DIR/N.prof")
     s = sub.add_parser("serve", help=argparse.SUPPRESS)
     s.add_argument("--port", type=int, required=True)
     s.add_argument("--data-dir", type=Path, required=True)
     s.add_argument("--config", type=Path, required=True)
+    s.add_argument("--profile", type=Path, default=None)
     args = ap.parse_args(argv)
     if args.cmd == "record":
         record(args.scenario_dir, args.run_dir, args.out)
         return 0
     if args.cmd == "serve":
-        serve(args.port, args.data_dir, args.config)
+        serve(args.port, args.data_dir, args.config, args.profile)
         return 0
     results = []
     for n in [int(x) for x in args.agents.split(",")]:
+        prof = None
+        if args.profile is not None:
+            args.profile.mkdir(parents=True, exist_ok=True)
+            prof = args.profile / f"{n}.prof"
         res = run_one(args.recording, n, args.cores, args.speed, args.duration, args.drain,
-                      not args.no_start_poses)  # fmt: skip
+                      not args.no_start_poses, prof)  # fmt: skip
         results.append(res)
         print(f"N={n:3d} cores={args.cores}: " + summary(res), flush=True)
     ok = [r["agents"] for r in results if r["kept_up"]]

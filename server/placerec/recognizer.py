@@ -358,6 +358,9 @@ class PlaceRecognizer:
         _, q_fv = self._fv(q)
         q_pk = views.point_keys(q)
         q_has = views.has(mq, q)
+        if int(q_has.sum()) < th.min_matches:  # not enough query points for a verification to pass
+            rep.reason = "few_bow_matches"
+            return
 
         # 1. BoW matches against the candidate window -> 3D-3D correspondences
         window = [cand_key] + [k for k in _best_covisible(mc, cand_key, o.covisible_window) if k != cand_key]
@@ -394,8 +397,18 @@ class PlaceRecognizer:
         c_cfw = se3_inverse(np.asarray(c.world_from_cam, dtype=np.float64))
         depth_c = np.median(np.linalg.norm(xc @ c_cfw[:3, :3].T + c_cfw[:3, 3], axis=1))
         max_err = max(o.ransac_min_error, o.ransac_rel_error * float(depth_c))
+        est = estimate_sim3_ransac(xq, xc, max_err, fix_scale, o.ransac_min_trials)
+        if est is None:
+            rep.reason = "ransac_failed"
+            return
+        sim, inl = est
+        rep.n_ransac_inliers = int(inl.sum())
+        if rep.n_ransac_inliers < th.min_inliers:
+            rep.reason = "few_ransac_inliers"
+            return
         if fix_scale and o.metric_max_log_scale > 0:
-            # metric agents: the free-scale estimate must agree with scale 1 (sanity gate)
+            # metric agents: the free-scale estimate must agree with scale 1 (sanity gate); run only for
+            # a candidate the rigid estimate accepted, as it rejects nothing else
             free = estimate_sim3_ransac(xq, xc, max_err, False, o.ransac_min_trials)
             if (
                 free is not None
@@ -406,15 +419,6 @@ class PlaceRecognizer:
                 rep.scale = free[0].s
                 rep.reason = "metric_scale_inconsistent"
                 return
-        est = estimate_sim3_ransac(xq, xc, max_err, fix_scale, o.ransac_min_trials)
-        if est is None:
-            rep.reason = "ransac_failed"
-            return
-        sim, inl = est
-        rep.n_ransac_inliers = int(inl.sum())
-        if rep.n_ransac_inliers < th.min_inliers:
-            rep.reason = "few_ransac_inliers"
-            return
         sim_ransac = sim
         if rep.kind == "loop" and self._implausible_correction(sim, q.world_from_cam, rep):
             return
