@@ -344,7 +344,24 @@ def _point_keys(kf: Any) -> list[PointKey | None]:
 
 def _has_point(pk: Sequence[PointKey | None], points: Any) -> NDArray[np.bool_]:
     """Per keypoint: does it reference a point that is (still) in ``points``."""
-    return np.fromiter((k is not None and k in points for k in pk), dtype=bool, count=len(pk))
+    return np.array([k is not None and k in points for k in pk], dtype=bool).reshape(len(pk))
+
+
+@dataclass
+class PointSet:
+    """Map points read once for a verification: keys, positions, descriptors and key -> row."""
+
+    keys: list[PointKey]
+    xyz: F64  # (N, 3)
+    desc: NDArray[np.uint8]  # (N, 32)
+    index: dict[PointKey, int]
+
+    @staticmethod
+    def of(m: Any, keys: list[PointKey]) -> PointSet:
+        pts = [m.points[k] for k in keys]
+        xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
+        desc = np.array([p.descriptor for p in pts], dtype=np.uint8).reshape(-1, 32)
+        return PointSet(keys, xyz, desc, {k: i for i, k in enumerate(keys)})
 
 
 def guided_search(
@@ -352,69 +369,55 @@ def guided_search(
     q: Any,
     q_cfw: F64,
     q_pk: Sequence[PointKey | None],
-    mq: Any,
     c: Any,
     c_cfw: F64,
-    mc: Any,
-    cand_pts: list[PointKey],
-    q_pts: list[PointKey],
+    c_pk: Sequence[PointKey | None],
+    c_has: NDArray[np.bool_],
+    cand: PointSet,
+    qpts: PointSet,
     sim: Sim3,
     pairs: dict[int, PointKey],
-    views: Any = None,
 ) -> dict[int, PointKey]:
     """Add matches by projection both ways; returns query keypoint -> candidate point.
-    ``views``: the query's :class:`~hivemap.server.placerec.views.KeyframeViews` (cached point keys)."""
+
+    ``cand``: the candidate window's points; ``qpts``: the query keyframe's points; ``c_pk`` / ``c_has``:
+    the candidate keyframe's point keys and which of them are in its map."""
     out = dict(pairs)
-    used_c = set(out.values())
+    used = np.zeros(len(cand.keys), dtype=bool)
+    for v in out.values():
+        i = cand.index.get(v)
+        if i is not None:
+            used[i] = True
     # A: candidate-window points -> query keyframe
-    free_c = [k for k in cand_pts if k not in used_c]
-    if free_c:
-        xyz = sim.inverse().apply(np.array([mc.points[k].xyz for k in free_c]))
-        uv, valid = _project(q.camera, q_cfw, xyz)
+    free = np.flatnonzero(~used)
+    if len(free):
+        uv, valid = _project(q.camera, q_cfw, sim.inverse().apply(cand.xyz[free]))
         valid &= q.camera.in_image(uv)
-        vi = np.flatnonzero(valid)
-        desc = np.array([mc.points[free_c[i]].descriptor for i in vi], dtype=np.uint8).reshape(-1, 32)
+        vi = free[valid]
         mask = np.ones(len(q.keypoints), dtype=bool)
         mask[list(out.keys())] = False
         m = match_projected(
-            uv[vi],
-            desc,
-            q.keypoints,
-            q.octaves,
-            q.descriptors,
-            o.search_radius_px,
-            o.search_max_distance,
-            mask,
-        )
+            uv[valid], cand.desc[vi], q.keypoints, q.octaves, q.descriptors,
+            o.search_radius_px, o.search_max_distance, mask,
+        )  # fmt: skip
         for pi, kq in m.tolist():
-            out[int(kq)] = free_c[vi[pi]]
-            used_c.add(free_c[vi[pi]])
+            out[int(kq)] = cand.keys[vi[pi]]
     # B: query points -> candidate keyframe
     used_q = {q_pk[i] for i in out if q_pk[i] is not None}
-    free_q = [k for k in q_pts if k not in used_q]
-    c_pk = _point_keys(c) if views is None else views.point_keys(c)
-    if free_q:
-        xyz = sim.apply(np.array([mq.points[k].xyz for k in free_q]))
-        uv, valid = _project(c.camera, c_cfw, xyz)
+    free_q = np.array([i for i, k in enumerate(qpts.keys) if k not in used_q], dtype=np.int64)
+    if len(free_q):
+        uv, valid = _project(c.camera, c_cfw, sim.apply(qpts.xyz[free_q]))
         valid &= c.camera.in_image(uv)
-        vi = np.flatnonzero(valid)
-        desc = np.array([mq.points[free_q[i]].descriptor for i in vi], dtype=np.uint8).reshape(-1, 32)
-        c_has = _has_point(c_pk, mc.points) if views is None else views.has(mc, c)
+        vi = free_q[valid]
+        used_c = set(out.values())
         cmask = c_has & np.fromiter((k not in used_c for k in c_pk), dtype=bool, count=len(c_pk))
         m = match_projected(
-            uv[vi],
-            desc,
-            c.keypoints,
-            c.octaves,
-            c.descriptors,
-            o.search_radius_px,
-            o.search_max_distance,
-            cmask,
-        )
+            uv[valid], qpts.desc[vi], c.keypoints, c.octaves, c.descriptors,
+            o.search_radius_px, o.search_max_distance, cmask,
+        )  # fmt: skip
         q_index = {k: i for i, k in enumerate(q_pk) if k is not None}
         for pi, kc in m.tolist():
-            qk = free_q[vi[pi]]
-            iq = q_index[qk]
+            iq = q_index[qpts.keys[vi[pi]]]
             pc = c_pk[kc]
             if iq not in out and pc is not None:
                 out[iq] = pc

@@ -15,6 +15,7 @@ from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
 from hivemap.maps.kfdb import KeyframeDatabase
 from hivemap.maps.vocabulary import BowVector, FeatureVector, Vocabulary
 from hivemap.server.placerec.match import (
+    PointSet,
     _best_covisible,
     _observations,
     _residuals,
@@ -32,7 +33,7 @@ from hivemap.server.placerec.types import (
     RecognitionResult,
     Thresholds,
 )
-from hivemap.server.placerec.views import KeyframeViews
+from hivemap.server.placerec.views import HasCache, KeyframeViews
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,7 @@ class PlaceRecognizer:
         self.kfdb = kfdb if kfdb is not None else KeyframeDatabase()
         self.options = options
         self._consistency: dict[tuple[int, int, str], _Consistency] = {}
+        self._has = HasCache()
 
     # --- database ------------------------------------------------------------------------------
     def add_keyframe(self, map_id: int, kf: Any) -> BowVector:
@@ -84,6 +86,7 @@ class PlaceRecognizer:
 
     def remove_keyframe(self, key: KfKey) -> None:
         self.kfdb.remove(key)
+        self._has.forget(key)
 
     def on_merge(self, target_map: int, source_map: int) -> None:
         """After ``source_map`` was merged into ``target_map``: relabel the index, drop stale state."""
@@ -145,7 +148,7 @@ class PlaceRecognizer:
             result.retrieved += len(found)
             todo += [(k, s, "loop") for k, s in self._grouped(maps, found, scores, lambda k: k not in covis)]
         best: CandidateReport | None = None
-        views = KeyframeViews()
+        views = KeyframeViews(self._has)
         covered: set[KfKey] = set()  # windows of accepted candidates (ORB-SLAM3 skips those)
         for ck, score, kind in todo[: o.max_verifications]:
             cmap_id = self.kfdb.map_of(ck)
@@ -199,7 +202,7 @@ class PlaceRecognizer:
         result = RecognitionResult(query_key, query_map, [])
         best: CandidateReport | None = None
         q_bow, _ = self._fv(maps[query_map].keyframes[query_key])
-        views = KeyframeViews()
+        views = KeyframeViews(self._has)
         for ck in candidate_keys:
             rep = self._verify(
                 maps, query_map, query_key, candidate_map, ck, fix_scale, th, "gnss_retry", views
@@ -426,11 +429,12 @@ class PlaceRecognizer:
         # 3. guided search both ways, refine, guided search again, refine again
         q_cfw = se3_inverse(np.asarray(q.world_from_cam, dtype=np.float64))
         window_kfs = [mc.keyframes[k] for k in window if k in mc.keyframes]
-        cand_pts = views.window_points(mc, window_kfs)
-        q_pts = list(dict.fromkeys(q_pk[i] for i in np.flatnonzero(q_has).tolist()))
+        cand = PointSet.of(mc, views.window_points(mc, window_kfs))
+        qpts = PointSet.of(mq, list(dict.fromkeys(q_pk[i] for i in np.flatnonzero(q_has).tolist())))  # type: ignore[misc]
+        c_pk, c_has = views.point_keys(c), views.has(mc, c)
         pairs: dict[int, PointKey] = {corr_q[i]: corr_c[i] for i in np.flatnonzero(inl)}
         for _ in range(2):
-            pairs = guided_search(o, q, q_cfw, q_pk, mq, c, c_cfw, mc, cand_pts, q_pts, sim, pairs, views)
+            pairs = guided_search(o, q, q_cfw, q_pk, c, c_cfw, c_pk, c_has, cand, qpts, sim, pairs)
             obs = _observations(pairs, q, q_pk, mq, mc, window_kfs)
             if len(obs.xc) < 3:
                 break
@@ -442,7 +446,7 @@ class PlaceRecognizer:
                 sub = np.random.default_rng(0).choice(len(obs.xc), o.refine_max_points, replace=False)
                 obs = obs.subset(np.sort(sub))
             sim = refine_sim3(sim, obs, q.camera, q_cfw, fix_scale, o.huber_px)
-        pairs = guided_search(o, q, q_cfw, q_pk, mq, c, c_cfw, mc, cand_pts, q_pts, sim, pairs, views)
+        pairs = guided_search(o, q, q_cfw, q_pk, c, c_cfw, c_pk, c_has, cand, qpts, sim, pairs)
         obs = _observations(pairs, q, q_pk, mq, mc, window_kfs)
         ra, rb, has_b = _residuals(sim, obs, q.camera, q_cfw)
         ok = ((ra**2).sum(axis=1) < o.inlier_chi2) & (~has_b | ((rb**2).sum(axis=1) < o.inlier_chi2))

@@ -433,3 +433,26 @@ def test_candidate_whose_points_were_fused_meanwhile_is_skipped_without_error(sc
     assert not caplog.records
     # the same pair verifies with its points all there
     assert pr._verify(maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge").accepted
+
+
+def test_point_masks_kept_across_queries_follow_points_arriving_and_leaving() -> None:
+    """The recogniser keeps each keyframe's "references a point of the map" mask across queries; it must
+    see a pending point that arrived since, a removed point, and the keyframe moving to another map."""
+    from hivemap.server.placerec.match import _point_keys
+    from hivemap.server.placerec.views import HasCache
+
+    rng = np.random.default_rng(0)
+    m = Map(0)
+    m.add_point(MapPoint("a", 0, np.zeros(3), rng.integers(0, 256, 32, np.uint8)))
+    kps = np.array([[10.0, 10.0], [20.0, 20.0], [30.0, 30.0]])
+    desc = rng.integers(0, 256, (3, 32), np.uint8)
+    kf = Keyframe("a", 0, 0.0, np.eye(4), CAM, kps, np.zeros(3, np.uint8), desc, np.array([0, 1, -1]))
+    m.add_keyframe(kf)  # point 1 not in the map yet: pending
+    cache = HasCache()
+    assert cache.get(m, kf, _point_keys(kf)).tolist() == [True, False, False]
+    m.add_point(MapPoint("a", 1, np.ones(3), rng.integers(0, 256, 32, np.uint8)))
+    assert cache.get(m, kf, _point_keys(kf)).tolist() == [True, True, False]
+    m.remove_point(("a", 0))
+    assert cache.get(m, kf, _point_keys(kf)).tolist() == [False, True, False]
+    other = Map(1)  # a merge moves the keyframe into another map object
+    assert cache.get(other, kf, _point_keys(kf)).tolist() == [False, False, False]
