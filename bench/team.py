@@ -252,6 +252,7 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
             "queries": be.queries,
             "query_ms": be.query_ms,
             "query_cpu_ms": cpu_ms,
+            "verify_cpu_ms": sum(verify_ms),
             "query_lags": getattr(be, "query_lags", []),  # a server from before these figures: none
             "dropped": getattr(be, "dropped_queries", 0),
             "queued": len(be.queue),
@@ -287,6 +288,19 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
 
     cpu_ms: list[float] = []
     detect.detect = measured  # type: ignore[assignment]
+    from hivemap.server.placerec import PlaceRecognizer
+
+    verify = PlaceRecognizer._verify
+    verify_ms: list[float] = []
+
+    def measured_verify(*args: Any, **kwargs: Any) -> Any:
+        t = time.thread_time()
+        try:
+            return verify(*args, **kwargs)
+        finally:
+            verify_ms.append((time.thread_time() - t) * 1e3)
+
+    PlaceRecognizer._verify = measured_verify  # type: ignore[method-assign]
     make_uvicorn_server(uvicorn.Config(app, **uvicorn_config_kwargs(settings))).run()
     if prof is not None and profile is not None:
         prof.dump_stats(str(profile))
@@ -348,7 +362,8 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
     work = Path(tempfile.mkdtemp(prefix="hivemap-team-"))
     cfg = work / "server.toml"
     # keepalive of 10 min: on a shared machine a busy server answers pings late and would drop agents
-    lines = ["event_buffer = 100000", "ping_interval_s = 600.0", "[tokens]"] + [f'{s.agent_id} = "{s.hello.token}"' for s in streams]
+    lines = ["event_buffer = 100000", "ping_interval_s = 600.0", "[tokens]"]
+    lines += [f'{s.agent_id} = "{s.hello.token}"' for s in streams]
     if start_poses:
         lines += ["[start_poses]"] + [f"{s.agent_id} = {s.start_pose}" for s in streams]
     cfg.write_text("\n".join(lines) + "\n")
@@ -404,6 +419,7 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
         "query_ms_mean": float(np.mean(fig["query_ms"])) if fig["query_ms"] else float("nan"),
         "query_cpu_ms_mean": float(np.mean(fig["query_cpu_ms"])) if fig["query_cpu_ms"] else float("nan"),
         "query_cpu_ms_p95": _pct(fig["query_cpu_ms"], 95),
+        "verify_cpu_ms_per_query": fig["verify_cpu_ms"] / max(1, fig["queries"]),
         "verifications": fig["verifications"], "merges": fig["visual_merges"], "loops": fig["loops"],
         "maps": fig["maps"], "cpu_pct": 100 * cpu / max(t_end - t0, 1e-9), "rss_mb": rss,
         "wall_s": t_end - t0, "send_late_p95": _pct([x for s in stats for x in s.late_s], 95),
@@ -421,7 +437,8 @@ def summary(r: dict[str, Any]) -> str:
         f"{r['dropped']} dropped)",
         f"query lag p50 {r['lag_p50']:.2f} s p95 {r['lag_p95']:.2f} s max {r['lag_max']:.2f} s",
         f"query {r['query_ms_mean']:.0f} ms mean (CPU {r['query_cpu_ms_mean']:.0f} ms mean, "
-        f"p95 {r['query_cpu_ms_p95']:.0f} ms), {r['verifications']} verifications",
+        f"p95 {r['query_cpu_ms_p95']:.0f} ms), {r['verifications']} verifications "
+        f"(CPU {r['verify_cpu_ms_per_query']:.0f} ms per query)",
         f"corrections {r['n_corr']} p50 {r['corr_p50'] * 1e3:.0f} ms p95 {r['corr_p95'] * 1e3:.0f} ms",
         f"visual merges {r['merges']} loops {r['loops']} maps {r['maps']}",
         f"detections {r['detections']}, accepted candidates {r['accepted']}",
