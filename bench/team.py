@@ -474,6 +474,9 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--data-dir", type=Path, required=True)
     s.add_argument("--config", type=Path, required=True)
     s.add_argument("--profile", type=Path, default=None)
+    if not (sys.argv[1:] if argv is None else argv):  # `make bench` runs every bench bare
+        print("bench/team.py: nothing to replay without a recording (`record`, then `run`; see --help)")
+        return 0
     args = ap.parse_args(argv)
     if args.cmd == "record":
         record(args.scenario_dir, args.run_dir, args.out)

@@ -335,11 +335,13 @@ def _best_covisible(m: Any, key: KfKey, n: int) -> list[KfKey]:
 def _point_keys(kf: Any) -> list[PointKey | None]:
     """``kf.point_keys`` from the keyframe's id array in one pass (a verification reads it for the
     query and every window keyframe; the per-keypoint property call was a third of its time)."""
-    agent, other = kf.agent_id, kf.point_agents
+    agent = kf.agent_id
     ids = kf.point_ids.tolist()
-    if not other:
-        return [None if p < 0 else (agent, p) for p in ids]
-    return [None if p < 0 else (other.get(i, agent), p) for i, p in enumerate(ids)]
+    out: list[PointKey | None] = [None if p < 0 else (agent, p) for p in ids]
+    for i, a in kf.point_agents.items():  # points of other agents (fused after a merge)
+        if ids[i] >= 0:
+            out[i] = (a, ids[i])
+    return out
 
 
 def _has_point(pk: Sequence[PointKey | None], points: Any) -> NDArray[np.bool_]:

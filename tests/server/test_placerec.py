@@ -456,3 +456,17 @@ def test_point_masks_kept_across_queries_follow_points_arriving_and_leaving() ->
     assert cache.get(m, kf, _point_keys(kf)).tolist() == [False, True, False]
     other = Map(1)  # a merge moves the keyframe into another map object
     assert cache.get(other, kf, _point_keys(kf)).tolist() == [False, False, False]
+
+
+def test_point_keys_read_from_the_id_array_equal_the_keyframe_property() -> None:
+    from hivemap.server.placerec.match import _point_keys
+
+    rng = np.random.default_rng(0)
+    n = 60
+    ids = rng.integers(-1, 100, n)
+    kf = Keyframe("a", 0, 0.0, np.eye(4), CAM, rng.uniform(0, 100, (n, 2)), np.zeros(n, np.uint8),
+                  rng.integers(0, 256, (n, 32), np.uint8), ids)  # fmt: skip
+    for i in range(0, n, 3):  # references to another agent's points (fused after a merge)
+        if ids[i] >= 0:
+            kf.set_point_key(i, ("b", int(ids[i])))
+    assert _point_keys(kf) == kf.point_keys
