@@ -309,7 +309,12 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
 def quality(rec: Path, events: list[dict[str, Any]]) -> dict[str, Any]:
     """Recognition figures from the server's events: queries with a detection, accepted candidates, and
     the accepted loops' errors against the ground truth (a copy's agents have the original's)."""
-    from hivemap.eval.trajectory import groundtruth_trajectory, loop_errors
+    from hivemap.eval.trajectory import groundtruth_trajectory
+
+    try:
+        from hivemap.eval.globalmap import loop_errors
+    except ImportError:  # a hivemap from before eval.globalmap (the bench replays into older servers too)
+        from hivemap.eval.trajectory import loop_errors  # type: ignore[attr-defined,no-redef]
 
     meta = json.loads((rec / "team.json").read_text())
     scen = Path(meta["scenario_dir"])
