@@ -53,7 +53,6 @@ LAG_OK_S = 2.0  # issue 23: query lag p95 <= 2 s
 def record(scenario_dir: Path, run_dir: Path, out: Path) -> None:
     """Copy each agent's outbox frames and hello fields from a finished run into ``out``."""
     from hivemap.client.dataset import load_dataset, load_scenario
-    from hivemap.eval.experiment import start_poses_toml
 
     man = load_scenario(scenario_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -75,9 +74,12 @@ def record(scenario_dir: Path, run_dir: Path, out: Path) -> None:
         agents.append(
             {"agent_id": a.id, "kind": a.kind, "camera": ds.camera.to_dict(), "cam_from_antenna": lever}
         )
-    import tomllib
-
-    starts = tomllib.loads(start_poses_toml(scenario_dir, [a["agent_id"] for a in agents]))["start_poses"]
+    # the true start configuration: cam0's pose at each agent's first frame (as the experiment runner's)
+    starts = {}
+    for a in man.agents:
+        ds = load_dataset(scenario_dir / a.id)
+        T = np.asarray(ds.groundtruth.world_from_body[0]) @ np.asarray(ds.T_BS["cam0"])
+        starts[a.id] = T.tolist()
     meta = {
         "scenario_dir": str(scenario_dir),
         "run_dir": str(run_dir),
