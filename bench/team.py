@@ -364,7 +364,8 @@ def _pct(x: list[float], q: float) -> float:
 
 
 def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | None, drain_s: float,
-            start_poses: bool, profile: Path | None = None) -> dict[str, Any]:  # fmt: skip
+            start_poses: bool, profile: Path | None = None,
+            extra_toml: tuple[str, ...] = ()) -> dict[str, Any]:  # fmt: skip
     streams = make_streams(rec, n, speed, duration_s)
     work = Path(tempfile.mkdtemp(prefix="hivemap-team-"))
     cfg = work / "server.toml"
@@ -373,6 +374,7 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
     lines += [f'{s.agent_id} = "{s.hello.token}"' for s in streams]
     if start_poses:
         lines += ["[start_poses]"] + [f"{s.agent_id} = {s.start_pose}" for s in streams]
+    lines += extra_toml
     cfg.write_text("\n".join(lines) + "\n")
     from hivemap.eval.experiment import free_port
 
@@ -476,6 +478,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-start-poses", action="store_true", help="the server is not told the start poses")
     p.add_argument("--json", type=Path, default=None, help="also write the figures here")
     p.add_argument("--profile", type=Path, default=None, help="cProfile the queries into DIR/N.prof")
+    p.add_argument("--server-toml", action="append", default=[], metavar="LINE",
+                   help="a line appended to the server's config, e.g. '[backend.scheduler]'")  # fmt: skip
     s = sub.add_parser("serve", help=argparse.SUPPRESS)
     s.add_argument("--port", type=int, required=True)
     s.add_argument("--data-dir", type=Path, required=True)
@@ -498,7 +502,7 @@ def main(argv: list[str] | None = None) -> int:
             args.profile.mkdir(parents=True, exist_ok=True)
             prof = args.profile / f"{n}.prof"
         res = run_one(args.recording, n, args.cores, args.speed, args.duration, args.drain,
-                      not args.no_start_poses, prof)  # fmt: skip
+                      not args.no_start_poses, prof, tuple(args.server_toml))  # fmt: skip
         results.append(res)
         print(f"N={n:3d} cores={args.cores}: " + summary(res), flush=True)
     ok = [r["agents"] for r in results if r["kept_up"]]
