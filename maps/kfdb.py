@@ -183,6 +183,15 @@ class KeyframeDatabase:
         out = np.bincount(slots, weights=np.minimum(weights, qrep), minlength=n_slots).astype(np.float64)
         return out
 
+    def scores_of(self, keys: list[KfKey], scores: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The entries of ``scores`` (from :meth:`scores`) for ``keys`` (0 for unknown keys)."""
+        out = np.zeros(len(keys))
+        for i, k in enumerate(keys):
+            slot = self._slot_of.get(k)
+            if slot is not None and slot < len(scores):
+                out[i] = scores[slot]
+        return out
+
     def query(
         self,
         bow: BowVector,

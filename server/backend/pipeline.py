@@ -82,6 +82,9 @@ class Pipeline:
         # figures
         self.queries = 0
         self.query_ms: list[float] = []
+        self.query_lags: list[float] = []  # keyframe arrival -> its place recognition done (s)
+        self.dropped_queries = 0  # query keyframes pushed out of the full queue
+        self._arrived: dict[KfKey, float] = {}
         self.verifications = 0
         self.merges: list[dict[str, Any]] = []
         self.loops: list[dict[str, Any]] = []

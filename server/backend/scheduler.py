@@ -97,7 +97,10 @@ class Backend(Pipeline):
             self._record_start(map_id, key)
         if len(self.queue) == self.queue.maxlen:
             self.server.events.add("placerec", f"query queue full: {self.queue[0]} dropped")
+            self.dropped_queries += 1
+            self._arrived.pop(self.queue[0], None)
         self.queue.append(key)
+        self._arrived[key] = time.monotonic()
         self._wake.set()
         # GNSS stage also without a merge or loop: every ``GNSS_EVERY_KFS`` keyframes with a fix in a map
         m = self.server.stack.maps.get(map_id)
@@ -173,6 +176,7 @@ class Backend(Pipeline):
                 res = await loop.run_in_executor(
                     self._pr_exec, detect.detect, recognizer, stack, key, n_agents, self.options.fix_scale
                 )
+                self.query_lags.append(time.monotonic() - self._arrived.pop(key, time.monotonic()))
                 if res is None:
                     continue
                 self.queries += 1

@@ -71,7 +71,9 @@ def _best_unique(a: I64, b: I64, dist: NDArray[Any], max_distance: float, ratio:
     """Per ``a``: best ``b`` (ratio test vs the second best if ``ratio``); then one ``a`` per ``b``."""
     if len(a) == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    o = np.lexsort((dist, a))
+    dist = np.asarray(dist, dtype=np.int64)  # Hamming distances: 0..256
+    # one stable sort on a packed (a, dist) key instead of a two-key lexsort (same order, ~3x faster)
+    o = np.argsort((a.astype(np.int64) << 9) | dist, kind="stable")
     a, b, dist = a[o], b[o], dist[o]
     first = np.ones(len(a), dtype=bool)
     first[1:] = a[1:] != a[:-1]
@@ -87,7 +89,7 @@ def _best_unique(a: I64, b: I64, dist: NDArray[Any], max_distance: float, ratio:
         ok &= best_d < ratio * second_d
     idx = idx[ok]
     pa, pb, pd = a[idx], b[idx], dist[idx]
-    o = np.lexsort((pd, pb))
+    o = np.argsort((pb.astype(np.int64) << 9) | pd, kind="stable")
     pa, pb = pa[o], pb[o]
     keep = np.ones(len(pb), dtype=bool)
     keep[1:] = pb[1:] != pb[:-1]
@@ -331,7 +333,37 @@ def _best_covisible(m: Any, key: KfKey, n: int) -> list[KfKey]:
 
 
 def _point_keys(kf: Any) -> list[PointKey | None]:
-    return list(kf.point_keys)
+    """``kf.point_keys`` from the keyframe's id array in one pass (a verification reads it for the
+    query and every window keyframe; the per-keypoint property call was a third of its time)."""
+    agent = kf.agent_id
+    ids = kf.point_ids.tolist()
+    out: list[PointKey | None] = [None if p < 0 else (agent, p) for p in ids]
+    for i, a in kf.point_agents.items():  # points of other agents (fused after a merge)
+        if ids[i] >= 0:
+            out[i] = (a, ids[i])
+    return out
+
+
+def _has_point(pk: Sequence[PointKey | None], points: Any) -> NDArray[np.bool_]:
+    """Per keypoint: does it reference a point that is (still) in ``points``."""
+    return np.array([k is not None and k in points for k in pk], dtype=bool).reshape(len(pk))
+
+
+@dataclass
+class PointSet:
+    """Map points read once for a verification: keys, positions, descriptors and key -> row."""
+
+    keys: list[PointKey]
+    xyz: F64  # (N, 3)
+    desc: NDArray[np.uint8]  # (N, 32)
+    index: dict[PointKey, int]
+
+    @staticmethod
+    def of(m: Any, keys: list[PointKey]) -> PointSet:
+        pts = [m.points[k] for k in keys]
+        xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
+        desc = np.array([p.descriptor for p in pts], dtype=np.uint8).reshape(-1, 32)
+        return PointSet(keys, xyz, desc, {k: i for i, k in enumerate(keys)})
 
 
 def guided_search(
@@ -339,79 +371,59 @@ def guided_search(
     q: Any,
     q_cfw: F64,
     q_pk: Sequence[PointKey | None],
-    mq: Any,
     c: Any,
     c_cfw: F64,
-    mc: Any,
-    cand_pts: list[PointKey],
-    q_pts: list[PointKey],
+    c_pk: Sequence[PointKey | None],
+    c_has: NDArray[np.bool_],
+    cand: PointSet,
+    qpts: PointSet,
     sim: Sim3,
     pairs: dict[int, PointKey],
 ) -> dict[int, PointKey]:
-    """Add matches by projection both ways; returns query keypoint -> candidate point."""
+    """Add matches by projection both ways; returns query keypoint -> candidate point.
+
+    ``cand``: the candidate window's points; ``qpts``: the query keyframe's points; ``c_pk`` / ``c_has``:
+    the candidate keyframe's point keys and which of them are in its map."""
     out = dict(pairs)
-    used_c = set(out.values())
+    used = np.zeros(len(cand.keys), dtype=bool)
+    for v in out.values():
+        i = cand.index.get(v)
+        if i is not None:
+            used[i] = True
     # A: candidate-window points -> query keyframe
-    free_c = [k for k in cand_pts if k not in used_c]
-    if free_c:
-        xyz = sim.inverse().apply(np.array([mc.points[k].xyz for k in free_c]))
-        uv, valid = _project(q.camera, q_cfw, xyz)
+    free = np.flatnonzero(~used)
+    if len(free):
+        uv, valid = _project(q.camera, q_cfw, sim.inverse().apply(cand.xyz[free]))
         valid &= q.camera.in_image(uv)
-        vi = np.flatnonzero(valid)
-        desc = np.array([mc.points[free_c[i]].descriptor for i in vi], dtype=np.uint8).reshape(-1, 32)
+        vi = free[valid]
         mask = np.ones(len(q.keypoints), dtype=bool)
         mask[list(out.keys())] = False
         m = match_projected(
-            uv[vi],
-            desc,
-            q.keypoints,
-            q.octaves,
-            q.descriptors,
-            o.search_radius_px,
-            o.search_max_distance,
-            mask,
-        )
+            uv[valid], cand.desc[vi], q.keypoints, q.octaves, q.descriptors,
+            o.search_radius_px, o.search_max_distance, mask,
+        )  # fmt: skip
         for pi, kq in m.tolist():
-            out[int(kq)] = free_c[vi[pi]]
-            used_c.add(free_c[vi[pi]])
+            out[int(kq)] = cand.keys[vi[pi]]
     # B: query points -> candidate keyframe
     used_q = {q_pk[i] for i in out if q_pk[i] is not None}
-    free_q = [k for k in q_pts if k not in used_q]
-    c_pk = _point_keys(c)
-    if free_q:
-        xyz = sim.apply(np.array([mq.points[k].xyz for k in free_q]))
-        uv, valid = _project(c.camera, c_cfw, xyz)
+    free_q = np.array([i for i, k in enumerate(qpts.keys) if k not in used_q], dtype=np.int64)
+    if len(free_q):
+        uv, valid = _project(c.camera, c_cfw, sim.apply(qpts.xyz[free_q]))
         valid &= c.camera.in_image(uv)
-        vi = np.flatnonzero(valid)
-        desc = np.array([mq.points[free_q[i]].descriptor for i in vi], dtype=np.uint8).reshape(-1, 32)
-        cmask = np.array([k is not None and k in mc.points and k not in used_c for k in c_pk], dtype=bool)
+        vi = free_q[valid]
+        used_c = set(out.values())
+        cmask = c_has & np.fromiter((k not in used_c for k in c_pk), dtype=bool, count=len(c_pk))
         m = match_projected(
-            uv[vi],
-            desc,
-            c.keypoints,
-            c.octaves,
-            c.descriptors,
-            o.search_radius_px,
-            o.search_max_distance,
-            cmask,
-        )
+            uv[valid], qpts.desc[vi], c.keypoints, c.octaves, c.descriptors,
+            o.search_radius_px, o.search_max_distance, cmask,
+        )  # fmt: skip
         q_index = {k: i for i, k in enumerate(q_pk) if k is not None}
         for pi, kc in m.tolist():
-            qk = free_q[vi[pi]]
-            iq = q_index[qk]
+            iq = q_index[qpts.keys[vi[pi]]]
             pc = c_pk[kc]
             if iq not in out and pc is not None:
                 out[iq] = pc
     return out
-
-
-def _window_points(mc: Any, window_kfs: list[Any]) -> list[PointKey]:
-    seen: dict[PointKey, None] = {}
-    for w in window_kfs:
-        for k in _point_keys(w):
-            if k is not None and k in mc.points:
-                seen.setdefault(k, None)
-    return list(seen)
 
 
 def _observations(
@@ -423,40 +435,38 @@ def _observations(
     window_kfs: list[Any],
 ) -> _Obs:
     n = len(pairs)
-    xc = np.zeros((n, 3))
-    uv_q = np.zeros((n, 2))
-    sig_q = np.ones(n)
+    iqs = np.fromiter(pairs.keys(), dtype=np.int64, count=n)
+    mps = [mc.points[pc] for pc in pairs.values()]
+    xc = np.array([mp.xyz for mp in mps], dtype=np.float64).reshape(n, 3)
+    uv_q = np.asarray(q.keypoints, dtype=np.float64)[iqs].reshape(n, 2)
+    sig_q = 1.2 ** np.asarray(q.octaves, dtype=np.float64)[iqs]
     xq = np.full((n, 3), np.nan)
     uv_b = np.zeros((n, 2))
     sig_b = np.ones(n)
-    kf_of: list[KfKey | None] = [None] * n
-    wpos = {
-        w.key: (w, (w.camera, se3_inverse(np.asarray(w.world_from_cam, dtype=np.float64))))
-        for w in window_kfs
-    }
-    for i, (iq, pc) in enumerate(pairs.items()):
-        mp = mc.points[pc]
-        xc[i] = mp.xyz
-        uv_q[i] = q.keypoints[iq]
-        sig_q[i] = 1.2 ** float(q.octaves[iq])
+    # direction B: the candidate point's keypoint in the first window keyframe (candidate first) observing it
+    by_kf: dict[KfKey, list[int]] = {w.key: [] for w in window_kfs}
+    kp_of: dict[KfKey, list[int]] = {w.key: [] for w in window_kfs}
+    q_points = mq.points
+    for i, (iq, mp) in enumerate(zip(iqs.tolist(), mps, strict=True)):
         qk = q_pk[iq]
-        if qk is not None and qk in mq.points:
-            for wk, idx in mp.observations.items():
-                hit = wpos.get(wk)
-                if hit is not None:
-                    w, cam = hit
-                    xq[i] = mq.points[qk].xyz
-                    uv_b[i] = w.keypoints[idx]
-                    sig_b[i] = 1.2 ** float(w.octaves[idx])
-                    kf_of[i] = wk
-                    break
+        if qk is None or qk not in q_points:
+            continue
+        for wk, idx in mp.observations.items():
+            rows = by_kf.get(wk)
+            if rows is not None:
+                xq[i] = q_points[qk].xyz
+                rows.append(i)
+                kp_of[wk].append(idx)
+                break
     groups: list[tuple[I64, Any, F64]] = []
-    by_kf: dict[KfKey, list[int]] = {}
-    for i, wk in enumerate(kf_of):
-        if wk is not None:
-            by_kf.setdefault(wk, []).append(i)
-    for wk, idx_list in by_kf.items():
-        cam, cfw = wpos[wk][1]
-        groups.append((np.asarray(idx_list, dtype=np.int64), cam, cfw))
-    has_b = np.array([k is not None for k in kf_of], dtype=bool)
+    has_b = np.zeros(n, dtype=bool)
+    for w in window_kfs:
+        rows = by_kf[w.key]
+        if not rows:
+            continue
+        ri, ki = np.asarray(rows, dtype=np.int64), np.asarray(kp_of[w.key], dtype=np.int64)
+        uv_b[ri] = np.asarray(w.keypoints, dtype=np.float64)[ki]
+        sig_b[ri] = 1.2 ** np.asarray(w.octaves, dtype=np.float64)[ki]
+        has_b[ri] = True
+        groups.append((ri, w.camera, se3_inverse(np.asarray(w.world_from_cam, dtype=np.float64))))
     return _Obs(xc, uv_q, sig_q, xq, uv_b, sig_b, has_b, groups)

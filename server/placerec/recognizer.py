@@ -15,17 +15,17 @@ from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
 from hivemap.maps.kfdb import KeyframeDatabase
 from hivemap.maps.vocabulary import BowVector, FeatureVector, Vocabulary
 from hivemap.server.placerec.match import (
+    PointSet,
     _best_covisible,
     _observations,
-    _point_keys,
     _residuals,
-    _window_points,
     correction_of,
     estimate_sim3_ransac,
     guided_search,
     match_bow,
     refine_sim3,
 )
+from hivemap.server.placerec.retrieve import group_candidates
 from hivemap.server.placerec.types import (
     CandidateReport,
     Detection,
@@ -33,6 +33,7 @@ from hivemap.server.placerec.types import (
     RecognitionResult,
     Thresholds,
 )
+from hivemap.server.placerec.views import HasCache, KeyframeViews
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,7 @@ class PlaceRecognizer:
         self.kfdb = kfdb if kfdb is not None else KeyframeDatabase()
         self.options = options
         self._consistency: dict[tuple[int, int, str], _Consistency] = {}
+        self._has = HasCache()
 
     # --- database ------------------------------------------------------------------------------
     def add_keyframe(self, map_id: int, kf: Any) -> BowVector:
@@ -84,6 +86,7 @@ class PlaceRecognizer:
 
     def remove_keyframe(self, key: KfKey) -> None:
         self.kfdb.remove(key)
+        self._has.forget(key)
 
     def on_merge(self, target_map: int, source_map: int) -> None:
         """After ``source_map`` was merged into ``target_map``: relabel the index, drop stale state."""
@@ -130,24 +133,22 @@ class PlaceRecognizer:
             elif o.use_feasibility and not feas.feasible:
                 result.reason = "bow_infeasible"
             else:
-                todo += [
-                    (k, s, "merge")
-                    for k, s in self.kfdb.query(bow, n_cand, exclude_map=query_map, scores=scores)
-                ]
+                found = self.kfdb.query(bow, n_cand, exclude_map=query_map, scores=scores)
+                result.retrieved += len(found)
+                todo += [(k, s, "merge") for k, s in self._grouped(maps, found, scores)]
         if loop:
             covis = set(_covisible_keys(mq, query_key)) | {query_key}
-            # ORB-SLAM: a loop candidate must score above the worst covisible neighbour
-            min_score = min(
-                (bow.score(self.kfdb.bow(k)) for k in covis if k != query_key and k in self.kfdb),
-                default=0.0,
+            # ORB-SLAM: a loop candidate must score above the worst covisible neighbour (the query's
+            # scores against them are in ``scores`` already)
+            neigh = [k for k in covis if k != query_key and k in self.kfdb]
+            min_score = float(self.kfdb.scores_of(neigh, scores).min()) if neigh else 0.0
+            found = self.kfdb.query(
+                bow, n_cand, only_map=query_map, exclude_keys=covis, min_score=min_score, scores=scores
             )
-            todo += [
-                (k, s, "loop")
-                for k, s in self.kfdb.query(
-                    bow, n_cand, only_map=query_map, exclude_keys=covis, min_score=min_score, scores=scores
-                )
-            ]
+            result.retrieved += len(found)
+            todo += [(k, s, "loop") for k, s in self._grouped(maps, found, scores, lambda k: k not in covis)]
         best: CandidateReport | None = None
+        views = KeyframeViews(self._has)
         covered: set[KfKey] = set()  # windows of accepted candidates (ORB-SLAM3 skips those)
         for ck, score, kind in todo[: o.max_verifications]:
             cmap_id = self.kfdb.map_of(ck)
@@ -157,7 +158,7 @@ class PlaceRecognizer:
                 result.candidates.append(rep)
                 continue
             fs = fix_scale(query_map, cmap_id) if callable(fix_scale) else bool(fix_scale)
-            rep = self._verify(maps, query_map, query_key, cmap_id, ck, fs, o.thresholds, kind)
+            rep = self._verify(maps, query_map, query_key, cmap_id, ck, fs, o.thresholds, kind, views)
             rep.bow_score = score
             result.candidates.append(rep)
             if rep.accepted:
@@ -201,8 +202,11 @@ class PlaceRecognizer:
         result = RecognitionResult(query_key, query_map, [])
         best: CandidateReport | None = None
         q_bow, _ = self._fv(maps[query_map].keyframes[query_key])
+        views = KeyframeViews(self._has)
         for ck in candidate_keys:
-            rep = self._verify(maps, query_map, query_key, candidate_map, ck, fix_scale, th, "gnss_retry")
+            rep = self._verify(
+                maps, query_map, query_key, candidate_map, ck, fix_scale, th, "gnss_retry", views
+            )
             ckf = maps[candidate_map].keyframes.get(ck)
             if ckf is not None:
                 rep.bow_score = q_bow.score(self._fv(ckf)[0])
@@ -220,6 +224,22 @@ class PlaceRecognizer:
         return result
 
     # --- internals -------------------------------------------------------------------------------
+    def _grouped(
+        self,
+        maps: Mapping[int, Any],
+        found: list[tuple[KfKey, float]],
+        scores: NDArray[np.float64],
+        allowed: Callable[[KfKey], bool] = lambda k: True,
+    ) -> list[tuple[KfKey, float]]:
+        """The retrieved keyframes to verify: one per covisibility group (``group_covisible = 0``: all)."""
+        o = self.options
+        if o.group_covisible <= 0:
+            return found
+        groups = group_candidates(
+            self.kfdb, maps, found, scores, o.group_covisible, o.group_min_ratio, allowed
+        )
+        return [(g.key, g.score) for g in groups]
+
     def _to_detection(self, rep: CandidateReport, query_map: int) -> Detection:
         assert rep.target_from_source is not None
         return Detection(
@@ -294,11 +314,13 @@ class PlaceRecognizer:
         fix_scale: bool,
         th: Thresholds,
         kind: str,
+        views: KeyframeViews | None = None,
     ) -> CandidateReport:
         t0 = time.perf_counter()
         rep = CandidateReport(query_key, cand_key, cand_map, kind)
+        views = views if views is not None else KeyframeViews()
         try:
-            self._verify_inner(maps, query_map, query_key, cand_map, cand_key, fix_scale, th, rep)
+            self._verify_inner(maps, query_map, query_key, cand_map, cand_key, fix_scale, th, rep, views)
         except KeyError as e:
             # a point or keyframe the verification reads was fused away by the event loop meanwhile (about
             # ten per factory run): skipped, as a merged-away map is
@@ -322,6 +344,7 @@ class PlaceRecognizer:
         fix_scale: bool,
         th: Thresholds,
         rep: CandidateReport,
+        views: KeyframeViews,
     ) -> None:
         o = self.options
         mq, mc = maps.get(query_map), maps.get(cand_map)
@@ -336,8 +359,11 @@ class PlaceRecognizer:
             rep.reason = "candidate_missing"
             return
         _, q_fv = self._fv(q)
-        q_pk = _point_keys(q)
-        q_has = np.array([k is not None and k in mq.points for k in q_pk], dtype=bool)
+        q_pk = views.point_keys(q)
+        q_has = views.has(mq, q)
+        if int(q_has.sum()) < th.min_matches:  # not enough query points for a verification to pass
+            rep.reason = "few_bow_matches"
+            return
 
         # 1. BoW matches against the candidate window -> 3D-3D correspondences
         window = [cand_key] + [k for k in _best_covisible(mc, cand_key, o.covisible_window) if k != cand_key]
@@ -350,8 +376,8 @@ class PlaceRecognizer:
             if w is None:
                 continue
             _, w_fv = self._fv(w)
-            w_pk = _point_keys(w)
-            w_has = np.array([k is not None and k in mc.points for k in w_pk], dtype=bool)
+            w_pk = views.point_keys(w)
+            w_has = views.has(mc, w)
             bow_pairs = match_bow(
                 q_fv, q.descriptors, w_fv, w.descriptors, o.bow_max_distance, o.bow_ratio, q_has, w_has
             )
@@ -374,8 +400,18 @@ class PlaceRecognizer:
         c_cfw = se3_inverse(np.asarray(c.world_from_cam, dtype=np.float64))
         depth_c = np.median(np.linalg.norm(xc @ c_cfw[:3, :3].T + c_cfw[:3, 3], axis=1))
         max_err = max(o.ransac_min_error, o.ransac_rel_error * float(depth_c))
+        est = estimate_sim3_ransac(xq, xc, max_err, fix_scale, o.ransac_min_trials)
+        if est is None:
+            rep.reason = "ransac_failed"
+            return
+        sim, inl = est
+        rep.n_ransac_inliers = int(inl.sum())
+        if rep.n_ransac_inliers < th.min_inliers:
+            rep.reason = "few_ransac_inliers"
+            return
         if fix_scale and o.metric_max_log_scale > 0:
-            # metric agents: the free-scale estimate must agree with scale 1 (sanity gate)
+            # metric agents: the free-scale estimate must agree with scale 1 (sanity gate); run only for
+            # a candidate the rigid estimate accepted, as it rejects nothing else
             free = estimate_sim3_ransac(xq, xc, max_err, False, o.ransac_min_trials)
             if (
                 free is not None
@@ -386,15 +422,6 @@ class PlaceRecognizer:
                 rep.scale = free[0].s
                 rep.reason = "metric_scale_inconsistent"
                 return
-        est = estimate_sim3_ransac(xq, xc, max_err, fix_scale, o.ransac_min_trials)
-        if est is None:
-            rep.reason = "ransac_failed"
-            return
-        sim, inl = est
-        rep.n_ransac_inliers = int(inl.sum())
-        if rep.n_ransac_inliers < th.min_inliers:
-            rep.reason = "few_ransac_inliers"
-            return
         sim_ransac = sim
         if rep.kind == "loop" and self._implausible_correction(sim, q.world_from_cam, rep):
             return
@@ -402,11 +429,12 @@ class PlaceRecognizer:
         # 3. guided search both ways, refine, guided search again, refine again
         q_cfw = se3_inverse(np.asarray(q.world_from_cam, dtype=np.float64))
         window_kfs = [mc.keyframes[k] for k in window if k in mc.keyframes]
-        cand_pts = _window_points(mc, window_kfs)
-        q_pts = [k for k in dict.fromkeys(k for k in q_pk if k is not None and k in mq.points)]
+        cand = PointSet.of(mc, views.window_points(mc, window_kfs))
+        qpts = PointSet.of(mq, list(dict.fromkeys(q_pk[i] for i in np.flatnonzero(q_has).tolist())))  # type: ignore[misc]
+        c_pk, c_has = views.point_keys(c), views.has(mc, c)
         pairs: dict[int, PointKey] = {corr_q[i]: corr_c[i] for i in np.flatnonzero(inl)}
         for _ in range(2):
-            pairs = guided_search(self.options, q, q_cfw, q_pk, mq, c, c_cfw, mc, cand_pts, q_pts, sim, pairs)
+            pairs = guided_search(o, q, q_cfw, q_pk, c, c_cfw, c_pk, c_has, cand, qpts, sim, pairs)
             obs = _observations(pairs, q, q_pk, mq, mc, window_kfs)
             if len(obs.xc) < 3:
                 break
@@ -418,7 +446,7 @@ class PlaceRecognizer:
                 sub = np.random.default_rng(0).choice(len(obs.xc), o.refine_max_points, replace=False)
                 obs = obs.subset(np.sort(sub))
             sim = refine_sim3(sim, obs, q.camera, q_cfw, fix_scale, o.huber_px)
-        pairs = guided_search(self.options, q, q_cfw, q_pk, mq, c, c_cfw, mc, cand_pts, q_pts, sim, pairs)
+        pairs = guided_search(o, q, q_cfw, q_pk, c, c_cfw, c_pk, c_has, cand, qpts, sim, pairs)
         obs = _observations(pairs, q, q_pk, mq, mc, window_kfs)
         ra, rb, has_b = _residuals(sim, obs, q.camera, q_cfw)
         ok = ((ra**2).sum(axis=1) < o.inlier_chi2) & (~has_b | ((rb**2).sum(axis=1) < o.inlier_chi2))

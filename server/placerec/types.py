@@ -68,6 +68,11 @@ class PlaceRecOptions:
     feasibility_ratio: float = 0.3
     use_feasibility: bool = True
     max_verifications: int = 64  # budget per query
+    # Retrieved keyframes are grouped with their best covisible keyframes and one per group, the best
+    # scoring, is verified; groups scoring (sum of the members' BoW scores) below ``group_min_ratio`` x
+    # the best group are not (ORB-SLAM2: 10 covisible, 0.75). 0 disables (every retrieved keyframe).
+    group_covisible: int = 10
+    group_min_ratio: float = 0.75
     # Loops (query and candidate in one map, whose frame already holds both): a candidate whose transform
     # would move the query keyframe farther, or turn it more, than this is a false match, rejected as
     # "implausible_correction" right after RANSAC and again after refinement, so it neither costs the
@@ -171,6 +176,7 @@ class RecognitionResult:
     feasibility: Feasibility | None = None
     reason: str = ""
     time_ms: float = 0.0
+    retrieved: int = 0  # keyframes the BoW look-ups returned (``candidates``: those verified)
 
     @property
     def confirmed(self) -> Detection | None:
@@ -184,6 +190,7 @@ class RecognitionResult:
             "query_key": list(self.query_key),
             "query_map": self.query_map,
             "n_candidates": len(self.candidates),
+            "n_retrieved": self.retrieved,
             "reason": self.reason,
             "time_ms": round(self.time_ms, 2),
         }

@@ -71,6 +71,9 @@ def test_shared_scores_give_the_same_look_ups() -> None:
         q, 10, only_map=1, exclude_keys=ex, min_score=0.05
     )
     assert db.feasibility(q, 2, ratio=0.3, scores=s) == db.feasibility(q, 2, ratio=0.3)
+    # one query's score per keyframe, read from the shared scores (unknown keys score 0)
+    keys = [("agent3", 3), ("agent0", 8), ("nobody", 1)]
+    assert db.scores_of(keys, s) == pytest.approx([l1_score(q, bows[3]), l1_score(q, bows[8]), 0.0], rel=1e-5)
 
 
 def test_filters_remove_and_reassign() -> None:

@@ -225,6 +225,29 @@ def test_merge_recovers_known_sim3_after_three_consistent_detections(scene) -> N
     assert all(e["reason"] for e in ev)
 
 
+def test_retrieved_keyframes_of_one_place_are_verified_once_per_covisibility_group(scene) -> None:
+    """B's ten keyframes see one place and are all covisible: a query retrieving all of them verifies one,
+    the best-scoring keyframe of the group, and finds the same Sim(3) as verifying every one of them."""
+    from dataclasses import replace
+
+    maps = {0: scene["A"], 1: scene["B"]}
+    pr = _recognizer(maps)
+    grouped = pr.detect(maps, 0, ("uavA", 6), n_agents=4, loop=False)
+    pr_all = _recognizer(maps)
+    pr_all.options = replace(pr_all.options, group_covisible=0)
+    every = pr_all.detect(maps, 0, ("uavA", 6), n_agents=4, loop=False)
+    assert grouped.retrieved == every.retrieved == 10  # all of B's keyframes (16 asked for)
+    verified = [c for c in every.candidates if c.reason != "covered_by_accepted_window"]
+    assert len(verified) >= 2  # without grouping: several verifications of the one place
+    assert len(grouped.candidates) == 1
+    scores = pr.kfdb.scores(pr.kfdb.bow(("uavA", 6)))
+    best = max(maps[1].keyframes, key=lambda k: pr.kfdb.scores_of([k], scores)[0])
+    assert grouped.candidates[0].candidate_key == best
+    assert grouped.detection is not None and every.detection is not None
+    _check_sim(grouped.detection.target_from_source, S_TRUE)
+    assert grouped.detection.n_inliers >= 0.9 * every.detection.n_inliers
+
+
 def test_metric_mode_recovers_se3_and_rejects_a_scaled_map(scene) -> None:
     a, b = scene["A"], scene["B"]
     # B' = B brought back to metric scale: rigid B'_from_A
@@ -245,12 +268,23 @@ def test_metric_mode_recovers_se3_and_rejects_a_scaled_map(scene) -> None:
     assert r.detection is not None
     assert r.detection.target_from_source.s == 1.0
     _check_sim(r.detection.target_from_source, rigid)
-    # a metric-mode attempt against the 2.5-scaled map is refused by the scale sanity gate
+    # metric-mode attempts against scaled maps are refused: at scale 2.5 no rigid transform fits; at 1.5
+    # one fits the points near the centroid, and the free-scale sanity gate (run once the rigid estimate
+    # passed) refuses it
     maps2 = {0: a, 1: b}
     pr2 = _recognizer(maps2)
     r2 = pr2.detect(maps2, 0, ("uavA", 6), n_agents=2, fix_scale=True, loop=False)
-    assert r2.detection is None
-    assert any(c.reason == "metric_scale_inconsistent" for c in r2.candidates)
+    assert r2.detection is None and r2.candidates
+    assert all(c.reason == "few_ransac_inliers" for c in r2.candidates)
+    rng = np.random.default_rng(5)
+    pts, desc = _world(rng, 2500, (-20, 30))
+    a3 = _make_map(rng, 0, "uavA", pts, desc, np.linspace(-6, 8, 10), Sim3.identity())
+    b3 = _make_map(rng, 1, "uavB", pts, desc, np.linspace(-2, 12, 10), Sim3(S_TRUE.R, S_TRUE.t, 1.5))
+    maps3 = {0: a3, 1: b3}
+    r3 = _recognizer(maps3).detect(maps3, 0, ("uavA", 6), n_agents=2, fix_scale=True, loop=False)
+    assert r3.detection is None
+    gated = [c for c in r3.candidates if c.reason == "metric_scale_inconsistent"]
+    assert gated and all(c.scale == pytest.approx(1.5, rel=0.01) for c in gated)
 
 
 @pytest.mark.parametrize("other", ["C", "D"])
@@ -399,3 +433,40 @@ def test_candidate_whose_points_were_fused_meanwhile_is_skipped_without_error(sc
     assert not caplog.records
     # the same pair verifies with its points all there
     assert pr._verify(maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge").accepted
+
+
+def test_point_masks_kept_across_queries_follow_points_arriving_and_leaving() -> None:
+    """The recogniser keeps each keyframe's "references a point of the map" mask across queries; it must
+    see a pending point that arrived since, a removed point, and the keyframe moving to another map."""
+    from hivemap.server.placerec.match import _point_keys
+    from hivemap.server.placerec.views import HasCache
+
+    rng = np.random.default_rng(0)
+    m = Map(0)
+    m.add_point(MapPoint("a", 0, np.zeros(3), rng.integers(0, 256, 32, np.uint8)))
+    kps = np.array([[10.0, 10.0], [20.0, 20.0], [30.0, 30.0]])
+    desc = rng.integers(0, 256, (3, 32), np.uint8)
+    kf = Keyframe("a", 0, 0.0, np.eye(4), CAM, kps, np.zeros(3, np.uint8), desc, np.array([0, 1, -1]))
+    m.add_keyframe(kf)  # point 1 not in the map yet: pending
+    cache = HasCache()
+    assert cache.get(m, kf, _point_keys(kf)).tolist() == [True, False, False]
+    m.add_point(MapPoint("a", 1, np.ones(3), rng.integers(0, 256, 32, np.uint8)))
+    assert cache.get(m, kf, _point_keys(kf)).tolist() == [True, True, False]
+    m.remove_point(("a", 0))
+    assert cache.get(m, kf, _point_keys(kf)).tolist() == [False, True, False]
+    other = Map(1)  # a merge moves the keyframe into another map object
+    assert cache.get(other, kf, _point_keys(kf)).tolist() == [False, False, False]
+
+
+def test_point_keys_read_from_the_id_array_equal_the_keyframe_property() -> None:
+    from hivemap.server.placerec.match import _point_keys
+
+    rng = np.random.default_rng(0)
+    n = 60
+    ids = rng.integers(-1, 100, n)
+    kf = Keyframe("a", 0, 0.0, np.eye(4), CAM, rng.uniform(0, 100, (n, 2)), np.zeros(n, np.uint8),
+                  rng.integers(0, 256, (n, 32), np.uint8), ids)  # fmt: skip
+    for i in range(0, n, 3):  # references to another agent's points (fused after a merge)
+        if ids[i] >= 0:
+            kf.set_point_key(i, ("b", int(ids[i])))
+    assert _point_keys(kf) == kf.point_keys

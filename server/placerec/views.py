@@ -1,0 +1,80 @@
+"""What one place-recognition query reads of each keyframe, computed once per query.
+
+A query verifies many candidates whose windows (candidate + best covisible keyframes) overlap, and
+every verification reads the query keyframe again: their point keys, which of those points are still
+in the map, and the windows' points were recomputed per candidate. The cache lives for one query only,
+as the event loop changes the maps between queries.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.server.placerec.match import _has_point, _point_keys
+
+KfKey = tuple[str, int]
+PointKey = tuple[str, int]
+
+
+class HasCache:
+    """ "Which keypoints reference a point of the map" per keyframe, kept across queries.
+
+    Valid while the keyframe's references are unchanged (removing or fusing a point rewrites them, and a
+    merge moves the keyframe to another map); references still pending (the point not yet in the map)
+    are looked up again on every use, as their point may have arrived since."""
+
+    def __init__(self) -> None:
+        self._masks: dict[KfKey, tuple[int, int, NDArray[np.bool_]]] = {}
+
+    def get(self, m: Any, kf: Any, pk: list[PointKey | None]) -> NDArray[np.bool_]:
+        stamp = hash((kf.point_ids.tobytes(), tuple(sorted(kf.point_agents.items()))))
+        hit = self._masks.get(kf.key)
+        if hit is not None and hit[0] == id(m) and hit[1] == stamp:
+            has = hit[2]
+            for i in np.flatnonzero(~has & (kf.point_ids >= 0)).tolist():
+                if pk[i] in m.points:
+                    has[i] = True
+            return has
+        has = _has_point(pk, m.points)
+        self._masks[kf.key] = (id(m), stamp, has)
+        return has
+
+    def forget(self, key: KfKey) -> None:
+        self._masks.pop(key, None)
+
+
+class KeyframeViews:
+    """Per keyframe of one query: point keys and "has a map point" masks (``cache``: kept across
+    queries, see :class:`HasCache`)."""
+
+    def __init__(self, cache: HasCache | None = None) -> None:
+        self._pk: dict[KfKey, list[PointKey | None]] = {}
+        self._has: dict[KfKey, NDArray[np.bool_]] = {}
+        self._cache = cache
+
+    def point_keys(self, kf: Any) -> list[PointKey | None]:
+        pk = self._pk.get(kf.key)
+        if pk is None:
+            pk = self._pk[kf.key] = _point_keys(kf)
+        return pk
+
+    def has(self, m: Any, kf: Any) -> NDArray[np.bool_]:
+        """Which keypoints of ``kf`` (a keyframe of map ``m``) reference a point of ``m``."""
+        h = self._has.get(kf.key)
+        if h is None:
+            pk = self.point_keys(kf)
+            h = _has_point(pk, m.points) if self._cache is None else self._cache.get(m, kf, pk)
+            self._has[kf.key] = h
+        return h
+
+    def window_points(self, m: Any, window_kfs: list[Any]) -> list[PointKey]:
+        """The points of map ``m`` the window's keyframes observe, each once, in window order."""
+        seen: dict[PointKey, None] = {}
+        for w in window_kfs:
+            pk = self.point_keys(w)
+            for i in np.flatnonzero(self.has(m, w)).tolist():
+                seen.setdefault(pk[i], None)  # type: ignore[arg-type]
+        return list(seen)
