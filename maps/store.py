@@ -30,6 +30,7 @@ import sqlite3
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractContextManager, contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -107,6 +108,39 @@ def _pt_row(map_id: int, p: MapPoint, seq: int) -> tuple[Any, ...]:
         np.ascontiguousarray(p.xyz, dtype="<f8").tobytes(),
         np.ascontiguousarray(p.descriptor, dtype=np.uint8).tobytes(),
     )
+
+
+@dataclass(frozen=True)
+class MapRows:
+    """A map's rows for :meth:`MapStore.save_map`, taken at one instant (``map_rows``); point and
+    keyframe rows carry a placeholder seq that the store fills in when it writes them."""
+
+    map_id: int
+    agents: list[str]
+    orphans: list[KfKey]
+    points: list[tuple[Any, ...]]
+    keyframes: list[tuple[Any, ...]]
+    loops: list[tuple[Any, ...]]
+    redirects: list[tuple[Any, ...]]
+    merges: list[tuple[int, str]]
+
+
+def map_rows(m: Map) -> MapRows:
+    """Serialise map ``m`` on the calling thread (the one that changes it), so a writer thread can store
+    it while the map goes on changing. Forgets the map's pending tree changes: all parents are in it."""
+    mid = int(m.id)
+    rows = MapRows(
+        mid,
+        sorted(m.agents),
+        sorted(m.orphans),
+        [_pt_row(mid, p, 0) for p in m.points.values()],
+        [_kf_row(mid, kf, 0) for kf in m.keyframes.values()],
+        [(mid, a[0], a[1], b[0], b[1]) for a, b in m.loop_edges()],
+        [(mid, f[0], f[1], t[0], t[1]) for f, t in m.point_redirects.items()],
+        [(mid, json.dumps(r)) for r in m.merge_history],
+    )
+    m.drain_tree_changes()
+    return rows
 
 
 class MapStore:
@@ -378,40 +412,29 @@ class MapStore:
             )
 
     # ------------------------------------------------------------------ full writes
-    def _write_map(self, m: Map, merges: bool) -> None:
-        mid = m.id
+    def _write_map(self, rows: MapRows, merges: bool) -> None:
+        mid = rows.map_id
         self.conn.execute(
             "INSERT INTO map_maps (map_id, agents, orphans) VALUES (?, ?, ?)",
-            (mid, json.dumps(sorted(m.agents)), json.dumps(sorted(m.orphans))),
+            (mid, json.dumps(rows.agents), json.dumps(rows.orphans)),
         )
-        self._agents_cache[mid] = set(m.agents)
-        self.conn.executemany(
-            _PT_UPSERT, [_pt_row(mid, p, self._next_seq("map_points")) for p in m.points.values()]
-        )
-        self.conn.executemany(
-            _KF_UPSERT, [_kf_row(mid, kf, self._next_seq("map_keyframes")) for kf in m.keyframes.values()]
-        )
-        self.conn.executemany(
-            "INSERT INTO map_loops VALUES (?, ?, ?, ?, ?)",
-            [(mid, a[0], a[1], b[0], b[1]) for a, b in m.loop_edges()],
-        )
-        self.conn.executemany(
-            "INSERT INTO map_redirects VALUES (?, ?, ?, ?, ?)",
-            [(mid, f[0], f[1], t[0], t[1]) for f, t in m.point_redirects.items()],
-        )
+        self._agents_cache[mid] = set(rows.agents)
+        pt_seq, kf_seq = "map_points", "map_keyframes"
+        self.conn.executemany(_PT_UPSERT, [(*r[:3], self._next_seq(pt_seq), *r[4:]) for r in rows.points])
+        self.conn.executemany(_KF_UPSERT, [(*r[:3], self._next_seq(kf_seq), *r[4:]) for r in rows.keyframes])
+        self.conn.executemany("INSERT INTO map_loops VALUES (?, ?, ?, ?, ?)", rows.loops)
+        self.conn.executemany("INSERT INTO map_redirects VALUES (?, ?, ?, ?, ?)", rows.redirects)
         if merges:
-            self.conn.executemany(
-                "INSERT INTO map_merges (map_id, record) VALUES (?, ?)",
-                [(mid, json.dumps(r)) for r in m.merge_history],
-            )
-        m.drain_tree_changes()
+            self.conn.executemany("INSERT INTO map_merges (map_id, record) VALUES (?, ?)", rows.merges)
 
-    def save_map(self, m: Map) -> None:
+    def save_map(self, m: Map | MapRows) -> None:
         """Replace map ``m``'s rows (one transaction), e.g. after a merge. Its merge records are rewritten
-        from ``m.merge_history``."""
+        from ``m.merge_history``. From another thread than the one changing the map, pass
+        ``map_rows(m)`` taken on that thread: iterating a live map while it changes fails."""
+        rows = m if isinstance(m, MapRows) else map_rows(m)
         with self._tx():
-            self._delete_map_rows(m.id, merges=True)
-            self._write_map(m, merges=True)
+            self._delete_map_rows(rows.map_id, merges=True)
+            self._write_map(rows, merges=True)
 
     def save_stack(self, stack: MapStack, progress: Callable[[int, int], None] | None = None) -> None:
         """Replace every stored map with ``stack`` in one transaction (the meta table is kept).
@@ -423,7 +446,7 @@ class MapStore:
             self._agents_cache.clear()
             n = len(stack.maps)
             for i, m in enumerate(stack.maps.values()):
-                self._write_map(m, merges=True)
+                self._write_map(map_rows(m), merges=True)
                 if progress is not None:
                     progress(i + 1, n)
             self.conn.execute(

@@ -40,6 +40,7 @@ from hivemap import __version__
 from hivemap.maps import MapStack
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import Sim3
+from hivemap.maps.store import map_rows
 from hivemap.protocol import (
     Correction,
     Hello,
@@ -483,8 +484,9 @@ class HiveServer(Ingest):
         return await self.writer.call(fn)
 
     async def persist_exclusive(self, fn: Callable[[ServerStore], Any]) -> Any:
-        """Like :meth:`persist`, with ingest paused until the commit, so ``fn`` may read whole maps (e.g.
-        ``store.maps.save_map(m)`` after a global BA). Agents' messages wait meanwhile (nothing is lost)."""
+        """Like :meth:`persist`, with ingest paused until the commit. Agents' messages wait meanwhile
+        (nothing is lost); back-end tasks do not, so a whole map goes in as ``map_rows(m)`` taken
+        before the call."""
         self._ingest_open.clear()
         try:
             return await self.writer.call(fn)
@@ -514,10 +516,12 @@ class HiveServer(Ingest):
             for am in moved:
                 am.global_from_vio = target_from_source @ am.global_from_vio
             rows = [am.row() for am in moved]
+            # serialised here: other back-end tasks go on changing the merged map during the write
+            snapshot = map_rows(merged)
 
             def op(store: ServerStore) -> None:
                 store.maps.delete_map(source_id)
-                store.maps.save_map(merged)
+                store.maps.save_map(snapshot)
                 for row in rows:
                     store.put_agent_map(row)
 

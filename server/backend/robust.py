@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.merge import split_map
+from hivemap.maps.store import map_rows
 from hivemap.server.backend import evidence_store
 from hivemap.server.backend.evidence import Evidence, MergeHypothesis
 from hivemap.server.backend.fit import umeyama
@@ -115,10 +116,11 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
         dropped = bk.evidence.split(map_id, new.id, hyp)
         hyp.record.update(undone=True, undo_reason=reason, on_trial=False, split_into=new.id)
         book = evidence_store.to_json(bk.evidence)
+        snapshots = (map_rows(kept), map_rows(new))  # the maps go on changing during the write
 
         def op(store: Any) -> None:
-            store.maps.save_map(kept)
-            store.maps.save_map(new)
+            for snapshot in snapshots:
+                store.maps.save_map(snapshot)
             for row in rows:
                 store.put_agent_map(row)
             store.maps.set_meta(evidence_store.META_KEY, book)

@@ -306,3 +306,30 @@ def test_incremental_merge_save_map_and_delete_source(tmp_path: Path) -> None:
     store.close()
     assert list(loaded.maps) == [0]
     assert map_differences(merged, loaded.maps[0]) == []
+
+
+def test_a_map_saved_from_its_rows_is_the_map_at_that_instant(tmp_path: Path) -> None:
+    """The server serialises a merged map on its event loop (``map_rows``) and writes it from the store
+    thread while back-end tasks go on changing the map: the stored map is the one at the snapshot, and
+    the later changes cannot break the write."""
+    import copy
+
+    from hivemap.maps.store import map_rows
+
+    rng = np.random.default_rng(9)
+    stack = MapStack()
+    m = stack.add_map(random_map(rng, 0, "ugv", 15, 800))
+    at_snapshot = copy.deepcopy(m)
+    rows = map_rows(m)
+    # what a fusion or culling does meanwhile: points go, keyframes move
+    for key in list(m.points)[:100]:
+        del m.points[key]
+    for kf in m.keyframes.values():
+        kf.world_from_cam = kf.world_from_cam.copy()
+        kf.world_from_cam[:3, 3] += 1.0
+    store = MapStore(tmp_path / "rows.sqlite")
+    store.save_map(rows)
+    loaded = store.load_stack()
+    store.close()
+    assert map_differences(at_snapshot, loaded.maps[0]) == []
+    assert map_differences(m, loaded.maps[0]) != []
