@@ -97,6 +97,20 @@ def _random_walk(
     return Route(edges, start_offset, length)
 
 
+def extend_to_length(route: Route, g: RoadGraph) -> None:
+    """Append edges (no U-turns; the first allowed continuation, so no random draw changes the other
+    agents' routes) while the route's edges hold less than ``start_offset + length``: the 3D length
+    fit can ask a walk for more than it was drawn with. At a dead end it stops (``polyline`` says)."""
+    total = sum(g.length(de) for de in route.edges)
+    while total < route.start_offset + route.length:
+        last = route.edges[-1]
+        opts = [de for de in g.adj.get(g.end_node(last), []) if _turn_ok(g, last, de)]
+        if not opts:
+            return
+        route.edges.append(opts[0])
+        total += g.length(opts[0])
+
+
 def _repeated_edges(route: Route, g: RoadGraph, climb: float = CLIMB_M) -> set[tuple[int, bool]]:
     """Directed edges travelled twice (>= 8 m each time), not counting passes that start within the
     first ``climb`` metres (the take-off climb)."""

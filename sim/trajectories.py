@@ -45,7 +45,7 @@ from hivemap.sim.roads import (
     build_road_graph,
     inside_box_footprint,
 )
-from hivemap.sim.routes import CLIMB_M, Route, _edge_coverage, _has_self_loop, _random_walk
+from hivemap.sim.routes import CLIMB_M, Route, _edge_coverage, _has_self_loop, _random_walk, extend_to_length
 from hivemap.sim.scenarios import (
     UAV_LOW_HEIGHT,
     UGV_BODY_HEIGHT,
@@ -446,6 +446,7 @@ def plan_trajectories(
             if abs(l3 - target) < 0.05:
                 break
             r.length += target - l3
+            extend_to_length(r, g)
         if a.kind == "ugv":
             start_xy = pts3[0, :2].copy()
             d = pts3[min(8, len(pts3) - 1), :2] - pts3[0, :2]
