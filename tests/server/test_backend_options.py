@@ -101,7 +101,11 @@ def test_default_preset_equals_the_defaults_before_the_split() -> None:
     for old, (stage, name) in MOVED.items():
         holder = o if stage is None else getattr(o, stage)
         assert getattr(holder, name) == TODAY[old], old
-    assert _plain(o.placerec) == TODAY["placerec"]
+    # options added since the split (issue 23: candidates verified once per covisibility group)
+    added = {"group_covisible": 10, "group_min_ratio": 0.75}
+    plain = _plain(o.placerec)
+    assert {k: plain.pop(k) for k in added} == added
+    assert plain == TODAY["placerec"]
     assert _plain(o.gnss.stage) == TODAY["gnss_stage"]
     # None = "global BA for Sim(3) maps only": the metric default has it off, the monocular preset on
     assert o.optimise.global_ba is False and o.fix_scale is True
