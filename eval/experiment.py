@@ -92,8 +92,10 @@ class ExperimentOptions:
 
 
 def world_key(scenario: str, seed: int | None) -> str:
-    """The name of one world of a scenario: its data and results folders (``factory01``, ``factory01-s7``)."""
-    return scenario if seed is None else f"{scenario}-s{seed}"
+    """The name of one world of a scenario: its data and results folders (``factory01``, ``factory01-s7``;
+    a scenario file ``dir/my.toml`` is named by its stem, ``my-s7``, so its world lands under ``--data``)."""
+    base = Path(scenario).stem if scenario.lower().endswith(".toml") else scenario
+    return base if seed is None else f"{base}-s{seed}"
 
 
 # ------------------------------------------------------------------------------------ process helpers

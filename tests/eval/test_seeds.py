@@ -17,6 +17,11 @@ def test_worlds_are_named_by_scenario_and_seed() -> None:
     assert ExperimentOptions(scenarios=["tiny"]).worlds() == [("tiny", "tiny", None)]
     assert split_world(world_key("factory01", 7)) == ("factory01", "7")
     assert split_world("factory01") == ("factory01", "default")
+    # a scenario file is named by its stem: its world goes under --data, not beside the file
+    assert world_key("/some/dir/f01short.toml", 2) == "f01short-s2"
+    assert ExperimentOptions(scenarios=["cases/my.toml"], seeds=[1]).worlds() == [
+        ("my-s1", "cases/my.toml", 1)
+    ]
 
 
 def _row(world: str, agent: str, rmse: float, base: float | None) -> dict[str, object]:
