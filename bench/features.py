@@ -44,11 +44,14 @@ def _condition(folder: Path) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("folders", nargs="+", type=Path)
+    ap.add_argument("folders", nargs="*", type=Path, help="render folders (hivemap sim render --out)")
     ap.add_argument("--every", type=int, default=4, help="use every N-th frame")
     ap.add_argument("--agents", default=None, help="comma-separated agent ids (default: all)")
     ap.add_argument("--contrast", default=None, help="stretch | clahe | off (default: the front-end's)")
     args = ap.parse_args()
+    if not args.folders:  # as `make bench` runs it: nothing rendered to measure
+        print("bench/features.py: give render folders (see --help); nothing measured")
+        return
     cv2.setNumThreads(1)
 
     from hivemap.client.dataset import load_dataset
