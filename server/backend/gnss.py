@@ -7,7 +7,7 @@ Pure functions; the scheduler runs the solve in its optimisation thread and appl
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,11 +38,9 @@ class StageInput:
 def stage_input(
     m: Any,
     lever_of: Callable[[str], F64],
-    agent_kind: Callable[[str], str],
-    anchored: set[str],
 ) -> StageInput | None:
-    """The stage's input for map ``m`` (``lever_of``: an agent's cam_from_antenna; ``anchored``: agents
-    joined to this map by their known start pose); None with fewer than 3 fixes."""
+    """The stage's input for map ``m`` (``lever_of``: an agent's cam_from_antenna); None with fewer than
+    3 fixes."""
     keys = sorted(m.keyframes, key=lambda k: (k[0], m.keyframes[k].timestamp))
     fixes = []
     for i, k in enumerate(keys):
@@ -58,29 +56,31 @@ def stage_input(
     poses = np.array([m.keyframes[k].world_from_cam for k in keys])
     levers = {a: lever_of(a) for a in chains}
     cam_from_ant = np.array([se3(np.eye(3), levers[k[0]]) for k in keys])
-    links = gnss_links(m, keys, agent_kind, anchored)
+    links = gnss_links(m, keys)
     return StageInput(keys, poses, cam_from_ant, poses @ cam_from_ant, list(chains.values()), fixes, links)
 
 
-def gnss_links(
-    m: Any, keys: list[KfKey], agent_kind: Callable[[str], str], anchored_agents: set[str]
-) -> list[tuple[int, int]]:
+def gnss_links(m: Any, keys: list[KfKey]) -> list[tuple[int, int]]:
     """Keyframe pairs that tie the agents of a map together in the GNSS stage: essential-graph edges
-    between different agents (shared points, loop and merge edges) and, for agents joined by their
-    known start pose, their first keyframe to the reference agent's first keyframe."""
+    between different agents (shared points, loop and merge edges)."""
     index = {k: i for i, k in enumerate(keys)}
-    links = [
+    return [
         (index[a], index[b]) for a, b in m.essential_edges() if a[0] != b[0] and a in index and b in index
     ]
-    firsts: dict[str, int] = {}
-    for i, k in enumerate(keys):
-        if k[0] not in firsts:
-            firsts[k[0]] = i
-    anchored = [a for a in firsts if a in anchored_agents]
-    if len(anchored) >= 2:
-        ref = sorted(anchored, key=lambda f: (agent_kind(f) != "ugv", f))[0]
-        links += [(firsts[ref], firsts[a]) for a in anchored if a != ref]
-    return links
+
+
+def antenna_fixes(
+    m: Any, lever_of: Callable[[str], F64], agents: Collection[str] | None = None
+) -> list[tuple[KfKey, F64, Any]]:
+    """(key, antenna position in the map's frame, keyframe) of every keyframe of map ``m`` with a fix
+    (of ``agents`` only, if given); ``lever_of``: an agent's cam_from_antenna."""
+    out = []
+    for k, kf in m.keyframes.items():
+        if kf.gnss_enu is None or (agents is not None and k[0] not in agents):
+            continue
+        T = kf.world_from_cam
+        out.append((k, T[:3, :3] @ np.asarray(lever_of(k[0]), dtype=np.float64) + T[:3, 3], kf))
+    return out
 
 
 def cv_due(n_fixes: int, n_at_last_cv: int, o: GnssOptions) -> bool:

@@ -51,24 +51,17 @@ def up_rows(m: Any, keys: list[KfKey]) -> F64:
     return np.array([nan3 if (u := m.keyframes[k].up_cam) is None else u for k in keys], dtype=np.float64)
 
 
-def anchor(
-    m: Any, keys: list[KfKey], agent_kind: Callable[[str], str], anchored: set[str], per_agent: int = 2
-) -> list[int]:
+def anchor(m: Any, keys: list[KfKey], agent_kind: Callable[[str], str], per_agent: int = 2) -> list[int]:
     """Indices of the ``per_agent`` earliest keyframes of the map's reference agent (UGV, else first
-    agent) and of every agent joined to this map by its known start pose (``anchored``)."""
+    agent): the pose graph's gauge. Start poses never join maps, so every other agent of the map is tied
+    to it by edges."""
     agents = sorted(m.agents, key=lambda f: (agent_kind(f) != "ugv", f))
-    fixed: list[int] = []
     for a in agents:
         idx = [i for i, k in enumerate(keys) if k[0] == a]
         if idx:
             idx.sort(key=lambda i: (m.keyframes[keys[i]].timestamp, keys[i][1]))
-            if not fixed:
-                fixed = idx[:per_agent]
-            elif a in anchored:
-                # Joined by its known start pose (no shared points or edges with the others): hold its
-                # earliest keyframes too, else its part of the map has a free gauge (incl. scale).
-                fixed += idx[:per_agent]
-    return fixed or [0]
+            return idx[:per_agent]
+    return [0]
 
 
 @dataclass

@@ -291,7 +291,7 @@ class Pipeline:
         """Solve and apply the pose graph; False if the map changed meanwhile or the result is refused."""
         o, map_id = self.options.optimise, m.id
         snap = self._snapshot(m)
-        fixed = optimise.anchor(m, snap.keys, self._agent_kind, set(), POSE_GRAPH_ANCHORS_PER_AGENT)
+        fixed = optimise.anchor(m, snap.keys, self._agent_kind, POSE_GRAPH_ANCHORS_PER_AGENT)
         # robust: every kept loop and merge edge of the map is judged again, merges on trial held only by
         # their measured edges
         judged = self.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
@@ -327,7 +327,7 @@ class Pipeline:
         map_id = m.id
         snap = self._snapshot(m)
         problem = optimise.ba_problem(m, snap.keys)
-        fixed = optimise.anchor(m, snap.keys, self._agent_kind, set())
+        fixed = optimise.anchor(m, snap.keys, self._agent_kind)
         t0 = time.perf_counter()
         res = await asyncio.get_running_loop().run_in_executor(
             self._opt_exec,
@@ -380,7 +380,7 @@ class Pipeline:
         from hivemap.server.gnss_stage import NotEnoughFixes, fuse_gnss
 
         o = self.options.gnss
-        inp = gnss.stage_input(m, self._cam_from_antenna, self._agent_kind, set())
+        inp = gnss.stage_input(m, self._cam_from_antenna)
         if inp is None:
             return
         fixes, links = inp.fixes, inp.links

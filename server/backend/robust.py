@@ -19,6 +19,7 @@ from hivemap.maps.store import map_rows
 from hivemap.server.backend import evidence_store
 from hivemap.server.backend.evidence import Evidence, MergeHypothesis
 from hivemap.server.backend.fit import umeyama
+from hivemap.server.backend.gnss import antenna_fixes
 from hivemap.server.optim import PoseGraphResult
 
 logger = logging.getLogger(__name__)
@@ -165,11 +166,9 @@ def gnss_disagreement(
     ``min_fixes`` fixes or they lie within ``min_spread_m`` of their centre (nothing to align)."""
     ant: dict[bool, list[F64]] = {True: [], False: []}
     fix: dict[bool, list[F64]] = {True: [], False: []}
-    for k, kf in m.keyframes.items():
-        if kf.gnss_enu is None or not (k[0] in hyp.source_agents or k[0] in hyp.target_agents):
-            continue
+    for k, antenna, kf in antenna_fixes(m, lever_of, {*hyp.source_agents, *hyp.target_agents}):
         side = k[0] in hyp.source_agents
-        ant[side].append(kf.world_from_cam[:3, :3] @ lever_of(k[0]) + kf.world_from_cam[:3, 3])
+        ant[side].append(antenna)
         fix[side].append(np.asarray(kf.gnss_enu, dtype=np.float64))
 
     def residual(a: F64, f: F64) -> float:

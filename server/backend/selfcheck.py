@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
 from hivemap.server.backend.fit import umeyama
+from hivemap.server.backend.gnss import antenna_fixes
 from hivemap.server.convert import split_folded
 
 F64 = NDArray[np.float64]
@@ -69,11 +70,7 @@ def gnss_residuals(m: Any, lever_of: Callable[[str], F64], enu: bool) -> dict[st
     units of the fixes' own sigmas. ``enu``: the map is in ENU; else the residuals are after the best
     rigid fit of all the map's antennas onto their fixes (none with fewer than 3 fixes)."""
     rows: list[tuple[str, F64, F64, float | None]] = []
-    for k, kf in m.keyframes.items():
-        if kf.gnss_enu is None:
-            continue
-        T = np.asarray(kf.world_from_cam, dtype=np.float64)
-        ant = T[:3, :3] @ np.asarray(lever_of(k[0]), dtype=np.float64) + T[:3, 3]
+    for k, ant, kf in antenna_fixes(m, lever_of):
         cov = getattr(kf, "gnss_cov", None)
         sig = None if cov is None else math.sqrt(max(float(np.trace(np.asarray(cov))) / 3.0, 1e-12))
         rows.append((k[0], ant, np.asarray(kf.gnss_enu, dtype=np.float64).reshape(3), sig))
