@@ -1,12 +1,13 @@
 """Acceptance of place-recognition detections: the consistency of consecutive detections (merges and loops
 alike) and the sanity gates a loop must pass (the correction it asks for, its agreement with the IMU's up
-directions). Where are loops accepted? Here: :meth:`Consistency.check`, then :func:`loop_refusal`.
+directions). Where are loops accepted? Here: :meth:`Consistency.check`, then :func:`loop_refusal`. Merges
+that contradict the start prior: :class:`PriorOverride`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,7 @@ from hivemap.server.backend.options import AcceptOptions
 from hivemap.server.placerec import Detection, correction_of
 
 F64 = NDArray[np.float64]
+KfKey = tuple[str, int]
 
 
 class Consistency:
@@ -78,6 +80,91 @@ class Consistency:
             return replace(det, target_from_source=sim, consistent=count, confirmed=True)
         self._state[key] = (det.query_key[1], sim, count)
         return None
+
+
+@dataclass(frozen=True)
+class Place:
+    """One merge detection against the start prior: its keyframe in each map and the re-fitted transform
+    of the pair's higher map id into the lower's frame."""
+
+    keys: dict[int, KfKey]  # map id -> that side's keyframe
+    lo_from_hi: Sim3
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"keys": {str(mid): list(k) for mid, k in self.keys.items()}}
+
+
+class PriorOverride:
+    """Merge detections that contradict the start prior, per pair of maps, until enough independent places
+    agree on one transform to override the prior (:attr:`AcceptOptions.prior_override_places`).
+
+    Consecutive detections of one place are one piece of evidence: an aliased place (a twin room, a
+    repeated rack) looks the same from each keyframe that sees it, so its detections agree with each
+    other however wrong they are. Two places count as independent when neither side's keyframes share a
+    map point (not covisible): their 3D-3D pairs are then disjoint sets of features on both sides, so no
+    feature, and no look-alike patch of scene, is counted twice."""
+
+    def __init__(self) -> None:
+        self._places: dict[tuple[int, int], list[Place]] = {}
+
+    def forget_maps(self, *map_ids: int) -> None:
+        """Drop the places involving these maps (they merged or split: their frames changed)."""
+        for k in [k for k in self._places if k[0] in map_ids or k[1] in map_ids]:
+            del self._places[k]
+
+    def check(
+        self, det: Detection, maps: Any, o: AcceptOptions, fix_scale: bool
+    ) -> tuple[Detection | None, list[Place]]:
+        """The detection with its re-fitted Sim(3) once it and ``prior_override_places - 1`` earlier ones
+        at independent places agree on the transform (else None), and the places found so far that agree
+        with it (itself first)."""
+        mq, mc = maps.get(det.query_map), maps.get(det.candidate_map)
+        if mq is None or mc is None:
+            return None, []
+        pairs = list(zip(det.candidate_points, det.query_points, strict=True))
+        sim, _, _, _ = fit_pairs(mc, mq, pairs, o.min_pair_inlier_ratio, with_scale=not fix_scale)
+        if sim is None:
+            return None, []
+        lo, hi = sorted((det.query_map, det.candidate_map))
+        new = Place({det.query_map: det.query_key, det.candidate_map: det.candidate_key},
+                    sim if det.candidate_map == lo else sim.inverse())  # fmt: skip
+        chosen = [new]
+        places = self._places.setdefault((lo, hi), [])
+        for p in reversed(places):  # the latest first: the maps' frames drift least between them
+            if all(_agree(p, c, maps[hi], hi, o) and _independent(p, c, maps) for c in chosen):
+                chosen.append(p)
+        if len(chosen) >= o.prior_override_places:
+            del self._places[(lo, hi)]
+            return replace(det, target_from_source=sim, consistent=len(chosen), confirmed=True), chosen
+        places.append(new)
+        return None, chosen
+
+
+def _agree(a: Place, b: Place, m_hi: Any, hi: int, o: AcceptOptions) -> bool:
+    """The two places' transforms put both places' cameras of the higher map to within the error a merge may
+    have (``prior_override_max_m`` / ``_deg``, and the consistency check's scale)."""
+    rel = a.lo_from_hi.inverse() @ b.lo_from_hi
+    if (
+        rotation_angle_deg(rel.R) > o.prior_override_max_deg
+        or abs(np.log(rel.s)) > o.consistency_max_log_scale
+    ):
+        return False
+    for p in (a, b):
+        if p.keys.get(hi) not in m_hi.keyframes:
+            return False
+        c = np.asarray(m_hi.keyframes[p.keys[hi]].world_from_cam, dtype=np.float64)[:3, 3]
+        if float(np.linalg.norm(a.lo_from_hi.apply(c) - b.lo_from_hi.apply(c))) > o.prior_override_max_m:
+            return False
+    return True
+
+
+def _independent(a: Place, b: Place, maps: Any) -> bool:
+    """Neither map's keyframes of the two places share a map point (nor are one keyframe)."""
+    for mid, ka in a.keys.items():
+        kb, m = b.keys.get(mid), maps.get(mid)
+        if m is None or kb is None or ka == kb or (ka in m.keyframes and kb in m.covisibility(ka)):
+            return False
+    return True
 
 
 def loop_refusal(

@@ -55,6 +55,11 @@ class AcceptOptions:
     # and at least this many metres, larger than each side's own alignment
     merge_gnss_factor: float = 3.0
     merge_gnss_min_m: float = 2.0
+    # a merge contradicting the start prior overrides it only when this many independent places (no
+    # shared map point on either side) agree on one transform, to within the error a merge may have
+    prior_override_places: int = 3
+    prior_override_max_m: float = 0.5
+    prior_override_max_deg: float = 2.0
 
 
 @dataclass(frozen=True)

@@ -75,6 +75,7 @@ class Pipeline:
         self._retry_at: dict[tuple[int, int], float] = {}  # map pair -> last GNSS-guided retry
         self._gnss_scale: dict[int, tuple[int, float]] = {}  # map -> (fixes at its last CV, chosen scale)
         self._consistency = accept.Consistency()
+        self._override = accept.PriorOverride()  # merges against the start prior, by independent places
         self.evidence = EvidenceBook()  # the maps' loop and merge edges, judged again at each pose graph
         self._opt_again: dict[int, list[NewEdge]] = {}
         self._tokens = self.options.scheduler.verifications_per_s

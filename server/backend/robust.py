@@ -134,6 +134,7 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
         bk._gnss_unbend.pop(mid, None)
     bk._enu_maps.discard(new.id)
     bk._consistency.forget_maps(map_id, new.id)
+    bk._override.forget_maps(map_id, new.id)
     bk._prior.split(map_id, new.id, side, hyp.target_from_source)
     if bk.recognizer is not None:
         keys = list(new.keyframes)

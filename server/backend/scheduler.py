@@ -128,7 +128,8 @@ class Backend(Pipeline):
 
     def _accept(self, det: Detection) -> tuple[Detection | None, dict[str, Any] | None]:
         """The detection once accepted (else None) and how it compares with the start prior (None
-        without one): a merge that agrees with the prior is taken at once, any other needs the
+        without one): a merge that agrees with the prior is taken at once; one that contradicts it only
+        once independent places agree on it (:class:`~.accept.PriorOverride`); any other needs the
         consecutive confirmations (:class:`~.accept.Consistency`)."""
         o, maps, events = self.options, self.server.stack.maps, self.server.events
         chk = self._prior.check(det, maps, o.accept.min_pair_inlier_ratio, o.fix_scale)
@@ -138,12 +139,22 @@ class Backend(Pipeline):
                                          o.fix_scale, events)  # fmt: skip
             if ok is not None:
                 return ok, prior
-        if chk is not None and not chk.agrees:
-            events.add("start_prior", f"merge {det.query_key} -> {det.candidate_key} contradicts the start "
-                       f"prior by {chk.diff_m:.2f} m / {chk.diff_deg:.1f} deg (gates {chk.gate_m:.2f} m / "
-                       f"{chk.gate_deg:.1f} deg): it needs its confirmations and then overrides it",
-                       map_id=det.query_map, data=prior)  # fmt: skip
-        return self._consistency.check(det, maps, o.accept, o.fix_scale, events), prior
+        if chk is None or chk.agrees:
+            return self._consistency.check(det, maps, o.accept, o.fix_scale, events), prior
+        ok, places = self._override.check(det, maps, o.accept, o.fix_scale)
+        need = o.accept.prior_override_places
+        data = {**(prior or {}), "query": list(det.query_key), "candidate": list(det.candidate_key),
+                "places": [p.to_dict() for p in places], "places_required": need}  # fmt: skip
+        what = (f"merge {det.query_key} -> {det.candidate_key} contradicts the start prior by "
+                f"{chk.diff_m:.2f} m / {chk.diff_deg:.1f} deg (gates {chk.gate_m:.2f} m / "
+                f"{chk.gate_deg:.1f} deg)")  # fmt: skip
+        if ok is None:
+            events.add("start_prior", f"{what}: {len(places)}/{need} independent places agree on it",
+                       map_id=det.query_map, data=data)  # fmt: skip
+            return None, prior
+        events.add("start_prior_overridden", f"{what}: overridden by {len(places)} independent places",
+                   map_id=det.query_map, data=data)  # fmt: skip
+        return ok, {**data, "overridden": True}
 
     # -- place-recognition worker -------------------------------------------------------------------
     async def _run(self, reloaded: list[tuple[int, KfKey]]) -> None:
@@ -222,6 +233,7 @@ class Backend(Pipeline):
             )
             return
         self._consistency.forget_maps(source_id, target_id)
+        self._override.forget_maps(source_id, target_id)
         merged, merge_ms = await self._apply_merge(target_id, source_id, sim, pairs)
         # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
         edge = NewEdge(det.candidate_key, det.query_key, fit.edge_measure(merged, det), *sigmas)
