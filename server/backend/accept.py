@@ -21,6 +21,10 @@ from hivemap.server.placerec import Detection, correction_of
 F64 = NDArray[np.float64]
 KfKey = tuple[str, int]
 
+# Contradicting detections kept per pair of maps (the latest; a long aliased stretch must not grow the list
+# or the search through it without bound).
+PLACES_KEPT = 100
+
 
 class Consistency:
     """Per (query map, candidate map, query agent): the last detection's re-fitted Sim(3) and how many
@@ -137,6 +141,7 @@ class PriorOverride:
             del self._places[(lo, hi)]
             return replace(det, target_from_source=sim, consistent=len(chosen), confirmed=True), chosen
         places.append(new)
+        del places[:-PLACES_KEPT]
         return None, chosen
 
 
