@@ -118,6 +118,14 @@ class Backend(Pipeline):
             if n % GNSS_EVERY_KFS == 0:
                 self._schedule_optimisation(map_id, [], time.monotonic())
 
+    def _requery(self, keys: list[KfKey]) -> None:
+        """Look these keyframes up again (after the maps changed under their first look-up)."""
+        for key in keys:
+            if key not in self._arrived:
+                self.queue.append(key)
+                self._arrived[key] = time.monotonic()
+        self._wake.set()
+
     # -- nominal start configuration (paper 2.4) -----------------------------------------------------
     def _record_start(self, map_id: int, key: KfKey) -> None:
         """An agent with a nominal start pose sent its first keyframe (taken at the start pose): its map's
