@@ -280,8 +280,8 @@ class Backend(Pipeline):
             prev = sessionguess.previous_session(agent, am, server.stack) if agent is not None else None
             unused = {"refused": True, "by": sessionguess.BY, "query": list(key)}
             if prev is None:
-                server.events.add("merge", f"session guess of {key}: no previous session on the server",
-                                  data=unused)  # fmt: skip
+                why = f"session guess of {key}: no previous session on the server"
+                server.events.add("merge", why, data=unused)
                 return
             plan = sessionguess.plan(server.stack, prev, am, key, prev_from_new, sigma, self._agent_kind)
             if isinstance(plan, str):
@@ -291,8 +291,9 @@ class Backend(Pipeline):
             sides = (set(maps[plan.target].agents), set(maps[plan.source].agents))
             self._consistency.forget_maps(plan.source, plan.target)
             t_det = time.monotonic()
-            _, merge_ms = await self._apply_merge(plan.target, plan.source, plan.target_from_source, [],
-                                                       by=sessionguess.BY)  # fmt: skip
+            _, merge_ms = await self._apply_merge(
+                plan.target, plan.source, plan.target_from_source, [], by=sessionguess.BY
+            )
             rec = sessionguess.record(plan, merge_ms)
             self.merges.append(rec)
             if self.options.optimise.gnc:  # on trial until loops between the sessions confirm it

@@ -99,7 +99,7 @@ def plan(
     )
     sigma_m = float(sigma[0]) * map_from_prev.s
     sigma_deg = float(sigma[1])
-    # the guess's uncertainty is that of the new session's start relative to where the old one ended
+    # the edge: the new session's start where the guess puts it, relative to where the old one ended
     predicted = mp_from_mn.transform_pose(Mn)
     measured = Sim3.from_se3(se3_inverse(Mp) @ predicted)
     edge = NewEdge(last, first, measured, math.radians(sigma_deg), sigma_m)

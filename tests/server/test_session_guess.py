@@ -160,3 +160,48 @@ def test_session_without_guess_stays_apart_until_place_recognition(tmp_path: Pat
     out = _run(tmp_path, s0, s1)
     assert out["merges"] == [], out["merges"]
     assert sorted(a for a, _ in out["maps"].values()) == [["uav1"], ["uav1#1"]]
+
+
+def test_guess_goes_through_the_frame_the_previous_session_has_merged_into() -> None:
+    """The previous session was merged into another agent's map (moved by a Sim(3)) and its last keyframe
+    corrected there by a loop: the plan places the new session relative to that keyframe where it is now,
+    and its edge measures the guess itself."""
+    from hivemap.maps import Keyframe as MapKeyframe
+    from hivemap.maps import MapStack
+    from hivemap.maps.geometry import se3
+    from hivemap.server.agents import AgentMap, AgentState
+    from hivemap.server.backend import sessionguess
+    from hivemap.server.loadgen import CAMERA
+
+    def kf(folded: str, i: int, T: np.ndarray) -> MapKeyframe:
+        z = np.zeros((0, 2), np.float32)
+        return MapKeyframe(folded, i, float(i), T, CAMERA, z, np.zeros(0, np.uint8),
+                           np.zeros((0, 32), np.uint8), np.zeros(0, np.int64))  # fmt: skip
+
+    rng = np.random.default_rng(2)
+    stack = MapStack()
+    ugv_map, new_map = stack.new_map(), stack.new_map()
+    moved = Sim3(so3_exp(rng.normal(0, 0.5, 3)), rng.normal(0, 5, 3), 1.0)  # session 0 into the UGV's map
+    fix = Sim3(so3_exp(np.array([0, 0, 0.02])), np.array([0.1, -0.2, 0.05]), 1.0)  # a loop's correction there
+    vio_last = se3(so3_exp(rng.normal(0, 0.3, 3)), rng.normal(0, 3, 3))
+    vio_first = se3(so3_exp(rng.normal(0, 0.3, 3)), rng.normal(0, 3, 3))
+    guess = se3(so3_exp(np.array([0.0, 0.0, 0.1])), np.array([0.5, 0.0, 0.0]))  # prev VIO from new VIO
+    ugv_map.agents.update({"ugv1", "uav1"})
+    ugv_map.add_keyframe(kf("uav1", 7, (fix @ moved).transform_pose(vio_last)))
+    new_map.agents.add("uav1#1")
+    new_map.add_keyframe(kf("uav1#1", 0, vio_first))
+    agent = AgentState("uav1")
+    prev = AgentMap("uav1", 0, "uav1", CAMERA, "m", 0, global_from_vio=moved)
+    prev.vio_poses[7] = vio_last
+    new = AgentMap("uav1#1", 1, "uav1#1", CAMERA, "m", 1)
+    new.vio_poses[0] = vio_first
+    agent.maps = {0: prev, 1: new}
+    assert sessionguess.previous_session(agent, new, stack) is prev
+    plan = sessionguess.plan(stack, prev, new, ("uav1#1", 0), guess, np.array([0.3, 2.0]), lambda f: "uav")
+    assert not isinstance(plan, str)
+    assert (plan.target, plan.source) == (ugv_map.id, new_map.id)
+    expected = (fix @ moved).transform_pose(guess @ vio_first)
+    np.testing.assert_allclose(plan.target_from_source.transform_pose(vio_first), expected, atol=1e-9)
+    np.testing.assert_allclose(plan.edge.measured.matrix(), np.linalg.inv(vio_last) @ guess @ vio_first,
+                               atol=1e-9)  # fmt: skip
+    assert plan.edge.candidate == ("uav1", 7) and abs(plan.edge.sigma_trans - 0.3) < 1e-12
