@@ -64,6 +64,9 @@ class AgentMap:
     # the last VIO pose received per keyframe (memory only): a pose update moves the keyframe by the
     # agent's refinement and keeps the back-end's own correction of it (loop, GNSS bend and tilt)
     vio_poses: dict[int, NDArray[np.float64]] = field(default_factory=dict)
+    # the first keyframe's guess of this session's VIO frame in the previous session's (kf id,
+    # prev_from_this 4x4, sigmas [m, deg]) until the back-end has used it (memory only)
+    session_guess: tuple[int, NDArray[np.float64], NDArray[np.float64]] | None = None
 
     def row(self) -> tuple[str, str, int, NDArray[np.float64], str, int]:
         """What the store keeps of it (``ServerStore.put_agent_map``), copied on the loop."""

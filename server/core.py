@@ -499,10 +499,12 @@ class HiveServer(Ingest):
         source_id: int,
         target_from_source: Sim3,
         fused_pairs: Sequence[tuple[tuple[str, int], tuple[str, int]]] = (),
+        by: str | None = None,
     ) -> Any:
         """Merge map ``source_id`` into ``target_id`` (``MapStack.merge``), re-frame the moved agents'
         incoming data (``global_from_vio``), persist the merged map and the merge record in one commit, and
-        publish a ``merge`` event. Returns the merged map."""
+        publish a ``merge`` event (its ``by``: what the merge rests on, if not place recognition). Returns
+        the merged map."""
         self._ingest_open.clear()
         try:
             source = self.stack.maps[source_id]
@@ -513,6 +515,8 @@ class HiveServer(Ingest):
                 if am.folded in source.agents
             ]
             merged = self.stack.merge(target_id, source_id, target_from_source, list(fused_pairs))
+            if by is not None:
+                merged.merge_history[-1]["by"] = by
             for am in moved:
                 am.global_from_vio = target_from_source @ am.global_from_vio
             rows = [am.row() for am in moved]
@@ -528,12 +532,13 @@ class HiveServer(Ingest):
             await self.writer.call(op)
         finally:
             self._ingest_open.set()
-        self.events.add(
-            "merge",
-            f"map {source_id} merged into map {target_id} ({len(fused_pairs)} fused points)",
-            map_id=target_id,
-            data={"source": source_id, "target": target_id, "scale": target_from_source.s},
-        )
+        data = {"source": source_id, "target": target_id, "scale": target_from_source.s}
+        how = f"{len(fused_pairs)} fused points"
+        if by is not None:
+            data["by"] = by
+            how += f", by {by}"
+        self.events.add("merge", f"map {source_id} merged into map {target_id} ({how})", map_id=target_id,
+                        data=data)  # fmt: skip
         return merged
 
     async def fuse_points(self, map_id: int, pairs: Iterable[tuple[PointKey, PointKey]]) -> int:

@@ -166,6 +166,9 @@ class Ingest:
         m.add_keyframe(kf)
         am.arrived_kfs.add(msg.kf_id)
         am.vio_poses[msg.kf_id] = np.array(msg.world_from_cam, dtype=np.float64)
+        if msg.prev_session_from_world is not None and msg.prev_session_sigma is not None:
+            guess = np.array(msg.prev_session_from_world, dtype=np.float64)
+            am.session_guess = (int(msg.kf_id), guess, np.array(msg.prev_session_sigma, dtype=np.float64))
         return kf
 
     def _apply_points(

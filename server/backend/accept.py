@@ -179,10 +179,14 @@ def loop_refusal(
     ups: tuple[F64 | None, F64 | None],
     o: AcceptOptions,
     fix_scale: bool,
+    loose: bool = False,
 ) -> tuple[str, dict[str, Any]] | None:
     """Why a confirmed loop is refused (message, event data), or None. ``measured``: the loop's
-    cam_candidate_from_cam_query; ``ups``: the query's and the candidate's IMU up directions."""
-    if fix_scale:
+    cam_candidate_from_cam_query; ``ups``: the query's and the candidate's IMU up directions. ``loose``:
+    the loop joins two sides held together only by a session guess on trial: the correction gate assumes
+    one continuous map's drift, while across the guess the correction is the guess's error, which the
+    robust pose graph weighs against the loops."""
+    if fix_scale and not loose:
         # Metric (stereo-inertial) maps drift by decimetres, not metres: a loop that would move the
         # query farther or turn it more is a false match (it bends the map until the GNSS stage rejects
         # every fix).

@@ -14,6 +14,7 @@ import numpy as np
 
 from hivemap.maps.geometry import Sim3, rotation_angle_deg
 from hivemap.server.backend.optimise import NewEdge
+from hivemap.server.backend.sessionguess import is_guess
 
 KfKey = tuple[str, int]
 
@@ -81,8 +82,11 @@ class EvidenceBook:
         self, agents: tuple[set[str], set[str]], target_from_source: Sim3
     ) -> MergeHypothesis | None:
         """An undone merge between the same agents by (nearly) the same transform (1 m at the source's
-        frame origin, 5 deg): the detection that made it, found again."""
+        frame origin, 5 deg): the detection that made it, found again. An undone session guess is no
+        detection: place recognition may merge its sessions by a transform close to it."""
         for h in self.refuted:
+            if is_guess(h):
+                continue
             same_agents = h.target_agents & agents[0] and h.source_agents & agents[1]
             flipped = h.target_agents & agents[1] and h.source_agents & agents[0]
             if not (same_agents or flipped):
@@ -149,9 +153,10 @@ class EvidenceBook:
     def dependent_on(self, m: Any, a: KfKey, b: KfKey) -> MergeHypothesis | None:
         """The merge on trial that a loop ``a``-``b`` across its sides merely repeats: either end is one of
         the merge's keyframes or covisible with it (the same place, e.g. the rest of a room that looks like
-        another). Such a loop is no independent confirmation, nor a separate vote in the pose graph."""
+        another). Such a loop is no independent confirmation, nor a separate vote in the pose graph. A
+        session guess (``record["by"] == "session_guess"``) saw nothing: every loop across it is evidence."""
         for hyp in self.on_trial(m.id):
-            if hyp.edge is None or not hyp.across(a, b):
+            if hyp.edge is None or not hyp.across(a, b) or is_guess(hyp):
                 continue
             for end in (hyp.edge.query, hyp.edge.candidate):
                 place = {end, *m.covisibility(end)} if end in m.keyframes else {end}
@@ -169,7 +174,9 @@ class EvidenceBook:
     def judge(
         self, map_id: int, judged: list[Evidence], inlier: list[bool], chi2: list[float], confirmations: int
     ) -> Verdict:
-        """Record one pose graph's verdict on ``judged`` (flags and whitened squared residuals in order)."""
+        """Record one pose graph's verdict on ``judged`` (flags and whitened squared residuals in order);
+        a merge on trial is confirmed by ``confirmations`` kept loops between its sides (a session guess by
+        one)."""
         v = Verdict()
         for ev, ok, c2 in zip(judged, inlier, chi2, strict=True):
             ev.judged += 1
@@ -196,7 +203,10 @@ class EvidenceBook:
                 if ev.kind == "loop" and not ev.rejected and hyp.across(ev.edge.candidate, ev.edge.query):
                     hyp.confirmations.add(ev.edge.query)
             hyp.record["confirmations"] = len(hyp.confirmations)
-            if own and len(hyp.confirmations) >= confirmations:
+            # a session guess is no visual match that a look-alike place could have made: one loop kept
+            # with it (itself confirmed by consecutive detections) is the independent check it needs
+            need = 1 if is_guess(hyp) else confirmations
+            if own and len(hyp.confirmations) >= need:
                 hyp.confirmed = True
                 hyp.record["on_trial"] = False
                 v.confirmed.append(hyp)

@@ -51,6 +51,9 @@ class AcceptOptions:
     # a merge stays on trial (undone if the robust pose graph rejects its edge) until this many loops
     # between its two sides, with distinct query keyframes, are kept alongside it
     merge_confirmations: int = 3
+    # a new session whose first keyframe carries the agent's guess of its place in the previous session
+    # is merged into that session's map by it, on trial (False: it waits for place recognition)
+    session_guess: bool = True
     # ... or if one rigid alignment of the agents' GNSS fixes leaves a median residual this many times,
     # and at least this many metres, larger than each side's own alignment
     merge_gnss_factor: float = 3.0

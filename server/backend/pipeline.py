@@ -27,6 +27,7 @@ from hivemap.server.backend import (
     optimise,
     robust,
     selfcheck,
+    sessionguess,
 )
 from hivemap.server.backend.evidence import EvidenceBook
 from hivemap.server.backend.optimise import NewEdge, Snapshot
@@ -121,6 +122,12 @@ class Pipeline:
             if a["subject"] not in seen:
                 self.server.events.add("selfcheck_alarm", a["message"], map_id=map_id, data=a)
 
+    def _refresh_loose(self) -> None:
+        """Tell place recognition which agent groups only a session guess on trial joins (their loops
+        skip the correction gate: they judge the guess)."""
+        if self.recognizer is not None:
+            self.recognizer.loose_pairs = sessionguess.loose_pairs(self.evidence)
+
     def _cam_from_antenna(self, folded: str) -> F64:
         am = self.server._agent_map_by_folded(folded)
         agent = self.server.agents.get(am.agent_id) if am is not None else None
@@ -152,12 +159,12 @@ class Pipeline:
         )  # fmt: skip
 
     async def _apply_merge(
-        self, target: int, source: int, target_from_source: Sim3, pairs: list[Any]
+        self, target: int, source: int, target_from_source: Sim3, pairs: list[Any], by: str | None = None
     ) -> tuple[Any, float]:
         """Merge through the server (one commit), then re-key the back-end's per-map state; returns the
         merged map and the merge time in ms."""
         t0 = time.perf_counter()
-        merged = await self.server.apply_merge(target, source, target_from_source, pairs)
+        merged = await self.server.apply_merge(target, source, target_from_source, pairs, by=by)
         merge_ms = (time.perf_counter() - t0) * 1e3
         self._generation[target] = self._generation.get(target, 0) + 1
         self._generation.pop(source, None)
@@ -201,6 +208,7 @@ class Pipeline:
             while True:
                 await self._optimise_once(map_id, edges, t_det, fuse, pre)
                 self._self_check(map_id)
+                self._refresh_loose()  # the verdict may have confirmed or undone a session guess
                 pre = None
                 again = self._opt_again.pop(map_id, None)
                 if again is None or map_id not in self.server.stack.maps:

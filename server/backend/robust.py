@@ -20,6 +20,7 @@ from hivemap.server.backend import evidence_store
 from hivemap.server.backend.evidence import Evidence, MergeHypothesis
 from hivemap.server.backend.fit import umeyama
 from hivemap.server.backend.gnss import antenna_fixes
+from hivemap.server.backend.sessionguess import is_guess
 from hivemap.server.optim import PoseGraphResult
 
 logger = logging.getLogger(__name__)
@@ -152,6 +153,19 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
     t = time.monotonic()
     await bk._send_corrections(map_id, {}, t)
     await bk._send_corrections(new.id, {}, t)
+    if is_guess(hyp):
+        # the loops that refuted the guess were place recognition's view of the true relation: their
+        # query keyframes are looked up again, now against the other map, so that the sessions merge by it
+        bk._requery(again_after_guess(new, dropped, bk.options.accept.consistency_max_gap))
+
+
+def again_after_guess(new: Any, dropped: list[Evidence], window: int) -> list[Any]:
+    """Keyframes of the split-off map ``new`` to look up again after its session guess was undone: those
+    within ``window`` ids (the consistency window) of each dropped loop's end on its side, in id order."""
+    ends = {k for ev in dropped if ev.kind == "loop" for k in (ev.edge.query, ev.edge.candidate)}
+    ends = {k for k in ends if k in new.keyframes}
+    keys = {k for k in new.keyframes for e in ends if k[0] == e[0] and abs(k[1] - e[1]) <= window}
+    return sorted(keys, key=lambda k: (k[0], k[1]))
 
 
 def gnss_disagreement(

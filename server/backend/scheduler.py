@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, detect, evidence_store, fit, surgery
+from hivemap.server.backend import accept, detect, evidence_store, fit, sessionguess, surgery
 from hivemap.server.backend.optimise import NewEdge
 from hivemap.server.backend.pipeline import Pipeline
 from hivemap.server.placerec import Detection
@@ -55,6 +55,7 @@ class Backend(Pipeline):
 
         await loop.run_in_executor(self._pr_exec, init)
         await self._load_evidence(server)
+        self._refresh_loose()
         # keyframes reloaded from the store are indexed by the worker first (no detection on them); the
         # server is ready meanwhile
         keys = [(m.id, k) for m in server.stack.maps.values() for k in m.keyframes]
@@ -95,6 +96,13 @@ class Backend(Pipeline):
     async def on_keyframe(self, map_id: int, key: KfKey) -> None:
         if self._prior.wants(key[0]):
             self._record_start(map_id, key)
+        am = self.server._agent_map_by_folded(key[0])
+        guess = am.session_guess if am is not None else None
+        if guess is not None and guess[0] == key[1] and self.options.accept.session_guess:
+            am.session_guess = None
+            task = asyncio.create_task(self._merge_by_guess(key, guess[1], guess[2]))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
         if len(self.queue) == self.queue.maxlen:
             self.server.events.add("placerec", f"query queue full: {self.queue[0]} dropped")
             self.dropped_queries += 1
@@ -109,6 +117,14 @@ class Backend(Pipeline):
             n = self._gnss_count[map_id] = self._gnss_count.get(map_id, 0) + 1
             if n % GNSS_EVERY_KFS == 0:
                 self._schedule_optimisation(map_id, [], time.monotonic())
+
+    def _requery(self, keys: list[KfKey]) -> None:
+        """Look these keyframes up again (after the maps changed under their first look-up)."""
+        for key in keys:
+            if key not in self._arrived:
+                self.queue.append(key)
+                self._arrived[key] = time.monotonic()
+        self._wake.set()
 
     # -- nominal start configuration (paper 2.4) -----------------------------------------------------
     def _record_start(self, map_id: int, key: KfKey) -> None:
@@ -265,6 +281,55 @@ class Backend(Pipeline):
         await self._send_corrections(target_id, {}, t_det)
         self._schedule_optimisation(target_id, [edge], t_det)
 
+    # -- a new session merged back by its agent's guess (:mod:`.sessionguess`) -------------------------
+    async def _merge_by_guess(self, key: KfKey, prev_from_new: F64, sigma: F64) -> None:
+        """The first keyframe ``key`` of a session carries the agent's guess of its frame in the previous
+        session's: merge the new session into that session's map by it, on trial."""
+        server = self.server
+        try:
+            am = server._agent_map_by_folded(key[0])
+            agent = server.agents.get(am.agent_id) if am is not None else None
+            prev = sessionguess.previous_session(agent, am, server.stack) if agent is not None else None
+            unused = {"refused": True, "by": sessionguess.BY, "query": list(key)}
+            if prev is None:
+                why = f"session guess of {key}: no previous session on the server"
+                server.events.add("merge", why, data=unused)
+                return
+            plan = sessionguess.plan(server.stack, prev, am, key, prev_from_new, sigma, self._agent_kind)
+            if isinstance(plan, str):
+                server.events.add("merge", f"session guess of {key} not used: {plan}", data=unused)
+                return
+            maps = server.stack.maps
+            sides = (set(maps[plan.target].agents), set(maps[plan.source].agents))
+            self._consistency.forget_maps(plan.source, plan.target)
+            t_det = time.monotonic()
+            _, merge_ms = await self._apply_merge(
+                plan.target, plan.source, plan.target_from_source, [], by=sessionguess.BY
+            )
+            rec = sessionguess.record(plan, merge_ms)
+            self.merges.append(rec)
+            if self.options.optimise.gnc:  # on trial until loops between the sessions confirm it
+                self.evidence.add_merge(
+                    plan.target, plan.source, plan.edge, plan.target_from_source, sides, rec
+                )
+                book = evidence_store.to_json(self.evidence)
+                await server.persist(lambda store: store.maps.set_meta(evidence_store.META_KEY, book))
+                self._refresh_loose()
+            server.events.add(
+                "merge_detail",
+                f"merge {plan.source} -> {plan.target} by the session guess of {key} ({plan.sigma_m:.2f} m / "
+                f"{plan.sigma_deg:.1f} deg) to {plan.edge.candidate}",
+                map_id=plan.target,
+                data=rec,
+            )
+            await self._send_corrections(plan.target, {}, t_det)
+            self._schedule_optimisation(plan.target, [plan.edge], t_det)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            logger.exception("session guess merge of %s failed", key)
+            server.events.add("error", f"session guess merge of {key} failed (see log)")
+
     # -- loop closure ---------------------------------------------------------------------------------
     async def _close_loop(self, det: Detection, t_det: float) -> None:
         m = self.server.stack.maps.get(det.query_map)
@@ -276,7 +341,10 @@ class Backend(Pipeline):
         measured = Tc.inverse() @ det.target_from_source @ Tq
         o = self.options
         ups = (self._up_cam(m, det.query_key), self._up_cam(m, det.candidate_key))
-        refused = accept.loop_refusal(det, m, measured, ups, o.accept, o.fix_scale)
+        loose = o.optimise.gnc and sessionguess.across(
+            sessionguess.loose_pairs(self.evidence), det.query_key, det.candidate_key
+        )
+        refused = accept.loop_refusal(det, m, measured, ups, o.accept, o.fix_scale, loose)
         if refused is not None:
             self.server.events.add("loop", refused[0], map_id=m.id, data=refused[1])
             return

@@ -77,6 +77,10 @@ class PlaceRecognizer:
         self.options = options
         self._consistency: dict[tuple[int, int, str], _Consistency] = {}
         self._has = HasCache()
+        # agent groups of one map joined only by a loose edge (a session guess on trial): a loop between
+        # them may ask for any correction, it is the evidence that judges the guess (set by the back-end
+        # from the event loop, replaced whole)
+        self.loose_pairs: tuple[tuple[frozenset[str], frozenset[str]], ...] = ()
 
     # --- database ------------------------------------------------------------------------------
     def add_keyframe(self, map_id: int, kf: Any) -> BowVector:
@@ -477,6 +481,9 @@ class PlaceRecognizer:
         """True (and ``rep.reason`` set) when a loop's ``sim`` moves the query keyframe beyond the limits."""
         o = self.options
         if o.loop_max_correction_m <= 0 and o.loop_max_correction_deg <= 0:
+            return False
+        a, b = rep.query_key[0], rep.candidate_key[0]
+        if any((a in s and b in t) or (a in t and b in s) for s, t in self.loose_pairs):
             return False
         move, turn = correction_of(sim, world_from_cam)
         if (0 < o.loop_max_correction_m < move) or (0 < o.loop_max_correction_deg < turn):
