@@ -19,9 +19,11 @@ The acceptance run (issue 28: full-length factory01, its default world and seed 
         --data data --out data/exp-orb
     .venv/bin/python bench/orbslam3.py data/factory01 data/factory01-s1 --hivemap data/exp-orb
 
-Exit status: 0 when every run produced a trajectory (or when run bare, as ``make bench`` does:
-nothing to compare), 1 when a run crashed or gave no trajectory, 2 when the venv or the vocabulary
-could not be made.
+Exit status: 0 when every agent has both figures (or when run bare, as ``make bench`` does: nothing
+to compare), 1 when an ORB-SLAM3 run crashed or gave no trajectory or hivemap's result is missing
+(each named on a ``FAILED:`` line), 2 when the venv or the vocabulary could not be made. A run that
+lost tracking or started new maps is not a failure; it is named on a ``note:`` line and in the
+table, and its ATE covers its largest map (ORB-SLAM3's own EuRoC output).
 """
 
 from __future__ import annotations
@@ -435,7 +437,7 @@ def main() -> int:
     print_table(rows)
     for msg in failures:
         print(f"FAILED: {msg}")
-    return 1 if any("ORB-SLAM3" in m for m in failures) else 0
+    return 1 if failures else 0
 
 
 if __name__ == "__main__":
