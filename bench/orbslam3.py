@@ -39,9 +39,11 @@ import json  # noqa: E402
 import math  # noqa: E402
 import re  # noqa: E402
 import resource  # noqa: E402
+import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -358,16 +360,20 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         cells = [_f(r.get(part, {}).get(key), fmt).rjust(width(fmt)) for _, part, key, fmt in COLUMNS]
         print(f"{r['world']:<14} {r['agent']:<5} " + " ".join(cells))
     both = [r for r in rows if "hm" in r and "orb" in r]
-    if not both:
-        return
-    for label, fn in (("mean", np.mean), ("worst", np.max)):
+    worlds = sorted({r["world"] for r in both})
+    groups = [(f"mean {w}", [r for r in both if r["world"] == w]) for w in worlds if len(worlds) > 1]
+    for label, group in [*groups, ("mean", both), ("worst", both)]:
+        fn: Callable[[list[float]], float] = max if label == "worst" else statistics.fmean
+        if not group:
+            continue
         cells = []
         for _, part, key, fmt in COLUMNS:
-            vals = [r[part].get(key) for r in both if part in ("hm", "orb")]
+            vals = [r[part].get(key) for r in group if part in ("hm", "orb")]
             ok = [float(v) for v in vals if v is not None]
-            cells.append((format(float(fn(ok)), fmt) if ok and key != "coverage" else "").rjust(width(fmt)))
-        print(f"{label:<14} {len(both):<5} " + " ".join(cells))
-    print(f"({len(both)} agents with both figures; mean and worst of the ATEs over them)")
+            cells.append((format(fn(ok), fmt) if ok and key != "coverage" else "").rjust(width(fmt)))
+        print(f"{label:<20} " + " ".join(cells))
+    if both:
+        print(f"({len(both)} agents with both figures; mean and worst of the ATEs over them)")
 
 
 def main() -> int:
