@@ -266,6 +266,39 @@ class Vocabulary:
                 fv_level=int(z["fv_level"]),
             )
 
+    def save_dbow2_text(self, path: str | Path, levels_up: int = 4) -> None:
+        """Write the tree in DBoW2's text format (ORB-SLAM's ``ORBvoc.txt``), so ORB-SLAM runs on it.
+
+        Header ``k L scoring weighting`` (L1 score, tf-idf: ``0 0``), then one line per node but the
+        root, breadth-first: ``parent is_leaf 32 descriptor bytes weight`` (the idf on a word, 0 on an
+        inner node); DBoW2 numbers nodes and words in file order. ORB-SLAM puts its direct index
+        ``levels_up`` levels above the declared depth ``L`` (4 on its 6-level tree), so ``L`` is
+        declared as ``fv_level + levels_up`` to keep our direct-index level; the descent itself stops
+        at the leaves whatever ``L`` says. No trailing newline: DBoW2's reader, looping on ``eof``,
+        would read an empty last line as a node.
+        """
+        parent = np.full(self.num_nodes, -1, dtype=np.int64)
+        new_id = np.full(self.num_nodes, -1, dtype=np.int64)
+        new_id[0] = 0
+        order: list[int] = []
+        queue = [0]
+        while queue:
+            node = queue.pop(0)
+            for c in self.children[node]:
+                if c < 0:
+                    continue
+                parent[c] = node
+                new_id[c] = len(order) + 1
+                order.append(int(c))
+                queue.append(int(c))
+        lines = [f"{self.k} {max(self.depth, self.fv_level + levels_up)} 0 0"]
+        for n in order:
+            word = int(self.word_of_node[n])
+            weight = repr(float(self.idf[word])) if word >= 0 else "0"
+            desc = " ".join(str(b) for b in self.centers[n].tolist())
+            lines.append(f"{new_id[parent[n]]} {1 if word >= 0 else 0} {desc} {weight}")
+        Path(path).write_text("\n".join(lines))
+
     # ------------------------------------------------------------------------------------------
     @staticmethod
     def train(

@@ -126,6 +126,46 @@ def test_save_load_roundtrip(tmp_path, small_vocab: Vocabulary) -> None:
     assert np.array_equal(fa.node_of_feature, fb.node_of_feature)
 
 
+def _read_dbow2_text(path) -> tuple[list[int], list[list[int]], list[np.ndarray], list[float], list[int]]:
+    """Parse DBoW2's text vocabulary as its loader does: header, then nodes numbered in file order."""
+    lines = path.read_text().split("\n")
+    k, depth, scoring, weighting = (int(x) for x in lines[0].split())
+    assert (scoring, weighting) == (0, 0) and 0 < k <= 20 and 1 <= depth <= 10  # L1 score, tf-idf
+    children: list[list[int]] = [[]]
+    centers = [np.zeros(32, dtype=np.uint8)]
+    weights, word_of_node = [0.0], [-1]
+    n_words = 0
+    for line in lines[1:]:
+        f = line.split()
+        assert len(f) == 35, line
+        nid = len(children)
+        children.append([])
+        children[int(f[0])].append(nid)
+        centers.append(np.array([int(x) for x in f[2:34]], dtype=np.uint8))
+        weights.append(float(f[34]))
+        word_of_node.append(n_words if f[1] == "1" else -1)
+        n_words += f[1] == "1"
+    return [k, depth], children, centers, weights, word_of_node
+
+
+def test_dbow2_text_export_gives_the_same_words_and_weights(tmp_path, small_vocab: Vocabulary) -> None:
+    """ORB-SLAM reading the exported file (first-minimum descent to a leaf) finds our word and idf."""
+    p = tmp_path / "voc.txt"
+    small_vocab.save_dbow2_text(p)
+    (k, depth), children, centers, weights, word_of_node = _read_dbow2_text(p)
+    assert k == small_vocab.k and depth == small_vocab.fv_level + 4  # ORB-SLAM's direct index level
+    assert len(children) == small_vocab.num_nodes and max(word_of_node) + 1 == small_vocab.num_words
+    d = _orb(_gray("rocket"))[:200]
+    words, _ = small_vocab.lookup(d)
+    for i in range(len(d)):
+        node = 0
+        while children[node]:
+            dist = hamming_matrix(d[i : i + 1], np.stack([centers[c] for c in children[node]]))[0]
+            node = children[node][int(np.argmin(dist))]
+        assert word_of_node[node] == words[i]
+        assert weights[node] == pytest.approx(small_vocab.idf[words[i]], rel=1e-12)
+
+
 @pytest.mark.parametrize("which", ["small", "shipped"])
 def test_same_place_scores_higher_than_other_places(which: str, small_vocab: Vocabulary) -> None:
     vocab = small_vocab if which == "small" else default_vocabulary()
