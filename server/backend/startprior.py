@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from hivemap.maps.geometry import Sim3, rotation_angle_deg
 from hivemap.server.backend.fit import fit_pairs
@@ -24,9 +25,10 @@ from hivemap.server.placerec import Detection
 F64 = NDArray[np.float64]
 KfKey = tuple[str, int]
 
-# A measurement agrees with the prior within this many sigmas of the difference of two independent
-# mountings.
-GATE_SIGMAS = 3.0
+# A measurement agrees with the prior within this many per-axis sigmas of the difference of two
+# independent mountings. Position and rotation differences are 3-D norms, so the gate is the 99 % point of
+# a chi distribution with 3 degrees of freedom (3 sigmas of a 3-D norm flag 3 % of correct mountings).
+GATE_SIGMAS = math.sqrt(float(chi2.ppf(0.99, 3)))
 
 
 @dataclass(frozen=True)
