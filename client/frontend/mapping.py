@@ -258,11 +258,11 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
             fe._kfs[k_id].frame.T_cw = T
     fe._pts.xyz[pids] = X2
     if iw is not None:
-        for n, k_id in enumerate(all_k):
-            if k_id in wset and k_id not in fixed:
-                fe._kfs[k_id].v_w = iw.v[n].copy()
-                fe._kfs[k_id].bias = iw.b[n].copy()
-                fe._kfs[k_id].vi_refined = True
+        for j, kf_id in enumerate(all_k):
+            if kf_id in wset and kf_id not in fixed:
+                fe._kfs[kf_id].v_w = iw.v[j].copy()
+                fe._kfs[kf_id].bias = iw.b[j].copy()
+                fe._kfs[kf_id].vi_refined = True
         inertial_feedback(fe, kf)
     upd = [k for k in window if k not in fixed and fe._kfs[k].emitted]
     if upd:

@@ -108,7 +108,7 @@ class KeyframeImu:
         self.gyro_walk2 = float(params.get("gyroscope_random_walk", 2e-5)) ** 2
         self.acc_walk2 = float(params.get("accelerometer_random_walk", 3e-3)) ** 2
         self._samples: list[F64] = []
-        self._last_t: float | None = None
+        self._last: F64 | None = None  # the last sample integrated (t, gyro, accel)
 
     def add(self, samples: F64) -> None:
         if len(samples):
@@ -123,10 +123,13 @@ class KeyframeImu:
         rows = np.concatenate(self._samples) if self._samples else np.zeros((0, 7))
         self._samples = []
         for row in rows:
-            t = float(row[0])
-            if self._last_t is not None and 0.0 < t - self._last_t < 0.5:
-                pre.integrate(row[1:4], row[4:7], t - self._last_t)
-            self._last_t = t
+            last = self._last
+            if last is not None and 0.0 < row[0] - last[0] < 0.5:
+                # the samples are instantaneous rates: their mean over the step (a held sample lags
+                # the motion by half a step, which the tight preintegrated covariance would not forgive)
+                mid = 0.5 * (last + row)
+                pre.integrate(mid[1:4], mid[4:7], float(row[0] - last[0]))
+            self._last = row
         return pre if pre.dt > 0 else None
 
 
