@@ -20,11 +20,14 @@ pose beyond the IMU gate (chi2 of the prior, ``imu_gate_chi2``); a lost frame's 
 Keyframes: tracked ratio vs reference keyframe, close-point starvation, 0.5 s, GNSS epochs, after a
 relocalisation.  Local mapping: stereo points (all close ones, >= 100), multi-view triangulation with
 3 neighbours, local BA over the 10 best covisible keyframes (+10 fixed) with numpy/scipy Schur LM
-(see ``optim``), observation and point culling.  Lost: the IMU prediction, then relocalisation (BF
-descriptors of the last 20 keyframes' points and of the bag-of-words candidates + P3P RANSAC), both
-through the IMU gate; after ``imu_hold_s`` of IMU-only propagation (``max_lost_frames`` without an
-IMU) a new session, started at the propagated pose: its first keyframe carries that guess of its
-frame in the old session (``KeyframeEvent.prev_session_from_world``).
+(see ``optim``), observation and point culling.  With ``vi_ba`` (off by default, see
+docs/decisions.md) local BA is visual-inertial: the last 10 keyframes in time with velocity and bias
+states and preintegrated IMU terms between them (``preint``), the biases fed back to the tracker.
+Lost: the IMU prediction, then relocalisation (BF descriptors of the last 20 keyframes' points and
+of the bag-of-words candidates + P3P RANSAC), both through the IMU gate; after ``imu_hold_s`` of
+IMU-only propagation (``max_lost_frames`` without an IMU) a new session, started at the propagated
+pose: its first keyframe carries that guess of its frame in the old session
+(``KeyframeEvent.prev_session_from_world``).
 
 Frames: poses are in the agent's VIO frame, z up (gravity) when an IMU is given.  Body = IMU frame
 (``rig.body_from_left`` = EuRoC ``T_BS`` of cam0).

@@ -54,6 +54,13 @@ class _ImuState:
             self.last_t = t
         return pim if n else None
 
+    def bias_vector(self) -> F64:
+        """[gyro, accel] (6,)."""
+        return np.concatenate([self.bias.gyroscope(), self.bias.accelerometer()]).astype(np.float64)
+
+    def set_bias(self, b: F64) -> None:
+        self.bias = self.gtsam.imuBias.ConstantBias(np.asarray(b[3:], float), np.asarray(b[:3], float))
+
     def set_gyro_bias(self, gyro: F64) -> None:
         self.bias = self.gtsam.imuBias.ConstantBias(self.bias.accelerometer(), np.asarray(gyro, float))
 
@@ -148,6 +155,9 @@ def apply_world_transform(fe: Frontend, A: F64) -> None:
     if fe._last is not None and not any(kf.frame is fe._last for kf in fe._kfs.values()):
         fe._last.T_cw = fe._last.T_cw @ Ainv
     fe._velocity_w = A[:3, :3] @ fe._velocity_w
+    for kf in fe._kfs.values():
+        if kf.v_w is not None:
+            kf.v_w = A[:3, :3] @ kf.v_w
     if fe._filter is not None:
         fe._filter.rotate(A[:3, :3])
         fe._filter.p = fe._filter.p + A[:3, 3]
@@ -161,6 +171,8 @@ def visual_update(fe: Frontend, frame: Frame, pim: Any, state: TrackingState) ->
     T_wb = frame.T_wc @ fe.cam_from_body
     if fe._filter is not None:
         fe._filter.update(T_wb[:3, 3], fe.options)
+    if fe._vi_ba_ran:
+        return  # the visual-inertial local BA estimates the biases
     if pim is not None and state == TrackingState.OK and fe._last_tracked and fe._last is not None:
         R_prev = (fe._last.T_wc @ fe.cam_from_body)[:3, :3]
         bg = np.asarray(fe.imu.bias.gyroscope(), dtype=np.float64)

@@ -65,6 +65,12 @@ class KeyframeData:
     prev_session_from_world: F64 | None = None
     prev_session_sigma: tuple[float, float] | None = None
     bow: Any = None  # bag-of-words vector, computed when relocalisation first needs it
+    # inertial state (with an IMU): preintegration from the previous keyframe, world velocity of the
+    # body and the biases [gyro, accel], refined by the visual-inertial local BA
+    preint: Any = None
+    v_w: F64 | None = None
+    bias: F64 | None = None
+    vi_refined: bool = False  # v_w / bias estimated by a visual-inertial local BA
 
     @property
     def T_wc(self) -> F64:

@@ -20,6 +20,7 @@ from hivemap.client.frontend.optim import (
     chi2_thresholds,
     pose_hessian,
 )
+from hivemap.client.frontend.preint import InertialEdge, InertialWindow
 
 if TYPE_CHECKING:
     from hivemap.client.frontend.tracker import Frontend
@@ -61,6 +62,12 @@ def create_keyframe(fe: Frontend, frame: Frame, gnss_epoch: bool, first: bool = 
     )
     fe._kfs[kid] = kf
     fe.stats.keyframes += 1
+    if fe.kf_imu is not None and fe.imu is not None:
+        bias = fe.imu.bias_vector()
+        pre = fe.kf_imu.take(bias)
+        kf.preint = pre if prev is not None else None
+        kf.bias = bias
+        kf.v_w = fe._filter.v.copy() if fe._filter is not None else fe._velocity_w.copy()
     pts = fe._pts
     tracked_before = int((frame.point_ids >= 0).sum())
     for i in np.flatnonzero(frame.point_ids >= 0):
@@ -180,7 +187,13 @@ def triangulate(fe: Frontend, kf: KeyframeData) -> None:
 def local_ba(fe: Frontend, kf: KeyframeData) -> None:
     o = fe.options
     cov = fe._covisibility(kf.id)
-    window = [kf.id] + [k for k, _ in sorted(cov.items(), key=lambda kv: -kv[1])[: o.ba_window - 1]]
+    inertial_on = vi_ba_active(fe)
+    if inertial_on:
+        # ORB-SLAM3's visual-inertial window: the last keyframes in time, chained by their IMU terms,
+        # so that keyframes with few points are held by their neighbours' (and the IMU's) motion
+        window = sorted(fe._kfs)[-o.ba_window :][::-1]
+    else:
+        window = [kf.id] + [k for k, _ in sorted(cov.items(), key=lambda kv: -kv[1])[: o.ba_window - 1]]
     wset = set(window)
     pids_l = [fe._kfs[k].frame.point_ids for k in window]
     pids = np.unique(np.concatenate(pids_l))
@@ -200,6 +213,9 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
             pts_i.append(j)
             kp_i.append(i)
     fixed = [k for k, _ in sorted(fixed_count.items(), key=lambda kv: -kv[1])[: o.ba_fixed_max]]
+    before = fe._kfs[min(window)].prev_id if inertial_on else None
+    if before is not None and before in fe._kfs and before not in fixed:
+        fixed.append(before)  # the inertial anchor: its pose, velocity and bias held
     if not fixed:
         # gauge: hold the oldest keyframe of the window
         oldest = min(window)
@@ -223,10 +239,11 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
     poses = np.stack([fe._kfs[k].T_cw for k in all_k])
     is_fixed = np.array([k not in wset or k in fixed for k in all_k])
     prob = BAProblem(poses, is_fixed, fe._pts.xyz[pids].copy(), cam_idx, pt_idx, meas, inv_s2)
+    iw = inertial_window(fe, all_k, is_fixed) if inertial_on else None
     n1 = max(2, o.ba_iterations // 2)
-    poses2, X2, inl = bundle_adjust(fe.k, prob, n1)
+    poses2, X2, inl = bundle_adjust(fe.k, prob, n1, inertial=iw)
     prob2 = BAProblem(poses2, is_fixed, X2, cam_idx, pt_idx, meas, inv_s2)
-    poses2, X2, inl2 = bundle_adjust(fe.k, prob2, o.ba_iterations - n1, active=inl)
+    poses2, X2, inl2 = bundle_adjust(fe.k, prob2, o.ba_iterations - n1, active=inl, inertial=iw)
     # drop outlier observations
     for n in np.flatnonzero(~inl2):
         k_id = int(cam_ids[n])
@@ -240,6 +257,13 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
             fe._kfs[k_id].T_cw = T
             fe._kfs[k_id].frame.T_cw = T
     fe._pts.xyz[pids] = X2
+    if iw is not None:
+        for j, kf_id in enumerate(all_k):
+            if kf_id in wset and kf_id not in fixed:
+                fe._kfs[kf_id].v_w = iw.v[j].copy()
+                fe._kfs[kf_id].bias = iw.b[j].copy()
+                fe._kfs[kf_id].vi_refined = True
+        inertial_feedback(fe, kf)
     upd = [k for k in window if k not in fixed and fe._kfs[k].emitted]
     if upd:
         pp = pids[fe._pts.emitted[pids]]
@@ -252,6 +276,53 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
                 fe._pts.xyz[pp].copy(),
             )
         )
+
+
+def vi_ba_active(fe: Frontend) -> bool:
+    """Local BA carries IMU terms: an IMU, the VIO frame gravity-aligned (the residuals use gravity)."""
+    return bool(fe.options.vi_ba and fe.kf_imu is not None and fe._gravity_aligned and fe._filter is not None)
+
+
+def inertial_window(fe: Frontend, all_k: list[int], is_fixed: NDArray[np.bool_]) -> InertialWindow:
+    """Velocities, biases and the IMU edges between consecutive keyframes among ``all_k``.
+
+    A held keyframe anchors an edge only once a visual-inertial BA has estimated its velocity and
+    biases; before that they are the tracker's guesses (zero velocity at the start), and holding them
+    would pull the window onto them."""
+    o = fe.options
+    assert fe.kf_imu is not None
+    kidx = {k: n for n, k in enumerate(all_k)}
+    v = np.zeros((len(all_k), 3))
+    b = np.zeros((len(all_k), 6))
+    edges: list[InertialEdge] = []
+    for n, k_id in enumerate(all_k):
+        kf = fe._kfs[k_id]
+        if kf.v_w is not None:
+            v[n] = kf.v_w
+        if kf.bias is not None:
+            b[n] = kf.bias
+        prev = kf.prev_id
+        if kf.preint is None or prev not in kidx:
+            continue
+        pk = fe._kfs[prev]
+        usable = [k.v_w is not None and (k.vi_refined or not is_fixed[kidx[k.id]]) for k in (pk, kf)]
+        if all(usable):
+            edges.append(InertialEdge(kidx[prev], n, kf.preint))
+    prior = np.array([o.vi_ba_gyro_bias_sigma**-2] * 3 + [o.vi_ba_acc_bias_sigma**-2] * 3)
+    return InertialWindow(v, b, edges, fe.cam_from_body, fe.kf_imu.gyro_walk2, fe.kf_imu.acc_walk2, prior)
+
+
+def inertial_feedback(fe: Frontend, kf: KeyframeData) -> None:
+    """The newest keyframe's velocity and biases become the tracker's: the IMU prediction of the next
+    frames integrates with them (ORB-SLAM3 predicts from the last keyframe's inertial state)."""
+    if fe.imu is None or kf.bias is None or kf.v_w is None:
+        return
+    fe.imu.set_bias(kf.bias)
+    fe._vi_ba_ran = True
+    filt = fe._filter
+    if filt is not None:
+        filt.v = kf.v_w.copy()
+        filt.c = np.zeros(3)  # the accelerometer bias is now estimated, not absorbed
 
 
 def cull_points(fe: Frontend, kid: int) -> None:

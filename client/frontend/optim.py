@@ -21,6 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from hivemap.client.frontend.preint import InertialWindow
 from hivemap.maps.geometry import so3_exp, so3_log
 
 F64 = NDArray[np.float64]
@@ -240,10 +241,17 @@ def _ba_cost(k: Intrinsics, poses: F64, points: F64, prob: BAProblem, active: ND
 
 
 def bundle_adjust(
-    k: Intrinsics, prob: BAProblem, iterations: int = 10, active: NDArray[np.bool_] | None = None
+    k: Intrinsics,
+    prob: BAProblem,
+    iterations: int = 10,
+    active: NDArray[np.bool_] | None = None,
+    inertial: InertialWindow | None = None,
 ) -> tuple[F64, F64, NDArray[np.bool_]]:
     """Levenberg-Marquardt over free poses and all points with a Huber loss.
 
+    ``inertial``: preintegrated IMU terms between consecutive cameras; each free camera's block is
+    then [pose, velocity, gyro bias, accel bias] (15), the points are still eliminated, and the
+    solution's velocities and biases are left in ``inertial.v``/``inertial.b``.
     Returns (poses, points, inlier mask over observations by chi2 at the solution).
     """
     C, P, n_obs = len(prob.poses), len(prob.points), len(prob.cam_idx)
@@ -257,6 +265,9 @@ def bundle_adjust(
     nf = len(free)
     lam = 1e-4
     cost = _ba_cost(k, poses, points, prob, act)
+    vel, bias = (inertial.v.copy(), inertial.b.copy()) if inertial is not None else (None, None)
+    if inertial is not None:
+        cost += inertial.cost(poses, vel, bias)
     rel = 1.0
     for _ in range(iterations):
         ci, pi, meas = prob.cam_idx[act], prob.pt_idx[act], prob.meas[act]
@@ -289,6 +300,12 @@ def bundle_adjust(
         Hcp = Hcp4.transpose(0, 2, 1, 3).reshape(6 * nf, 3 * P)
         diag_c = np.einsum("nii->ni", Hcc)
         diag_p = np.einsum("nii->ni", Hpp)
+        if inertial is not None:
+            assert vel is not None and bias is not None
+            Hi, gi = inertial.normal_equations(poses, vel, bias, free_index)
+            diag_i = np.diag(Hi).copy()
+            pose_rows = (np.arange(nf)[:, None] * 15 + np.arange(6)[None, :]).ravel()
+        dx: F64 | None = None
         for _try in range(4):
             Hpp_d = Hpp.copy()
             Hpp_d[:, np.arange(3), np.arange(3)] += lam * diag_p + 1e-9
@@ -301,10 +318,18 @@ def bundle_adjust(
                 Y = np.einsum("cpi,pij->cpj", Hcp.reshape(6 * nf, P, 3), Hpp_inv).reshape(6 * nf, 3 * P)
                 S = Hcc_full - Y @ Hcp.T
                 rhs = -gc.ravel() + Y @ gp.ravel()
+                if inertial is not None:
+                    # the reduced visual system embedded in the pose rows of the inertial blocks
+                    S15 = Hi + np.diag(lam * diag_i + 1e-9)
+                    S15[np.ix_(pose_rows, pose_rows)] += S
+                    rhs15 = -gi
+                    rhs15[pose_rows] += rhs
+                    S, rhs = S15, rhs15
                 try:
-                    dc = np.linalg.solve(S, rhs)
+                    dx = np.linalg.solve(S, rhs)
                 except np.linalg.LinAlgError:
-                    dc = np.linalg.lstsq(S, rhs, rcond=None)[0]
+                    dx = np.linalg.lstsq(S, rhs, rcond=None)[0]
+                dc = dx[pose_rows] if inertial is not None else dx
                 dp = -(gp.ravel() + Hcp.T @ dc)
             else:
                 dc = np.zeros(0)
@@ -315,8 +340,18 @@ def bundle_adjust(
                 new_poses[c] = left_update(poses[c], dc[6 * j : 6 * j + 6])
             new_points = points + dp
             new_cost = _ba_cost(k, new_poses, new_points, prob, act)
+            if inertial is not None and vel is not None and bias is not None:
+                new_vel, new_bias = vel.copy(), bias.copy()
+                if nf > 0:
+                    assert dx is not None
+                    blk = dx.reshape(nf, 15)
+                    new_vel[free] += blk[:, 6:9]
+                    new_bias[free] += blk[:, 9:15]
+                new_cost += inertial.cost(new_poses, new_vel, new_bias)
             if new_cost < cost:
                 poses, points = new_poses, new_points
+                if inertial is not None:
+                    vel, bias = new_vel, new_bias
                 rel = (cost - new_cost) / max(cost, 1e-12)
                 cost = new_cost
                 lam = max(lam / 10.0, 1e-7)
@@ -326,6 +361,8 @@ def bundle_adjust(
             break
         if rel < 1e-6:
             break
+    if inertial is not None and vel is not None and bias is not None:
+        inertial.v, inertial.b = vel, bias
     R = poses[prob.cam_idx, :3, :3]
     pc = np.einsum("nij,nj->ni", R, points[prob.pt_idx]) + poses[prob.cam_idx, :3, 3]
     chi2 = chi2_of(k, pc, prob.meas, prob.inv_sigma2)

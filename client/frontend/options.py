@@ -73,3 +73,9 @@ class FrontendOptions:
     vio_gyro_drift_dps: float = 0.5  # attitude uncertainty growth while the IMU alone holds it
     gyro_bias_time_s: float = 3.0  # averaging time of the gyro bias estimate
     gyro_bias_max_step_dps: float = 3.0  # larger frame-to-frame gyro/visual disagreement: not a bias
+    # visual-inertial local BA (ORB-SLAM3's): preintegrated IMU terms between consecutive keyframes,
+    # velocity and bias states; the bias priors (1 sigma about each run's start) only keep them bounded.
+    # Off: measured worse than the visual-only BA on factory01's UGV (docs/decisions.md, issue 28)
+    vi_ba: bool = False
+    vi_ba_gyro_bias_sigma: float = 0.05  # rad/s
+    vi_ba_acc_bias_sigma: float = 0.5  # m/s^2

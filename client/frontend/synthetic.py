@@ -124,6 +124,7 @@ class SyntheticSequence:
     imu: F64  # (M,7) t, gyro, acc (body)
     rig: StereoRig
     scene: SyntheticScene
+    velocity_w: F64  # (N,3) of the body, world frame
 
     def images(self, i: int) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
         T_wb = self.world_from_body[i]
@@ -180,9 +181,9 @@ def make_sequence(
     gyro = np.zeros((len(ti), 3))
     gyro[:, 2] = (speed + surge_m * np.cos(ti)) / radius
     imu = np.concatenate([ti[:, None], gyro, acc_b], 1)
-    return SyntheticSequence(
-        times, Ts, imu, rig, SyntheticScene(seed, size=scene_size, px_per_m=40.0 if scene_size > 60 else 60.0)
-    )
+    vel = (pose(times + dt)[0] - pose(times - dt)[0]) / (2 * dt)
+    scene = SyntheticScene(seed, size=scene_size, px_per_m=40.0 if scene_size > 60 else 60.0)
+    return SyntheticSequence(times, Ts, imu, rig, scene, vel)
 
 
 def _rz(a: float) -> F64:

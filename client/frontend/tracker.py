@@ -32,6 +32,7 @@ from hivemap.client.frontend.optim import (
     project,
 )
 from hivemap.client.frontend.options import FrontendOptions
+from hivemap.client.frontend.preint import KeyframeImu
 from hivemap.client.frontend.relocalize import relocalize
 from hivemap.client.frontend.stereo import StereoMatcher
 from hivemap.maps.camera import StereoRig
@@ -73,6 +74,8 @@ class Frontend:
         self.orb = OrbExtractor(o)
         self.contrast = ContrastNormaliser(o)
         self.imu = _ImuState(imu_params) if imu_params is not None else None
+        self.kf_imu = KeyframeImu(imu_params) if imu_params is not None else None
+        self._vi_ba_ran = False  # the visual-inertial local BA has estimated the biases
         self.session = 0
         self.stats = FrontendStats()
         self._events: list[Event] = []
@@ -134,6 +137,8 @@ class Frontend:
         if self.imu is not None and imu_samples_since_last is not None and len(imu_samples_since_last):
             pim = self.imu.preintegrate(np.asarray(imu_samples_since_last, dtype=np.float64))
             acc_mean = np.asarray(imu_samples_since_last)[:, 4:7].mean(0)
+            if self.kf_imu is not None:
+                self.kf_imu.add(np.asarray(imu_samples_since_last, dtype=np.float64))
         frame = self._make_frame(t, left_gray, right_gray)
         t1 = time.perf_counter()
         new_kf: int | None = None
@@ -311,6 +316,8 @@ class Frontend:
         self._local_pids = np.zeros(0, np.int64)
         self._kf_last_id = -1
         self._ref_tracked = 0
+        if self.kf_imu is not None:
+            self.kf_imu.reset()
 
     def _initialize(self, frame: Frame, T_cw: F64) -> bool:
         has = np.isfinite(frame.pts_cam[:, 2])
