@@ -1,0 +1,181 @@
+"""One query's verification as a self-contained job: what it reads of the maps, as arrays.
+
+A query's candidates are verified in a worker process (or a Ray task) while the event loop keeps
+changing the maps, so the job cannot read the maps: it carries a slice of each map it touches, taken on
+the place-recognition thread: the query keyframe, every candidate's window (the candidate and its best
+covisible keyframes), the map points those keyframes reference (positions, descriptors, and their
+observations in the slice's keyframes, in the map's order) and the keyframes' direct-index feature
+vectors. On the worker the slices become small map-like objects the verification reads as it reads a
+map, so a job verifies exactly what a verification against the map would.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.elements import Keyframe
+from hivemap.maps.vocabulary import FeatureVector
+from hivemap.server.placerec.match import _has_point, _point_keys
+from hivemap.server.placerec.types import PlaceRecOptions, Thresholds
+from hivemap.server.placerec.views import HasCache
+
+KfKey = tuple[str, int]
+PointKey = tuple[str, int]
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+@dataclass
+class Candidate:
+    """One candidate to verify: its keyframe, map, kind, BoW score, scale mode and window."""
+
+    key: KfKey
+    map_id: int
+    kind: str
+    bow_score: float
+    fix_scale: bool
+    window: list[KfKey]  # the candidate's best covisible keyframes (without itself), best first
+
+
+@dataclass
+class MapSlice:
+    """The keyframes of one map a job reads and the points they reference, as arrays.
+
+    Point ``i`` is ``(agents[agent_idx[i]], ids[i])``; its observations are rows ``obs_point == i`` of
+    ``obs_kf`` (index into ``keyframes``) and ``obs_kp`` (keypoint index), in the map's order."""
+
+    map_id: int
+    keyframes: list[Keyframe]
+    agents: list[str]
+    agent_idx: NDArray[np.int32]
+    ids: I64
+    xyz: F64
+    desc: NDArray[np.uint8]
+    obs_point: NDArray[np.int32]
+    obs_kf: NDArray[np.int32]
+    obs_kp: NDArray[np.int32]
+
+    @property
+    def nbytes(self) -> int:
+        arrays: list[NDArray[Any]] = [
+            self.agent_idx,
+            self.ids,
+            self.xyz,
+            self.desc,
+            self.obs_point,
+            self.obs_kf,
+            self.obs_kp,
+        ]
+        kfs = sum(k.keypoints.nbytes + k.descriptors.nbytes + k.point_ids.nbytes + k.octaves.nbytes
+                  for k in self.keyframes)  # fmt: skip
+        return int(sum(a.nbytes for a in arrays) + kfs)
+
+
+@dataclass
+class QueryJob:
+    """What verifying one query's candidates needs (:func:`..verify.run_job` runs it)."""
+
+    options: PlaceRecOptions
+    thresholds: Thresholds
+    query_key: KfKey
+    query_map: int
+    candidates: list[Candidate]
+    slices: list[MapSlice]
+    features: dict[KfKey, FeatureVector]
+    best_covisible: dict[KfKey, list[KfKey]] = field(default_factory=dict)
+    skip_covered: bool = True  # candidates inside an accepted candidate's window are not verified
+
+    @property
+    def nbytes(self) -> int:
+        fv = sum(f.node_of_feature.nbytes + f.word_of_feature.nbytes for f in self.features.values())
+        return sum(s.nbytes for s in self.slices) + fv
+
+
+# ------------------------------------------------------------------------------------------ building
+def _copy_keyframe(kf: Keyframe) -> Keyframe:
+    """A copy whose pose and point references the event loop cannot change while the job is shipped
+    (features and camera are never changed in place: shared)."""
+    c = copy.copy(kf)
+    c.world_from_cam = kf.world_from_cam.copy()
+    c.point_ids = kf.point_ids.copy()
+    c.point_agents = dict(kf.point_agents)
+    return c
+
+
+def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = None) -> MapSlice:
+    """The slice of map ``m`` (``map_id`` in the stack) holding keyframes ``keys`` (those still in it) and
+    their points (``has``: which keypoints reference a point of the map, kept across queries)."""
+    kfs = [_copy_keyframe(m.keyframes[k]) for k in dict.fromkeys(keys) if k in m.keyframes]
+    kf_index = {kf.key: i for i, kf in enumerate(kfs)}
+    points: dict[PointKey, Any] = {}
+    for kf in kfs:
+        pk = _point_keys(kf)
+        mask = has.get(m, kf, pk) if has is not None else _has_point(pk, m.points)
+        for i in np.flatnonzero(mask).tolist():
+            k = pk[i]
+            if k not in points:
+                p = m.points.get(k)
+                if p is not None:
+                    points[k] = p
+    agents: dict[str, int] = {}
+    n = len(points)
+    agent_idx = np.empty(n, dtype=np.int32)
+    ids = np.empty(n, dtype=np.int64)
+    xyz = np.empty((n, 3), dtype=np.float64)
+    desc = np.empty((n, 32), dtype=np.uint8)
+    op: list[int] = []
+    ok: list[int] = []
+    okp: list[int] = []
+    for i, (pk, p) in enumerate(points.items()):
+        agent_idx[i] = agents.setdefault(pk[0], len(agents))
+        ids[i] = pk[1]
+        xyz[i] = p.xyz
+        desc[i] = p.descriptor
+        for wk, kp in p.observations.items():
+            j = kf_index.get(wk)
+            if j is not None:
+                op.append(i)
+                ok.append(j)
+                okp.append(kp)
+    return MapSlice(
+        map_id, kfs, list(agents), agent_idx, ids, xyz, desc,
+        np.asarray(op, dtype=np.int32), np.asarray(ok, dtype=np.int32), np.asarray(okp, dtype=np.int32),
+    )  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------ on the worker
+class _Point:
+    __slots__ = ("xyz", "descriptor", "observations")
+
+    def __init__(self, xyz: F64, descriptor: NDArray[np.uint8]) -> None:
+        self.xyz = xyz
+        self.descriptor = descriptor
+        self.observations: dict[KfKey, int] = {}
+
+
+class SliceMap:
+    """A map slice read as a map (``keyframes``, ``points``, ``best_covisible``) by the verification."""
+
+    def __init__(self, s: MapSlice, best_covisible: dict[KfKey, list[KfKey]]) -> None:
+        self.id = s.map_id
+        self.keyframes: dict[KfKey, Keyframe] = {kf.key: kf for kf in s.keyframes}
+        keys = [(s.agents[a], p) for a, p in zip(s.agent_idx.tolist(), s.ids.tolist(), strict=True)]
+        pts = [_Point(s.xyz[i], s.desc[i]) for i in range(len(keys))]
+        kf_keys = [kf.key for kf in s.keyframes]
+        for i, j, kp in zip(s.obs_point.tolist(), s.obs_kf.tolist(), s.obs_kp.tolist(), strict=True):
+            pts[i].observations[kf_keys[j]] = kp
+        self.points: dict[PointKey, _Point] = dict(zip(keys, pts, strict=True))
+        self._best = best_covisible
+
+    def best_covisible(self, key: KfKey, n: int) -> list[KfKey]:
+        return self._best.get(key, [])[: max(int(n), 0)]
+
+
+def maps_of(job: QueryJob) -> dict[int, SliceMap]:
+    return {s.map_id: SliceMap(s, job.best_covisible) for s in job.slices}
