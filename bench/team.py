@@ -19,7 +19,9 @@ copies are separate teams of agents rather than N duplicates of one place.
         --run-dir data/exp/work/f01short-s1/denied --out data/team-f01short-s1
     .venv/bin/python bench/team.py run --recording data/team-f01short-s1 --agents 4,8,16,32 --cores 1
 
-``--cores``: CPUs the server process may run on (``sched_setaffinity``), the "per core" of the result.
+``--cores``: CPUs the server process (and its verification workers) may run on (``sched_setaffinity``),
+the "per core" of the result; the workers: ``--server-toml "[backend.scheduler]" --server-toml
+"workers = 2"`` (``executor = "ray"`` for Ray tasks). Server CPU and RSS include the workers'.
 """
 
 from __future__ import annotations
@@ -257,6 +259,7 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
             "query_cpu_ms": be.query_cpu_ms,
             "verify_cpu_ms": be.verify_cpu_ms,
             "job_bytes": be.job_bytes,
+            "ship": app.state.bench_ship,
             "query_lags": be.query_lags,
             "dropped": be.dropped_queries,
             "skipped": be.skipped_queries,
@@ -290,6 +293,23 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
                 prof.disable()
 
         detect.prepare = profiled  # type: ignore[assignment]
+
+    # the cost of shipping a job to a worker: pickling every 10th job once more (CPU ms, bytes)
+    import pickle
+
+    ship: list[tuple[float, int]] = []
+    prepare_job = detect.prepare
+
+    def shipped(*args: Any, **kwargs: Any) -> Any:
+        out = prepare_job(*args, **kwargs)
+        if out is not None and len(ship) * 10 <= len(app.state.hive.backend.query_ms):
+            t = time.thread_time()
+            n = len(pickle.dumps(out[1], protocol=pickle.HIGHEST_PROTOCOL))
+            ship.append(((time.thread_time() - t) * 1e3, n))
+        return out
+
+    detect.prepare = shipped  # type: ignore[assignment]
+    app.state.bench_ship = ship
     make_uvicorn_server(uvicorn.Config(app, **uvicorn_config_kwargs(settings))).run()
     if prof is not None and profile is not None:
         prof.dump_stats(str(profile))
@@ -370,6 +390,10 @@ def _proc_rss_mb(pid: int, key: str = "VmHWM") -> float:
     return total
 
 
+def _mean(x: list[float]) -> float:
+    return float(np.mean(x)) if x else float("nan")
+
+
 def _pct(x: list[float], q: float) -> float:
     return float(np.percentile(x, q)) if x else float("nan")
 
@@ -436,6 +460,8 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
         "lag_p50": _pct(lags, 50), "lag_p95": _pct(lags, 95), "lag_max": max(lags, default=float("nan")),
         "dropped": fig["dropped"], "skipped": fig.get("skipped", 0),
         "job_kb_mean": float(np.mean(fig["job_bytes"])) / 1e3 if fig.get("job_bytes") else float("nan"),
+        "pickle_ms_mean": _mean([x[0] for x in fig.get("ship", [])]),
+        "pickle_kb_mean": _mean([x[1] for x in fig.get("ship", [])]) / 1e3,
         "corr_p50": _pct(fig["correction_latencies"], 50),
         "corr_p95": _pct(fig["correction_latencies"], 95), "n_corr": len(fig["correction_latencies"]),
         "query_ms_mean": float(np.mean(fig["query_ms"])) if fig["query_ms"] else float("nan"),
@@ -460,7 +486,8 @@ def summary(r: dict[str, Any]) -> str:
         f"query lag p50 {r['lag_p50']:.2f} s p95 {r['lag_p95']:.2f} s max {r['lag_max']:.2f} s",
         f"query {r['query_ms_mean']:.0f} ms mean (CPU {r['query_cpu_ms_mean']:.0f} ms mean, "
         f"p95 {r['query_cpu_ms_p95']:.0f} ms), {r['verifications']} verifications "
-        f"(CPU {r['verify_cpu_ms_per_query']:.0f} ms per query), job {r['job_kb_mean']:.0f} kB mean",
+        f"(CPU {r['verify_cpu_ms_per_query']:.0f} ms per query), job {r['job_kb_mean']:.0f} kB mean "
+        f"(pickled {r['pickle_kb_mean']:.0f} kB in {r['pickle_ms_mean']:.1f} ms CPU)",
         f"corrections {r['n_corr']} p50 {r['corr_p50'] * 1e3:.0f} ms p95 {r['corr_p95'] * 1e3:.0f} ms",
         f"visual merges {r['merges']} loops {r['loops']} maps {r['maps']}",
         f"detections {r['detections']}, accepted candidates {r['accepted']}",

@@ -48,10 +48,10 @@ def index_many(recognizer: PlaceRecognizer, stack: Any, keys: list[tuple[int, Kf
             recognizer.add_keyframe(m.id, kf)
 
 
-def covisible_of(stack: Any, key: KfKey) -> list[KfKey]:
-    """The keyframes sharing map points with ``key`` (none if it is gone)."""
+def best_covisible(stack: Any, key: KfKey, n: int) -> list[KfKey]:
+    """The ``n`` keyframes sharing most map points with ``key`` (none if it is gone)."""
     m = stack.map_of_agent(key[0])
-    return list(m.covisibility(key)) if m is not None and key in m.keyframes else []
+    return list(m.best_covisible(key, n)) if m is not None and key in m.keyframes else []
 
 
 def prepare(

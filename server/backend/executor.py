@@ -15,6 +15,7 @@ import concurrent.futures
 import logging
 import multiprocessing
 import os
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol
 
 from hivemap.server.placerec.job import QueryJob
@@ -67,12 +68,24 @@ class ProcessVerifier:
 
     def __init__(self, workers: int) -> None:
         self.workers = workers
+        self._pool = self._start()
+
+    def _start(self) -> concurrent.futures.ProcessPoolExecutor:
         ctx = multiprocessing.get_context("spawn")
-        self._pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx)
-        self._warm = [self._pool.submit(_warm) for _ in range(workers)]
+        pool = concurrent.futures.ProcessPoolExecutor(self.workers, mp_context=ctx)
+        for _ in range(self.workers):
+            pool.submit(_warm)
+        return pool
 
     async def run(self, job: QueryJob) -> list[CandidateReport]:
-        return await asyncio.wrap_future(self._pool.submit(run_job, job))
+        try:
+            return await asyncio.wrap_future(self._pool.submit(run_job, job))
+        except BrokenProcessPool:
+            # a worker died (killed, out of memory): this query fails, the next ones get a new pool
+            logger.error("a verification worker died: restarting the pool")
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = self._start()
+            raise
 
     def shutdown(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)

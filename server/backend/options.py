@@ -28,7 +28,7 @@ class SchedulerOptions:
     """What runs when: the place-recognition queue (:mod:`~hivemap.server.backend.backlog`)."""
 
     queue_max: int = 5000  # queued query keyframes (oldest dropped beyond)
-    # more waiting than this: newest first, the same agent's covisible waiting keyframes skipped (0: never)
+    # more waiting than this: keyframes whose place their agent has just queried are skipped (0: never)
     backlog: int = 10
     # where verification runs (:mod:`~hivemap.server.backend.executor`): "local" (worker processes),
     # "thread" (the place-recognition thread) or "ray" (Ray tasks; ray_address "" starts a local Ray)

@@ -178,9 +178,9 @@ class Backend(Pipeline):
                 self._wake.clear()
                 await self._wake.wait()
                 continue
-            key, skipped = self.queue.pop(partial(detect.covisible_of, stack))
+            key, skipped = self.queue.pop(partial(detect.best_covisible, stack))
             if skipped:
-                msg = f"backlog: {len(skipped)} keyframes of {key[0]} covisible with {key} not queried"
+                msg = f"backlog: {len(skipped)} keyframes not queried, their agent had just queried their place"
                 self.server.events.add("placerec", msg, data={"skipped": [list(k) for k in skipped]})
             done: asyncio.Future[None] = loop.create_future()
             task = asyncio.create_task(self._query(key, prev, done), name=f"hive-query-{key}")

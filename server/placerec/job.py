@@ -12,6 +12,8 @@ map, so a job verifies exactly what a verification against the map would.
 from __future__ import annotations
 
 import copy
+import itertools
+import operator
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -98,6 +100,13 @@ class QueryJob:
 
 
 # ------------------------------------------------------------------------------------------ building
+_XYZ, _DESC, _OBS = (
+    operator.attrgetter("xyz"),
+    operator.attrgetter("descriptor"),
+    operator.attrgetter("observations"),
+)
+
+
 def _copy_keyframe(kf: Keyframe) -> Keyframe:
     """A copy whose pose and point references the event loop cannot change while the job is shipped
     (features and camera are never changed in place: shared)."""
@@ -113,39 +122,31 @@ def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = 
     their points (``has``: which keypoints reference a point of the map, kept across queries)."""
     kfs = [_copy_keyframe(m.keyframes[k]) for k in dict.fromkeys(keys) if k in m.keyframes]
     kf_index = {kf.key: i for i, kf in enumerate(kfs)}
-    points: dict[PointKey, Any] = {}
+    refs: list[PointKey] = []
     for kf in kfs:
         pk = _point_keys(kf)
         mask = has.get(m, kf, pk) if has is not None else _has_point(pk, m.points)
-        for i in np.flatnonzero(mask).tolist():
-            k = pk[i]
-            if k not in points:
-                p = m.points.get(k)
-                if p is not None:
-                    points[k] = p
-    agents: dict[str, int] = {}
-    n = len(points)
-    agent_idx = np.empty(n, dtype=np.int32)
-    ids = np.empty(n, dtype=np.int64)
-    xyz = np.empty((n, 3), dtype=np.float64)
-    desc = np.empty((n, 32), dtype=np.uint8)
-    op: list[int] = []
-    ok: list[int] = []
-    okp: list[int] = []
-    for i, (pk, p) in enumerate(points.items()):
-        agent_idx[i] = agents.setdefault(pk[0], len(agents))
-        ids[i] = pk[1]
-        xyz[i] = p.xyz
-        desc[i] = p.descriptor
-        for wk, kp in p.observations.items():
-            j = kf_index.get(wk)
-            if j is not None:
-                op.append(i)
-                ok.append(j)
-                okp.append(kp)
+        refs.extend(itertools.compress(pk, mask.tolist()))  # type: ignore[arg-type]
+    found = dict(zip(refs, map(m.points.get, refs), strict=True))  # each point once, in first-seen order
+    points = {k: p for k, p in found.items() if p is not None}
+    pts = list(points.values())
+    # column-wise through C-level iterators (map, zip, chain): a slice holds ~1-2k points
+    agent_col, id_col = tuple(zip(*points, strict=True)) if points else ((), ())
+    agents = list(dict.fromkeys(agent_col))
+    agent_idx = np.array(list(map({a: i for i, a in enumerate(agents)}.__getitem__, agent_col)), np.int32)
+    ids = np.array(id_col, dtype=np.int64)
+    xyz = np.array(list(map(_XYZ, pts)), dtype=np.float64).reshape(-1, 3)
+    desc = np.array(list(map(_DESC, pts)), dtype=np.uint8).reshape(-1, 32)
+    # every observation of the points (in each point's order), kept where its keyframe is in the slice
+    obs = list(map(_OBS, pts))
+    n_obs = np.array(list(map(len, obs)), dtype=np.int64)
+    obs_kf = np.array(list(map(kf_index.get, itertools.chain.from_iterable(obs))), dtype=object)
+    obs_kp = np.fromiter(itertools.chain.from_iterable(map(dict.values, obs)), np.int64)
+    obs_pt = np.repeat(np.arange(len(pts), dtype=np.int32), n_obs)
+    inside = obs_kf != None  # noqa: E711  (element-wise on the object array)
     return MapSlice(
-        map_id, kfs, list(agents), agent_idx, ids, xyz, desc,
-        np.asarray(op, dtype=np.int32), np.asarray(ok, dtype=np.int32), np.asarray(okp, dtype=np.int32),
+        map_id, kfs, list(agents), agent_idx, ids, xyz, desc, obs_pt[inside],
+        obs_kf[inside].astype(np.int32), obs_kp[inside].astype(np.int32),
     )  # fmt: skip
 
 

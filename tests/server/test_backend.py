@@ -27,9 +27,12 @@ from hivemap.maps.geometry import Sim3, rotation_angle_deg, so3_exp
 from hivemap.protocol import Ack, Correction, Message
 from hivemap.server.app import create_app, uvicorn_config_kwargs
 from hivemap.server.backend import Backend, BackendOptions, installer, preset
+from hivemap.server.backend.options import SchedulerOptions
 from hivemap.server.backend_synth import UGV_FROM_WORLD, agent_stream, make_world
 from hivemap.server.settings import ServerSettings
 
+# every keyframe is queried, however fast the streams arrive (a backlog would skip some: timing)
+FAST = SchedulerOptions(backlog=0)
 UAV_FROM_WORLD = Sim3(so3_exp(np.array([0.3, -0.5, 1.2])), np.array([12.0, -7.0, 4.0]), 1.0)
 
 
@@ -40,7 +43,7 @@ class Server:
             port=self.port, data_dir=data_dir, tokens=TOKENS, log_level="warning", **settings_kw
         )
         # Sim(3) merges: these tests include a monocular-like agent whose map has scale 2.5
-        opts = opts or preset("monocular")
+        opts = opts or preset("monocular", scheduler=FAST)
         self.app = create_app(settings, extensions=[installer(opts)])
         self.server = uvicorn.Server(uvicorn.Config(self.app, **uvicorn_config_kwargs(settings)))  # type: ignore[arg-type]
         self.thread = threading.Thread(target=self.server.run, daemon=True)
@@ -299,7 +302,7 @@ def test_gnss_guided_retry_merges_two_enu_maps(tmp_path: Path) -> None:
         consistency_required=1,
         thresholds=Thresholds(min_matches=10**6, min_inliers=10**6, min_projected=10**6),
     )
-    srv = Server(tmp_path / "data", preset("default", placerec=blind))
+    srv = Server(tmp_path / "data", preset("default", scheduler=FAST, placerec=blind))
     try:
         rng = np.random.default_rng(7)
         pts, desc = make_world(rng, 2500, (-20, 30))

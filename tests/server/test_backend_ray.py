@@ -36,7 +36,7 @@ def local_ray() -> Iterator[Any]:
 
 @pytest.fixture
 def srv(tmp_path: Path, local_ray: Any) -> Iterator[Server]:
-    opts = preset("monocular", scheduler=SchedulerOptions(executor="ray", workers=1))
+    opts = preset("monocular", scheduler=SchedulerOptions(executor="ray", workers=1, backlog=0))
     s = Server(tmp_path / "data", opts)
     assert s.backend.verifier.__class__.__name__ == "RayVerifier"
     yield s

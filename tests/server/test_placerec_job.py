@@ -1,5 +1,5 @@
 """A query's verification as a job: in a worker process it reports what the recogniser's own thread
-reports (the job carries the maps' slices as arrays), and the queue's order under a backlog."""
+reports (the job carries the maps' slices as arrays); and what the queue skips in a backlog."""
 
 from __future__ import annotations
 
@@ -42,24 +42,25 @@ def test_a_job_verified_in_a_worker_process_reports_what_the_thread_does(scene) 
     assert det is not None and det.candidate_map == 1
 
 
-def test_a_backlog_queries_the_newest_first_and_skips_its_covisible_keyframes() -> None:
+def test_a_backlog_skips_keyframes_whose_place_their_agent_just_queried() -> None:
+    # a track of agent a: each keyframe's best covisible keyframes are its two predecessors
+    def best(key: tuple[str, int], n: int) -> list[tuple[str, int]]:
+        return [(key[0], key[1] - i) for i in range(1, n + 1)]
+
     q = QueryQueue(queue_max=100, backlog=3)
     for k in range(3):
         q.push(("a", k))
-    # short queue: oldest first, nothing skipped
-    assert q.pop(lambda key: []) == (("a", 0), [])
-    for k in range(3, 8):
+    # a short queue: every keyframe, in order
+    assert [q.pop(best)[0] for _ in range(3)] == [("a", 0), ("a", 1), ("a", 2)] and q.skipped == 0
+    for k in range(3, 10):
         q.push(("a", k))
     q.push(("b", 0))
-    # a backlog (7 waiting > 3): the newest first, with its agent's waiting covisible keyframes skipped
-    key, skipped = q.pop(lambda key: [("b", 1)])
-    assert key == ("b", 0) and skipped == []
-    covis = {("a", 7): [("a", 6), ("a", 5), ("b", 9)]}
-    key, skipped = q.pop(lambda key: covis.get(key, []))
-    assert key == ("a", 7) and skipped == [("a", 5), ("a", 6)]
-    assert list(q) == [("a", 1), ("a", 2), ("a", 3), ("a", 4)] and q.skipped == 2
-    assert q.pop(lambda key: [])[0] == ("a", 4)  # 4 waiting: still a backlog
-    assert q.pop(lambda key: [])[0] == ("a", 1)  # back at the backlog: oldest first again
+    # a backlog: a3 and a4 see the place a2 was queried at; a5 does not; in order per agent
+    assert q.pop(best) == (("a", 5), [("a", 3), ("a", 4)])
+    assert q.pop(best) == (("a", 8), [("a", 6), ("a", 7)])
+    # back at the backlog (2 waiting): every keyframe again
+    assert q.pop(best) == (("a", 9), []) and q.pop(best) == (("b", 0), [])
+    assert q.skipped == 4 and not q
 
 
 def test_a_full_queue_drops_the_oldest() -> None:
