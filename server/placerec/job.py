@@ -138,10 +138,12 @@ def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = 
     xyz = np.array(list(map(_XYZ, pts)), dtype=np.float64).reshape(-1, 3)
     desc = np.array(list(map(_DESC, pts)), dtype=np.uint8).reshape(-1, 32)
     # every observation of the points (in each point's order), kept where its keyframe is in the slice
-    obs = list(map(_OBS, pts))
+    # (one read of each point's observations: the event loop adds to them meanwhile)
+    obs = [list(d.items()) for d in map(_OBS, pts)]
     n_obs = np.array(list(map(len, obs)), dtype=np.int64)
-    obs_kf = np.array(list(map(kf_index.get, itertools.chain.from_iterable(obs))), dtype=object)
-    obs_kp = np.fromiter(itertools.chain.from_iterable(map(dict.values, obs)), np.int64)
+    kf_col, kp_col = tuple(zip(*itertools.chain.from_iterable(obs), strict=True)) or ((), ())
+    obs_kf = np.array(list(map(kf_index.get, kf_col)), dtype=object)
+    obs_kp = np.array(kp_col, dtype=np.int64)
     obs_pt = np.repeat(np.arange(len(pts), dtype=np.int32), n_obs)
     inside = obs_kf != None  # noqa: E711  (element-wise on the object array)
     return MapSlice(
