@@ -180,7 +180,7 @@ class Backend(Pipeline):
                 continue
             key, skipped = self.queue.pop(partial(detect.best_covisible, stack))
             if skipped:
-                msg = f"backlog: {len(skipped)} keyframes not queried, their agent had just queried their place"
+                msg = f"backlog: {len(skipped)} keyframes not queried (their agent just queried their place)"
                 self.server.events.add("placerec", msg, data={"skipped": [list(k) for k in skipped]})
             done: asyncio.Future[None] = loop.create_future()
             task = asyncio.create_task(self._query(key, prev, done), name=f"hive-query-{key}")
