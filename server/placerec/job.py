@@ -4,9 +4,11 @@ A query's candidates are verified in a worker process (or a Ray task) while the 
 changing the maps, so the job cannot read the maps: it carries a slice of each map it touches, taken on
 the place-recognition thread: the query keyframe, every candidate's window (the candidate and its best
 covisible keyframes), the map points those keyframes reference (positions, descriptors, and their
-observations in the slice's keyframes, in the map's order) and the keyframes' direct-index feature
+observations in the slice's keyframes, in their keyframes' order of arrival) and the direct-index feature
 vectors. On the worker the slices become small map-like objects the verification reads as it reads a
-map, so a job verifies exactly what a verification against the map would.
+map. What differs: a point's observations come in its keyframes' order of arrival rather than its own
+(they differ only for points fused after a merge or loop), which picks the keyframe of the refinement's
+second direction.
 """
 
 from __future__ import annotations
@@ -49,8 +51,9 @@ class Candidate:
 class MapSlice:
     """The keyframes of one map a job reads and the points they reference, as arrays.
 
-    Point ``i`` is ``(agents[agent_idx[i]], ids[i])``; its observations are rows ``obs_point == i`` of
-    ``obs_kf`` (index into ``keyframes``) and ``obs_kp`` (keypoint index), in the map's order."""
+    Point ``i`` is ``(agents[agent_idx[i]], ids[i])``; its observations in the slice's keyframes are rows
+    ``obs_point == i`` of ``obs_kf`` (index into ``keyframes``) and ``obs_kp`` (keypoint index), in the
+    order its keyframes arrived in the map."""
 
     map_id: int
     keyframes: list[Keyframe]
@@ -121,34 +124,42 @@ def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = 
     """The slice of map ``m`` (``map_id`` in the stack) holding keyframes ``keys`` (those still in it) and
     their points (``has``: which keypoints reference a point of the map, kept across queries)."""
     kfs = [_copy_keyframe(m.keyframes[k]) for k in dict.fromkeys(keys) if k in m.keyframes]
-    kf_index = {kf.key: i for i, kf in enumerate(kfs)}
     refs: list[PointKey] = []
+    per_kf: list[tuple[NDArray[np.intp], list[PointKey]]] = []
     for kf in kfs:
         pk = _point_keys(kf)
         mask = has.get(m, kf, pk) if has is not None else _has_point(pk, m.points)
-        refs.extend(itertools.compress(pk, mask.tolist()))  # type: ignore[arg-type]
+        idx = np.flatnonzero(mask)
+        r: list[PointKey] = [pk[i] for i in idx.tolist()]  # type: ignore[misc]
+        per_kf.append((idx, r))
+        refs.extend(r)
     found = dict(zip(refs, map(m.points.get, refs), strict=True))  # each point once, in first-seen order
     points = {k: p for k, p in found.items() if p is not None}
     pts = list(points.values())
-    # column-wise through C-level iterators (map, zip, chain): a slice holds ~1-2k points
+    # column-wise through C-level iterators (map, zip): a slice holds ~1-2k points
     agent_col, id_col = tuple(zip(*points, strict=True)) if points else ((), ())
     agents = list(dict.fromkeys(agent_col))
     agent_idx = np.array(list(map({a: i for i, a in enumerate(agents)}.__getitem__, agent_col)), np.int32)
     ids = np.array(id_col, dtype=np.int64)
     xyz = np.array(list(map(_XYZ, pts)), dtype=np.float64).reshape(-1, 3)
     desc = np.array(list(map(_DESC, pts)), dtype=np.uint8).reshape(-1, 32)
-    # every observation of the points (in each point's order), kept where its keyframe is in the slice
-    # (one read of each point's observations: the event loop adds to them meanwhile)
-    obs = [list(d.items()) for d in map(_OBS, pts)]
-    n_obs = np.array(list(map(len, obs)), dtype=np.int64)
-    kf_col, kp_col = tuple(zip(*itertools.chain.from_iterable(obs), strict=True)) or ((), ())
-    obs_kf = np.array(list(map(kf_index.get, kf_col)), dtype=object)
-    obs_kp = np.array(kp_col, dtype=np.int64)
-    obs_pt = np.repeat(np.arange(len(pts), dtype=np.int32), n_obs)
-    inside = obs_kf != None  # noqa: E711  (element-wise on the object array)
+    # the observations in the slice's keyframes, from the keyframes' side (a point's full observation list
+    # is ~8x larger), ordered per point as the map adds them: by its keyframes' order of arrival
+    row_of = {k: i for i, k in enumerate(points)}
+    arrival = {k: i for i, k in enumerate(m.keyframes)}
+    cols: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.intp]]] = []
+    for j, (idx, r) in enumerate(per_kf):
+        rows = np.fromiter(map(row_of.get, r, itertools.repeat(-1)), np.int64, len(r))
+        keep = rows >= 0
+        cols.append((rows[keep], np.full(int(keep.sum()), j, np.int64), idx[keep]))
+    obs_pt = np.concatenate([c[0] for c in cols]) if cols else np.zeros(0, np.int64)
+    obs_kf = np.concatenate([c[1] for c in cols]) if cols else np.zeros(0, np.int64)
+    obs_kp = np.concatenate([c[2] for c in cols]) if cols else np.zeros(0, np.intp)
+    kf_arrival = np.array([arrival.get(kf.key, len(arrival)) for kf in kfs], dtype=np.int64)
+    order = np.lexsort((kf_arrival[obs_kf] if len(obs_kf) else obs_kf, obs_pt))
     return MapSlice(
-        map_id, kfs, list(agents), agent_idx, ids, xyz, desc, obs_pt[inside],
-        obs_kf[inside].astype(np.int32), obs_kp[inside].astype(np.int32),
+        map_id, kfs, list(agents), agent_idx, ids, xyz, desc, obs_pt[order].astype(np.int32),
+        obs_kf[order].astype(np.int32), obs_kp[order].astype(np.int32),
     )  # fmt: skip
 
 
