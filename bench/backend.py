@@ -75,16 +75,13 @@ class _Server:
 
         from hivemap.server.app import create_app, uvicorn_config_kwargs
         from hivemap.server.backend import installer, preset
-        from hivemap.server.backend.options import SchedulerOptions
         from hivemap.server.settings import ServerSettings
 
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = int(s.getsockname()[1])
         settings = ServerSettings(port=port, data_dir=data_dir, tokens=tokens, log_level="warning")
-        opts = preset(
-            "monocular", scheduler=SchedulerOptions(verifications_per_s=1000.0)
-        )  # UAVs at scale 2.5
+        opts = preset("monocular")  # UAVs at scale 2.5
         self.app = create_app(settings, extensions=[installer(opts)])
         self.server = uvicorn.Server(uvicorn.Config(self.app, **uvicorn_config_kwargs(settings)))  # type: ignore[arg-type]
         self.thread = threading.Thread(target=self.server.run, daemon=True)

@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     pr = tp._recognizer(maps)
     tv, tdet = [], []
     for k in range(10):
-        r = pr.detect(maps, 0, ("uavA", k), n_agents=2, loop=False)
+        r = pr.detect(maps, 0, ("uavA", k), loop=False)
         tdet.append(r.time_ms / 1e3)
         tv += [c.time_ms / 1e3 for c in r.candidates if c.n_matches > 0]
     n_kp = np.median([len(kf.keypoints) for kf in a.keyframes.values()])

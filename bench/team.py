@@ -19,13 +19,16 @@ copies are separate teams of agents rather than N duplicates of one place.
         --run-dir data/exp/work/f01short-s1/denied --out data/team-f01short-s1
     .venv/bin/python bench/team.py run --recording data/team-f01short-s1 --agents 4,8,16,32 --cores 1
 
-``--cores``: CPUs the server process may run on (``sched_setaffinity``), the "per core" of the result.
+``--cores``: CPUs the server process (and its verification workers) may run on (``sched_setaffinity``),
+the "per core" of the result; the workers: ``--server-toml "[backend.scheduler]" --server-toml
+"workers = 2"`` (``executor = "ray"`` for Ray tasks). Server CPU and RSS include the workers'.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import shutil
@@ -253,10 +256,13 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
         return {
             "queries": be.queries,
             "query_ms": be.query_ms,
-            "query_cpu_ms": cpu_ms,
-            "verify_cpu_ms": sum(verify_ms),
-            "query_lags": getattr(be, "query_lags", []),  # a server from before these figures: none
-            "dropped": getattr(be, "dropped_queries", 0),
+            "query_cpu_ms": be.query_cpu_ms,
+            "verify_cpu_ms": be.verify_cpu_ms,
+            "job_bytes": be.job_bytes,
+            "ship": app.state.bench_ship,
+            "query_lags": be.query_lags,
+            "dropped": be.dropped_queries,
+            "skipped": be.skipped_queries,
             "queued": len(be.queue),
             "idle": be.idle(),
             "verifications": be.verifications,
@@ -266,8 +272,9 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
             "maps": len(app.state.hive.stack.maps),
         }
 
-    # CPU time of every query in the back-end's place-recognition thread (wall time on a shared machine
-    # says more about the neighbours than about the query); with ``profile``, cProfile on that clock
+    # CPU time of each query's look-up and job in the place-recognition thread, plus its verification's
+    # (measured in whichever process ran it: the back-end's figures); with ``profile``, cProfile of the
+    # look-ups on that thread's clock
     from hivemap.server.backend import detect
 
     prof = None
@@ -275,34 +282,34 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
         import cProfile
 
         prof = cProfile.Profile(time.thread_time)
-    query = detect.detect
+        prepare = detect.prepare
 
-    def measured(*args: Any, **kwargs: Any) -> Any:
-        t = time.thread_time()
-        if prof is not None:
+        def profiled(*args: Any, **kwargs: Any) -> Any:
+            assert prof is not None
             prof.enable()
-        try:
-            return query(*args, **kwargs)
-        finally:
-            if prof is not None:
+            try:
+                return prepare(*args, **kwargs)
+            finally:
                 prof.disable()
-            cpu_ms.append((time.thread_time() - t) * 1e3)
 
-    cpu_ms: list[float] = []
-    detect.detect = measured  # type: ignore[assignment]
-    from hivemap.server.placerec import PlaceRecognizer
+        detect.prepare = profiled  # type: ignore[assignment]
 
-    verify = PlaceRecognizer._verify
-    verify_ms: list[float] = []
+    # the cost of shipping a job to a worker: pickling every 10th job once more (CPU ms, bytes)
+    import pickle
 
-    def measured_verify(*args: Any, **kwargs: Any) -> Any:
-        t = time.thread_time()
-        try:
-            return verify(*args, **kwargs)
-        finally:
-            verify_ms.append((time.thread_time() - t) * 1e3)
+    ship: list[tuple[float, int]] = []
+    prepare_job = detect.prepare
 
-    PlaceRecognizer._verify = measured_verify  # type: ignore[method-assign]
+    def shipped(*args: Any, **kwargs: Any) -> Any:
+        out = prepare_job(*args, **kwargs)
+        if out is not None and len(ship) * 10 <= len(app.state.hive.backend.query_ms):
+            t = time.thread_time()
+            n = len(pickle.dumps(out[1], protocol=pickle.HIGHEST_PROTOCOL))
+            ship.append(((time.thread_time() - t) * 1e3, n))
+        return out
+
+    detect.prepare = shipped  # type: ignore[assignment]
+    app.state.bench_ship = ship
     make_uvicorn_server(uvicorn.Config(app, **uvicorn_config_kwargs(settings))).run()
     if prof is not None and profile is not None:
         prof.dump_stats(str(profile))
@@ -347,16 +354,44 @@ def _base_id(folded: str) -> str:
     return aid + ("#" + rest if rest else "")
 
 
+def _tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (the server's verification workers)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        with contextlib.suppress(OSError):
+            todo += [int(c) for t in Path(f"/proc/{p}/task").iterdir()
+                     for c in (t / "children").read_text().split()]  # fmt: skip
+    return out
+
+
 def _proc_cpu_s(pid: int) -> float:
-    f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+    """CPU seconds of the server process and its workers."""
+    total = 0.0
+    for p in _tree(pid):
+        try:
+            f = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
 def _proc_rss_mb(pid: int, key: str = "VmHWM") -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+    """Peak RSS of the server process plus its workers' (MB)."""
+    total = 0.0
+    for p in _tree(pid):
+        try:
+            lines = Path(f"/proc/{p}/status").read_text().splitlines()
+        except OSError:
+            continue
+        total += next((int(x.split()[1]) / 1024 for x in lines if x.startswith(key + ":")), 0.0)
+    return total
+
+
+def _mean(x: list[float]) -> float:
+    return float(np.mean(x)) if x else float("nan")
 
 
 def _pct(x: list[float], q: float) -> float:
@@ -423,7 +458,11 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
         "agents": n, "cores": cores, "keyframes": n_kf, "queries": fig["queries"],
         "unfinished": fig["queued"],
         "lag_p50": _pct(lags, 50), "lag_p95": _pct(lags, 95), "lag_max": max(lags, default=float("nan")),
-        "dropped": fig["dropped"], "corr_p50": _pct(fig["correction_latencies"], 50),
+        "dropped": fig["dropped"], "skipped": fig.get("skipped", 0),
+        "job_kb_mean": float(np.mean(fig["job_bytes"])) / 1e3 if fig.get("job_bytes") else float("nan"),
+        "pickle_ms_mean": _mean([x[0] for x in fig.get("ship", [])]),
+        "pickle_kb_mean": _mean([x[1] for x in fig.get("ship", [])]) / 1e3,
+        "corr_p50": _pct(fig["correction_latencies"], 50),
         "corr_p95": _pct(fig["correction_latencies"], 95), "n_corr": len(fig["correction_latencies"]),
         "query_ms_mean": float(np.mean(fig["query_ms"])) if fig["query_ms"] else float("nan"),
         "query_cpu_ms_mean": float(np.mean(fig["query_cpu_ms"])) if fig["query_cpu_ms"] else float("nan"),
@@ -443,11 +482,12 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
 def summary(r: dict[str, Any]) -> str:
     parts = [
         f"{r['keyframes']} keyframes, {r['queries']} queries ({r['unfinished']} unfinished, "
-        f"{r['dropped']} dropped)",
+        f"{r['dropped']} dropped, {r['skipped']} skipped in a backlog)",
         f"query lag p50 {r['lag_p50']:.2f} s p95 {r['lag_p95']:.2f} s max {r['lag_max']:.2f} s",
         f"query {r['query_ms_mean']:.0f} ms mean (CPU {r['query_cpu_ms_mean']:.0f} ms mean, "
         f"p95 {r['query_cpu_ms_p95']:.0f} ms), {r['verifications']} verifications "
-        f"(CPU {r['verify_cpu_ms_per_query']:.0f} ms per query)",
+        f"(CPU {r['verify_cpu_ms_per_query']:.0f} ms per query), job {r['job_kb_mean']:.0f} kB mean "
+        f"(pickled {r['pickle_kb_mean']:.0f} kB in {r['pickle_ms_mean']:.1f} ms CPU)",
         f"corrections {r['n_corr']} p50 {r['corr_p50'] * 1e3:.0f} ms p95 {r['corr_p95'] * 1e3:.0f} ms",
         f"visual merges {r['merges']} loops {r['loops']} maps {r['maps']}",
         f"detections {r['detections']}, accepted candidates {r['accepted']}",

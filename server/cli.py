@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -68,6 +69,22 @@ def server_command(
             help="Ground truth for the viewer: a scenario folder (DIR/<agent>/mav0/...) or DIR/<agent>.tum.",
         ),
     ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            "--workers", min=0, help="Verification worker processes (default: cores less one, at least 1)."
+        ),
+    ] = None,
+    executor: Annotated[
+        str | None,
+        typer.Option(
+            "--executor", help="Where verification runs: local (worker processes), thread, ray (Ray tasks)."
+        ),
+    ] = None,
+    ray_address: Annotated[
+        str | None,
+        typer.Option("--ray-address", help="With --executor ray: the cluster (default: a local Ray)."),
+    ] = None,
     print_config: Annotated[
         bool, typer.Option("--print-config", help="Print the effective settings as TOML and exit.")
     ] = False,
@@ -82,6 +99,7 @@ def server_command(
 
     from hivemap.cli.errors import config_error
     from hivemap.server.app import create_app, uvicorn_config_kwargs
+    from hivemap.server.backend.executor import EXECUTORS
     from hivemap.server.config_toml import settings_toml
     from hivemap.server.settings import load_settings
 
@@ -92,6 +110,15 @@ def server_command(
         )  # fmt: skip
     except (tomllib.TOMLDecodeError, ValidationError) as exc:
         raise config_error(config, exc) from exc  # one line naming the file and field
+    sched = {k: v for k, v in (("workers", workers), ("executor", executor), ("ray_address", ray_address))
+             if v is not None}  # fmt: skip
+    if sched:
+        if sched.get("executor", "local") not in EXECUTORS:
+            raise typer.BadParameter(f"one of {', '.join(EXECUTORS)}", param_hint="--executor")
+        b = settings.backend
+        settings = settings.model_copy(
+            update={"backend": replace(b, scheduler=replace(b.scheduler, **sched))}
+        )
     if print_config:
         typer.echo(settings_toml(settings), nl=False)
         return

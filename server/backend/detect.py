@@ -1,18 +1,20 @@
-"""Detection: the place recogniser's set-up, indexing keyframes, looking a query keyframe's place up
-(BoW look-up and geometric verification, :class:`~hivemap.server.placerec.PlaceRecognizer`) and
-publishing what it found on ``/events``. Runs in the place-recognition thread, which alone touches the
-recogniser and its keyframe database.
+"""Detection: the place recogniser's set-up, indexing keyframes, a query keyframe's BoW look-up and
+its verification job (:class:`~hivemap.server.placerec.PlaceRecognizer`; the job runs where the
+scheduler's verifier runs it) and publishing what it found on ``/events``. Runs in the
+place-recognition thread, which alone touches the recogniser and its keyframe database.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import replace
 from typing import Any
 
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.convert import split_folded
 from hivemap.server.placerec import PlaceRecognizer, RecognitionResult
+from hivemap.server.placerec.job import QueryJob
 
 logger = logging.getLogger(__name__)
 
@@ -46,11 +48,20 @@ def index_many(recognizer: PlaceRecognizer, stack: Any, keys: list[tuple[int, Kf
             recognizer.add_keyframe(m.id, kf)
 
 
-def detect(
-    recognizer: PlaceRecognizer, stack: Any, key: KfKey, n_agents: int, fix_scale: bool
-) -> RecognitionResult | None:
-    """Index the keyframe, then look for its place in the other maps (merge) and its own (loop)."""
+def best_covisible(stack: Any, key: KfKey, n: int) -> list[KfKey]:
+    """The ``n`` keyframes sharing most map points with ``key`` (none if it is gone)."""
+    m = stack.map_of_agent(key[0])
+    return list(m.best_covisible(key, n)) if m is not None and key in m.keyframes else []
+
+
+def prepare(
+    recognizer: PlaceRecognizer, stack: Any, key: KfKey, fix_scale: bool
+) -> tuple[RecognitionResult, QueryJob, float] | None:
+    """Index the keyframe, retrieve its candidates in the other maps (merge) and its own (loop), and
+    take the verification job (:meth:`PlaceRecognizer.prepare`); with the CPU ms it took. None: the
+    keyframe is gone."""
     for _ in range(DETECT_RETRIES):
+        c0 = time.thread_time()
         try:
             m = stack.map_of_agent(key[0])
             kf = m.keyframes.get(key) if m is not None else None
@@ -58,7 +69,8 @@ def detect(
                 return None  # culled or gone
             if key not in recognizer.kfdb:
                 recognizer.add_keyframe(m.id, kf)
-            return recognizer.detect(stack.maps, m.id, key, n_agents, fix_scale=fix_scale)
+            result, job = recognizer.prepare(stack.maps, m.id, key, fix_scale=fix_scale)
+            return result, job, (time.thread_time() - c0) * 1e3
         except RuntimeError as exc:  # "dictionary changed size during iteration"
             logger.debug("detect %s retried: %s", key, exc)
     return None

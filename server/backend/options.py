@@ -25,10 +25,16 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class SchedulerOptions:
-    """What runs when: the place-recognition queue and its verification budget."""
+    """What runs when: the place-recognition queue (:mod:`~hivemap.server.backend.backlog`)."""
 
-    verifications_per_s: float = 40.0  # budget of geometric verifications (token bucket)
     queue_max: int = 5000  # queued query keyframes (oldest dropped beyond)
+    # more waiting than this: keyframes whose place their agent has just queried are skipped (0: never)
+    backlog: int = 10
+    # where verification runs (:mod:`~hivemap.server.backend.executor`): "local" (worker processes),
+    # "thread" (the place-recognition thread) or "ray" (Ray tasks; ray_address "" starts a local Ray)
+    executor: str = "local"
+    workers: int = 0  # processes / concurrent queries; 0: the cores less one, at least one
+    ray_address: str = ""
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,6 @@ import asyncio
 import concurrent.futures
 import logging
 import time
-from collections import deque
 from functools import partial
 from typing import Any
 
@@ -29,7 +28,9 @@ from hivemap.server.backend import (
     selfcheck,
     sessionguess,
 )
+from hivemap.server.backend.backlog import QueryQueue
 from hivemap.server.backend.evidence import EvidenceBook
+from hivemap.server.backend.executor import Verifier
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.backend.startprior import StartPrior
@@ -58,12 +59,15 @@ class Pipeline:
         self._prior = StartPrior.from_settings(starts, self._generation)
         self._vocabulary = vocabulary
         self.recognizer: PlaceRecognizer | None = None
-        self.queue: deque[KfKey] = deque(maxlen=self.options.scheduler.queue_max)
+        so = self.options.scheduler
+        self.queue = QueryQueue(so.queue_max, so.backlog)
         self._wake = asyncio.Event()
         self._pr_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-placerec")
         self._opt_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-optim")
         self._tasks: set[asyncio.Task[Any]] = set()
         self._worker: asyncio.Task[None] | None = None
+        self._inflight: set[asyncio.Task[None]] = set()  # queries being prepared, verified or applied
+        self._verifier: Verifier | None = None
         self._busy = 0  # queries or optimisations in flight
         self._opt_running: set[int] = set()
         self._gnss_count: dict[int, int] = {}
@@ -79,14 +83,13 @@ class Pipeline:
         self._override = accept.PriorOverride()  # merges against the start prior, by independent places
         self.evidence = EvidenceBook()  # the maps' loop and merge edges, judged again at each pose graph
         self._opt_again: dict[int, list[NewEdge]] = {}
-        self._tokens = self.options.scheduler.verifications_per_s
-        self._last_refill = time.monotonic()
         # figures
         self.queries = 0
         self.query_ms: list[float] = []
         self.query_lags: list[float] = []  # keyframe arrival -> its place recognition done (s)
-        self.dropped_queries = 0  # query keyframes pushed out of the full queue
-        self._arrived: dict[KfKey, float] = {}
+        self.query_cpu_ms: list[float] = []  # per query: look-up and job (this process) + verification
+        self.verify_cpu_ms = 0.0  # all verifications (in whichever process ran them)
+        self.job_bytes: list[int] = []  # per query: the arrays its verification job carries
         self.verifications = 0
         self.merges: list[dict[str, Any]] = []
         self.loops: list[dict[str, Any]] = []
@@ -95,12 +98,20 @@ class Pipeline:
         self.ba_runs: list[dict[str, Any]] = []
         self.selfcheck: dict[int, dict[str, Any]] = {}  # map -> its last self-check (/maps/{id})
 
-    def _take_tokens(self) -> float:
-        now = time.monotonic()
-        rate = self.options.scheduler.verifications_per_s
-        self._tokens = min(rate, self._tokens + (now - self._last_refill) * rate)
-        self._last_refill = now
-        return 0.0 if self._tokens >= 1.0 else (1.0 - self._tokens) / rate
+    @property
+    def verifier(self) -> Verifier:
+        assert self._verifier is not None, "the back-end is not started"
+        return self._verifier
+
+    @property
+    def dropped_queries(self) -> int:
+        """Query keyframes pushed out of the full queue."""
+        return self.queue.dropped
+
+    @property
+    def skipped_queries(self) -> int:
+        """Query keyframes not queried in a backlog (their agent's covisible keyframe was)."""
+        return self.queue.skipped
 
     # -- helpers over the server's state ------------------------------------------------------------
     def _agent_kind(self, folded: str) -> str:

@@ -4,15 +4,18 @@ Threads and ownership:
 
 * the event loop (core's rule): every map mutation (merge, applying optimisation results, agent transforms);
 * one place-recognition thread: BoW + keyframe database + detection (:mod:`.detect`; the recogniser and
-  its database are only touched there, so they need no lock);
+  its database are only touched there, so they need no lock); it takes each query's verification job
+  (its slices of the maps, as arrays), which the verifier runs (:mod:`.executor`: worker processes, or
+  Ray tasks), up to ``workers`` queries at once; results are concluded and applied in query order;
 * one optimisation thread: pose graph, global BA, GNSS stage (:mod:`.optimise`, :mod:`.gnss`), on
   snapshots taken on the loop. Results are applied on the loop (:mod:`.corrections`); keyframes that
   arrived meanwhile follow their spanning-tree parent's correction. Ingest never waits for them.
 
 Per inserted keyframe (observer, quick): enqueue. Worker: index, then detect against the other maps
-(merge) and the same map outside the covisible keyframes (loop), within a budget of verifications per
-second; accept (:mod:`.accept`), fit (:mod:`.fit`), merge or add the loop (:mod:`.surgery`), then
-optimise: pose graph with the new edge, global BA, GNSS stage, corrections to the agents.
+(merge) and the same map outside the covisible keyframes (loop), as fast as the CPU allows (the queue's
+order: :mod:`.backlog`); accept (:mod:`.accept`), fit (:mod:`.fit`), merge or add the loop
+(:mod:`.surgery`), then optimise: pose graph with the new edge, global BA, GNSS stage, corrections to the
+agents.
 """
 
 from __future__ import annotations
@@ -21,13 +24,14 @@ import asyncio
 import logging
 import time
 from dataclasses import replace
+from functools import partial
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, detect, evidence_store, fit, sessionguess, surgery
+from hivemap.server.backend import accept, detect, evidence_store, executor, fit, sessionguess, surgery
 from hivemap.server.backend.optimise import NewEdge
 from hivemap.server.backend.pipeline import Pipeline
 from hivemap.server.placerec import Detection
@@ -54,6 +58,12 @@ class Backend(Pipeline):
             self.recognizer = detect.make_recognizer(self._vocabulary, self.options)
 
         await loop.run_in_executor(self._pr_exec, init)
+        so = self.options.scheduler
+        self._verifier = await loop.run_in_executor(
+            None, executor.make_verifier, so.executor, so.workers, so.ray_address, self._pr_exec
+        )
+        server.events.add("info", f"back-end verification: {so.executor} executor, "
+                          f"{self._verifier.workers} worker(s)")  # fmt: skip
         await self._load_evidence(server)
         self._refresh_loose()
         # keyframes reloaded from the store are indexed by the worker first (no detection on them); the
@@ -79,18 +89,21 @@ class Backend(Pipeline):
     async def stop(self, server: Any) -> None:
         if self._worker is not None:
             self._worker.cancel()
-        for t in list(self._tasks):
+        for t in [*self._tasks, *self._inflight]:
             t.cancel()
         await asyncio.gather(
-            *(t for t in [self._worker, *self._tasks] if t is not None), return_exceptions=True
+            *(t for t in [self._worker, *self._tasks, *self._inflight] if t is not None),
+            return_exceptions=True,
         )
+        if self._verifier is not None:
+            self._verifier.shutdown()
         # a running global BA is not waited for: its task is cancelled, so its result is never applied
         self._pr_exec.shutdown(wait=False, cancel_futures=True)
         self._opt_exec.shutdown(wait=False, cancel_futures=True)
 
     def idle(self) -> bool:
         """Nothing queued and nothing in flight (tests and benches wait for this)."""
-        return not self.queue and self._busy == 0 and not self._tasks
+        return not self.queue and self._busy == 0 and not self._tasks and not self._inflight
 
     # -- observer -----------------------------------------------------------------------------------
     async def on_keyframe(self, map_id: int, key: KfKey) -> None:
@@ -103,12 +116,9 @@ class Backend(Pipeline):
             task = asyncio.create_task(self._merge_by_guess(key, guess[1], guess[2]))
             self._tasks.add(task)
             task.add_done_callback(self._tasks.discard)
-        if len(self.queue) == self.queue.maxlen:
-            self.server.events.add("placerec", f"query queue full: {self.queue[0]} dropped")
-            self.dropped_queries += 1
-            self._arrived.pop(self.queue[0], None)
-        self.queue.append(key)
-        self._arrived[key] = time.monotonic()
+        dropped = self.queue.push(key)
+        if dropped is not None:
+            self.server.events.add("placerec", f"query queue full: {dropped} dropped")
         self._wake.set()
         # GNSS stage also without a merge or loop: every ``GNSS_EVERY_KFS`` keyframes with a fix in a map
         m = self.server.stack.maps.get(map_id)
@@ -121,9 +131,8 @@ class Backend(Pipeline):
     def _requery(self, keys: list[KfKey]) -> None:
         """Look these keyframes up again (after the maps changed under their first look-up)."""
         for key in keys:
-            if key not in self._arrived:
-                self.queue.append(key)
-                self._arrived[key] = time.monotonic()
+            if key not in self.queue.arrived:
+                self.queue.push(key)
         self._wake.set()
 
     # -- nominal start configuration (paper 2.4) -----------------------------------------------------
@@ -187,45 +196,71 @@ class Backend(Pipeline):
                 logger.exception("indexing the reloaded keyframes failed")
             finally:
                 self._busy -= 1
+        # up to ``workers`` queries in flight: each is prepared in the place-recognition thread, verified
+        # by the verifier, and concluded and applied on the loop in the order they were taken
+        prev: asyncio.Future[None] | None = None
         while True:
-            if not self.queue:
+            if not self.queue or len(self._inflight) >= self.verifier.workers:
                 self._wake.clear()
                 await self._wake.wait()
                 continue
-            wait = self._take_tokens()
-            if wait > 0:
-                await asyncio.sleep(wait)
-                continue
-            key = self.queue.popleft()
-            self._busy += 1
-            try:
-                n_agents = max(1, len(self.server.agents))
-                res = await loop.run_in_executor(
-                    self._pr_exec, detect.detect, recognizer, stack, key, n_agents, self.options.fix_scale
-                )
-                self.query_lags.append(time.monotonic() - self._arrived.pop(key, time.monotonic()))
-                if res is None:
-                    continue
-                self.queries += 1
-                self.query_ms.append(res.time_ms)
-                n_verified = sum(1 for c in res.candidates if c.reason != "covered_by_accepted_window")
-                self.verifications += n_verified
-                self._tokens -= n_verified
-                detect.publish(self.server.events, res)
-                det, prior = self._accept(res.detection) if res.detection is not None else (None, None)
-                if det is not None:
-                    t_det = time.monotonic()
-                    if det.is_loop:
-                        await self._close_loop(det, t_det)
-                    else:
-                        await self._merge(det, t_det, prior)
-            except asyncio.CancelledError:
-                raise
-            except Exception:
-                logger.exception("back-end query %s failed", key)
-                self.server.events.add("error", f"back-end query {key} failed (see log)")
-            finally:
-                self._busy -= 1
+            key, skipped = self.queue.pop(partial(detect.best_covisible, stack))
+            if skipped:
+                msg = f"backlog: {len(skipped)} keyframes not queried (their agent just queried their place)"
+                self.server.events.add("placerec", msg, data={"skipped": [list(k) for k in skipped]})
+            done: asyncio.Future[None] = loop.create_future()
+            task = asyncio.create_task(self._query(key, prev, done), name=f"hive-query-{key}")
+            prev = done
+            self._inflight.add(task)
+            task.add_done_callback(self._query_done)
+
+    def _query_done(self, task: asyncio.Task[None]) -> None:
+        self._inflight.discard(task)
+        self._wake.set()
+
+    async def _query(self, key: KfKey, prev: asyncio.Future[None] | None, done: asyncio.Future[None]) -> None:
+        """One query: its look-up and job, the job's verification, then (after the query before it) its
+        conclusion, acceptance and the merge or loop it gives."""
+        loop = asyncio.get_running_loop()
+        assert self.recognizer is not None
+        recognizer, stack = self.recognizer, self.server.stack
+        self._busy += 1
+        try:
+            prep = await loop.run_in_executor(
+                self._pr_exec, detect.prepare, recognizer, stack, key, self.options.fix_scale
+            )
+            reports = await self.verifier.run(prep[1]) if prep is not None and prep[1].candidates else []
+            if prev is not None:
+                await asyncio.shield(prev)
+            if prep is None:
+                self.query_lags.append(self.queue.done(key))
+                return
+            res = await loop.run_in_executor(self._pr_exec, recognizer.conclude, prep[0], reports)
+            self.query_lags.append(self.queue.done(key))
+            self.queries += 1
+            self.query_ms.append(res.time_ms)
+            verify_ms = sum(r.cpu_ms for r in reports)
+            self.query_cpu_ms.append(prep[2] + verify_ms)
+            self.verify_cpu_ms += verify_ms
+            self.job_bytes.append(prep[1].nbytes)
+            n_verified = sum(1 for c in res.candidates if c.reason != "covered_by_accepted_window")
+            self.verifications += n_verified
+            detect.publish(self.server.events, res)
+            det, prior = self._accept(res.detection) if res.detection is not None else (None, None)
+            if det is not None:
+                t_det = time.monotonic()
+                if det.is_loop:
+                    await self._close_loop(det, t_det)
+                else:
+                    await self._merge(det, t_det, prior)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            logger.exception("back-end query %s failed", key)
+            self.server.events.add("error", f"back-end query {key} failed (see log)")
+        finally:
+            self._busy -= 1
+            done.set_result(None)
 
     # -- merge ----------------------------------------------------------------------------------------
     async def _merge(self, det: Detection, t_det: float, prior: dict[str, Any] | None = None) -> None:

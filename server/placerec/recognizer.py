@@ -1,4 +1,5 @@
-"""The place recogniser: BoW retrieval, verification of each candidate and the choice of the winner."""
+"""The place recogniser: BoW retrieval, the verification job of a query's candidates (:mod:`.job`,
+:mod:`.verify`) and the choice of the winner."""
 
 from __future__ import annotations
 
@@ -11,20 +12,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
+from hivemap.maps.geometry import Sim3, rotation_angle_deg
 from hivemap.maps.kfdb import KeyframeDatabase
 from hivemap.maps.vocabulary import BowVector, FeatureVector, Vocabulary
-from hivemap.server.placerec.match import (
-    PointSet,
-    _best_covisible,
-    _observations,
-    _residuals,
-    correction_of,
-    estimate_sim3_ransac,
-    guided_search,
-    match_bow,
-    refine_sim3,
-)
+from hivemap.server.placerec.job import Candidate, QueryJob, slice_of
+from hivemap.server.placerec.match import _best_covisible
 from hivemap.server.placerec.retrieve import group_candidates
 from hivemap.server.placerec.types import (
     CandidateReport,
@@ -33,7 +25,8 @@ from hivemap.server.placerec.types import (
     RecognitionResult,
     Thresholds,
 )
-from hivemap.server.placerec.views import HasCache, KeyframeViews
+from hivemap.server.placerec.verify import run_job
+from hivemap.server.placerec.views import HasCache
 
 log = logging.getLogger(__name__)
 
@@ -111,21 +104,36 @@ class PlaceRecognizer:
         maps: Mapping[int, Any],
         query_map: int,
         query_key: KfKey,
-        n_agents: int,
         fix_scale: bool | Callable[[int, int], bool] = False,
         merge: bool = True,
         loop: bool = True,
     ) -> RecognitionResult:
-        """Look for the query keyframe's place in other maps (merge) and in its own map (loop).
+        """Look for the query keyframe's place in other maps (merge) and in its own map (loop); what it
+        retrieves and verifies does not grow with the number of agents (:mod:`.retrieve`).
 
         ``fix_scale``: True for metric agents (SE(3)), or a function (query map, candidate map) -> bool.
+        The three steps (:meth:`prepare`, :func:`~.verify.run_job`, :meth:`conclude`) in this thread.
         """
+        result, job = self.prepare(maps, query_map, query_key, fix_scale, merge, loop)
+        return self.conclude(result, run_job(job))
+
+    def prepare(
+        self,
+        maps: Mapping[int, Any],
+        query_map: int,
+        query_key: KfKey,
+        fix_scale: bool | Callable[[int, int], bool] = False,
+        merge: bool = True,
+        loop: bool = True,
+    ) -> tuple[RecognitionResult, QueryJob]:
+        """Retrieve the query's candidates and take what verifying them reads of the maps (:mod:`.job`);
+        the job may run in another process while the maps change."""
         t0 = time.perf_counter()
         o = self.options
         mq = maps[query_map]
         q = mq.keyframes[query_key]
         bow, _ = self._fv(q)
-        n_cand = max(1, o.candidates_per_agent * max(1, n_agents))
+        n_cand = max(1, o.retrieve_max)
         result = RecognitionResult(query_key, query_map, [])
         todo: list[tuple[KfKey, float, str]] = []
         scores = self.kfdb.scores(bow)  # shared by the feasibility check, the merge and the loop look-ups
@@ -151,35 +159,61 @@ class PlaceRecognizer:
             )
             result.retrieved += len(found)
             todo += [(k, s, "loop") for k, s in self._grouped(maps, found, scores, lambda k: k not in covis)]
-        best: CandidateReport | None = None
-        views = KeyframeViews(self._has)
-        covered: set[KfKey] = set()  # windows of accepted candidates (ORB-SLAM3 skips those)
+        cands = []
         for ck, score, kind in todo[: o.max_verifications]:
-            cmap_id = self.kfdb.map_of(ck)
-            if ck in covered:
-                rep = CandidateReport(query_key, ck, cmap_id, kind, bow_score=score)
-                rep.reason = "covered_by_accepted_window"
-                result.candidates.append(rep)
-                continue
-            fs = fix_scale(query_map, cmap_id) if callable(fix_scale) else bool(fix_scale)
-            rep = self._verify(maps, query_map, query_key, cmap_id, ck, fs, o.thresholds, kind, views)
-            rep.bow_score = score
-            result.candidates.append(rep)
-            if rep.accepted:
-                covered.add(ck)
-                covered.update(_best_covisible(maps[cmap_id], ck, o.covisible_window))
-                if best is None or rep.n_inliers > best.n_inliers:
-                    best = rep
+            cmap = self.kfdb.map_of(ck)
+            fs = fix_scale(query_map, cmap) if callable(fix_scale) else bool(fix_scale)
+            cands.append((ck, cmap, kind, score, fs))
+        job = self._job(maps, query_map, query_key, cands, o.thresholds)
+        result.reason = result.reason or ("" if todo else "no_bow_candidates")
+        result.time_ms = (time.perf_counter() - t0) * 1e3
+        return result, job
+
+    def _job(
+        self,
+        maps: Mapping[int, Any],
+        query_map: int,
+        query_key: KfKey,
+        cands: list[tuple[KfKey, int, str, float, bool]],
+        th: Thresholds,
+    ) -> QueryJob:
+        """The job verifying ``cands`` (key, map, kind, BoW score, fixed scale) for the query."""
+        o = self.options
+        by_map: dict[int, list[KfKey]] = {query_map: [query_key]}
+        best: dict[KfKey, list[KfKey]] = {}
+        out: list[Candidate] = []
+        for ck, cmap, kind, score, fs in cands:
+            mc = maps.get(cmap)
+            window = (
+                _best_covisible(mc, ck, o.covisible_window) if mc is not None and ck in mc.keyframes else []
+            )
+            best[ck] = window
+            by_map.setdefault(cmap, []).extend([ck, *window])
+            a, b = query_key[0], ck[0]
+            loose = any((a in s and b in t) or (a in t and b in s) for s, t in self.loose_pairs)
+            out.append(Candidate(ck, cmap, kind, score, fs, window, free_correction=loose))
+        slices = [slice_of(maps[mid], mid, keys, self._has) for mid, keys in by_map.items() if mid in maps]
+        features = {kf.key: self._fv(kf)[1] for s in slices for kf in s.keyframes}
+        return QueryJob(o, th, query_key, query_map, out, slices, features, best)
+
+    def conclude(self, result: RecognitionResult, reports: list[CandidateReport]) -> RecognitionResult:
+        """The query's outcome from its candidates' reports: the best accepted candidate, after the
+        consistency check (this recogniser's state: call in query order)."""
+        result.candidates = reports
+        best: CandidateReport | None = None
+        for rep in reports:
+            if rep.accepted and (best is None or rep.n_inliers > best.n_inliers):
+                best = rep
         if best is not None:
-            det = self._to_detection(best, query_map)
+            det = self._to_detection(best, result.query_map)
             result.detection = self._update_consistency(det)
             result.reason = "confirmed" if result.detection.confirmed else "awaiting_consistency"
         elif not result.reason:
-            result.reason = "no_candidate_verified" if todo else "no_bow_candidates"
-        result.time_ms = (time.perf_counter() - t0) * 1e3
+            result.reason = "no_candidate_verified"
+        result.time_ms += sum(r.time_ms for r in reports)
         log.debug(
             "placerec %s: %s (%d candidates, %.1f ms)",
-            query_key,
+            result.query_key,
             result.reason,
             len(result.candidates),
             result.time_ms,
@@ -204,16 +238,16 @@ class PlaceRecognizer:
         t0 = time.perf_counter()
         th = thresholds if thresholds is not None else self.options.gnss_retry_thresholds
         result = RecognitionResult(query_key, query_map, [])
-        best: CandidateReport | None = None
         q_bow, _ = self._fv(maps[query_map].keyframes[query_key])
-        views = KeyframeViews(self._has)
+        cands = []
         for ck in candidate_keys:
-            rep = self._verify(
-                maps, query_map, query_key, candidate_map, ck, fix_scale, th, "gnss_retry", views
-            )
             ckf = maps[candidate_map].keyframes.get(ck)
-            if ckf is not None:
-                rep.bow_score = q_bow.score(self._fv(ckf)[0])
+            score = q_bow.score(self._fv(ckf)[0]) if ckf is not None else 0.0
+            cands.append((ck, candidate_map, "gnss_retry", score, fix_scale))
+        job = self._job(maps, query_map, query_key, cands, th)
+        job.skip_covered = False  # each given candidate is verified
+        best: CandidateReport | None = None
+        for rep in run_job(job):
             result.candidates.append(rep)
             if rep.accepted and (best is None or rep.n_inliers > best.n_inliers):
                 best = rep
@@ -240,7 +274,7 @@ class PlaceRecognizer:
         if o.group_covisible <= 0:
             return found
         groups = group_candidates(
-            self.kfdb, maps, found, scores, o.group_covisible, o.group_min_ratio, allowed
+            self.kfdb, maps, found, scores, o.group_covisible, o.group_min_ratio, allowed, o.max_groups
         )
         return [(g.key, g.score) for g in groups]
 
@@ -307,186 +341,3 @@ class PlaceRecognizer:
         pa, pb = a.apply(pts), b.apply(pts)
         spread = float(np.median(np.linalg.norm(pb - np.median(pb, axis=0), axis=1))) + 1e-9
         return float(np.median(np.linalg.norm(pa - pb, axis=1))) / spread
-
-    def _verify(
-        self,
-        maps: Mapping[int, Any],
-        query_map: int,
-        query_key: KfKey,
-        cand_map: int,
-        cand_key: KfKey,
-        fix_scale: bool,
-        th: Thresholds,
-        kind: str,
-        views: KeyframeViews | None = None,
-    ) -> CandidateReport:
-        t0 = time.perf_counter()
-        rep = CandidateReport(query_key, cand_key, cand_map, kind)
-        views = views if views is not None else KeyframeViews()
-        try:
-            self._verify_inner(maps, query_map, query_key, cand_map, cand_key, fix_scale, th, rep, views)
-        except KeyError as e:
-            # a point or keyframe the verification reads was fused away by the event loop meanwhile (about
-            # ten per factory run): skipped, as a merged-away map is
-            log.debug("verification of %s against %s: %r fused meanwhile", query_key, cand_key, e)
-            rep.accepted = False
-            rep.reason = "points_fused_meanwhile"
-        except Exception as e:  # a bad candidate must never break ingest; it is logged and reported
-            log.exception("verification of %s against %s failed", query_key, cand_key)
-            rep.accepted = False
-            rep.reason = f"error:{type(e).__name__}"
-        rep.time_ms = (time.perf_counter() - t0) * 1e3
-        return rep
-
-    def _verify_inner(
-        self,
-        maps: Mapping[int, Any],
-        query_map: int,
-        query_key: KfKey,
-        cand_map: int,
-        cand_key: KfKey,
-        fix_scale: bool,
-        th: Thresholds,
-        rep: CandidateReport,
-        views: KeyframeViews,
-    ) -> None:
-        o = self.options
-        mq, mc = maps.get(query_map), maps.get(cand_map)
-        if mq is None or mc is None:
-            # merged into another map since the query started (the event loop merges while this thread
-            # verifies): this candidate is skipped, the agents' next keyframes query the merged map
-            rep.reason = "map_merged_meanwhile"
-            return
-        q = mq.keyframes[query_key]
-        c = mc.keyframes.get(cand_key)
-        if c is None:
-            rep.reason = "candidate_missing"
-            return
-        _, q_fv = self._fv(q)
-        q_pk = views.point_keys(q)
-        q_has = views.has(mq, q)
-        if int(q_has.sum()) < th.min_matches:  # not enough query points for a verification to pass
-            rep.reason = "few_bow_matches"
-            return
-
-        # 1. BoW matches against the candidate window -> 3D-3D correspondences
-        window = [cand_key] + [k for k in _best_covisible(mc, cand_key, o.covisible_window) if k != cand_key]
-        corr_q: list[int] = []  # query keypoint index
-        corr_c: list[PointKey] = []
-        seen_c: set[PointKey] = set()
-        seen_q: set[int] = set()
-        for wk in window:
-            w = mc.keyframes.get(wk)
-            if w is None:
-                continue
-            _, w_fv = self._fv(w)
-            w_pk = views.point_keys(w)
-            w_has = views.has(mc, w)
-            bow_pairs = match_bow(
-                q_fv, q.descriptors, w_fv, w.descriptors, o.bow_max_distance, o.bow_ratio, q_has, w_has
-            )
-            for iq, iw in bow_pairs.tolist():
-                pc = w_pk[iw]
-                if iq in seen_q or pc is None or pc in seen_c:
-                    continue
-                seen_q.add(iq)
-                seen_c.add(pc)
-                corr_q.append(iq)
-                corr_c.append(pc)
-        rep.n_matches = len(corr_q)
-        if rep.n_matches < th.min_matches:
-            rep.reason = "few_bow_matches"
-            return
-        xq = np.array([mq.points[q_pk[i]].xyz for i in corr_q], dtype=np.float64)
-        xc = np.array([mc.points[k].xyz for k in corr_c], dtype=np.float64)
-
-        # 2. RANSAC (3D threshold relative to the candidate scene depth)
-        c_cfw = se3_inverse(np.asarray(c.world_from_cam, dtype=np.float64))
-        depth_c = np.median(np.linalg.norm(xc @ c_cfw[:3, :3].T + c_cfw[:3, 3], axis=1))
-        max_err = max(o.ransac_min_error, o.ransac_rel_error * float(depth_c))
-        est = estimate_sim3_ransac(xq, xc, max_err, fix_scale, o.ransac_min_trials)
-        if est is None:
-            rep.reason = "ransac_failed"
-            return
-        sim, inl = est
-        rep.n_ransac_inliers = int(inl.sum())
-        if rep.n_ransac_inliers < th.min_inliers:
-            rep.reason = "few_ransac_inliers"
-            return
-        if fix_scale and o.metric_max_log_scale > 0:
-            # metric agents: the free-scale estimate must agree with scale 1 (sanity gate); run only for
-            # a candidate the rigid estimate accepted, as it rejects nothing else
-            free = estimate_sim3_ransac(xq, xc, max_err, False, o.ransac_min_trials)
-            if (
-                free is not None
-                and free[1].sum() >= th.min_inliers
-                and abs(np.log(free[0].s)) > o.metric_max_log_scale
-            ):
-                rep.n_ransac_inliers = int(free[1].sum())
-                rep.scale = free[0].s
-                rep.reason = "metric_scale_inconsistent"
-                return
-        sim_ransac = sim
-        if rep.kind == "loop" and self._implausible_correction(sim, q.world_from_cam, rep):
-            return
-
-        # 3. guided search both ways, refine, guided search again, refine again
-        q_cfw = se3_inverse(np.asarray(q.world_from_cam, dtype=np.float64))
-        window_kfs = [mc.keyframes[k] for k in window if k in mc.keyframes]
-        cand = PointSet.of(mc, views.window_points(mc, window_kfs))
-        qpts = PointSet.of(mq, list(dict.fromkeys(q_pk[i] for i in np.flatnonzero(q_has).tolist())))  # type: ignore[misc]
-        c_pk, c_has = views.point_keys(c), views.has(mc, c)
-        pairs: dict[int, PointKey] = {corr_q[i]: corr_c[i] for i in np.flatnonzero(inl)}
-        for _ in range(2):
-            pairs = guided_search(o, q, q_cfw, q_pk, c, c_cfw, c_pk, c_has, cand, qpts, sim, pairs)
-            obs = _observations(pairs, q, q_pk, mq, mc, window_kfs)
-            if len(obs.xc) < 3:
-                break
-            if o.refine_depth_sigma_rel > 0:
-                obs.sig3 = o.refine_depth_sigma_rel * np.maximum(
-                    np.linalg.norm(obs.xc - np.asarray(c.world_from_cam)[:3, 3], axis=1), 1e-6
-                )
-            if len(obs.xc) > o.refine_max_points:  # plenty for 7 parameters; keeps refinement ~10 ms
-                sub = np.random.default_rng(0).choice(len(obs.xc), o.refine_max_points, replace=False)
-                obs = obs.subset(np.sort(sub))
-            sim = refine_sim3(sim, obs, q.camera, q_cfw, fix_scale, o.huber_px)
-        pairs = guided_search(o, q, q_cfw, q_pk, c, c_cfw, c_pk, c_has, cand, qpts, sim, pairs)
-        obs = _observations(pairs, q, q_pk, mq, mc, window_kfs)
-        ra, rb, has_b = _residuals(sim, obs, q.camera, q_cfw)
-        ok = ((ra**2).sum(axis=1) < o.inlier_chi2) & (~has_b | ((rb**2).sum(axis=1) < o.inlier_chi2))
-        keys = list(pairs.items())
-        rep.n_projected = len(keys)
-        rep.n_inliers = int(ok.sum())
-        rep.scale = sim.s
-        rep.target_from_source = sim
-        inl_pairs = [keys[i] for i in np.flatnonzero(ok)]
-        rep.query_points = [q_pk[iq] for iq, _ in inl_pairs if q_pk[iq] is not None]  # type: ignore[misc]
-        rep.candidate_points = [pc for iq, pc in inl_pairs if q_pk[iq] is not None]
-        if not (o.min_scale <= sim.s <= o.max_scale):
-            rep.reason = "scale_out_of_range"
-            return
-        if rotation_angle_deg(sim.R @ sim_ransac.R.T) > o.max_refine_rot_deg:
-            rep.reason = "refinement_jump"
-            return
-        if rep.n_inliers < th.min_projected:
-            rep.reason = "few_projected_inliers"
-            return
-        if rep.kind == "loop" and self._implausible_correction(sim, q.world_from_cam, rep):
-            return
-        rep.accepted = True
-        rep.reason = "accepted"
-        rep.query_xyz = np.array([mq.points[k].xyz for k in rep.query_points], dtype=np.float64)
-
-    def _implausible_correction(self, sim: Sim3, world_from_cam: Any, rep: CandidateReport) -> bool:
-        """True (and ``rep.reason`` set) when a loop's ``sim`` moves the query keyframe beyond the limits."""
-        o = self.options
-        if o.loop_max_correction_m <= 0 and o.loop_max_correction_deg <= 0:
-            return False
-        a, b = rep.query_key[0], rep.candidate_key[0]
-        if any((a in s and b in t) or (a in t and b in s) for s, t in self.loose_pairs):
-            return False
-        move, turn = correction_of(sim, world_from_cam)
-        if (0 < o.loop_max_correction_m < move) or (0 < o.loop_max_correction_deg < turn):
-            rep.reason = "implausible_correction"
-            return True
-        return False

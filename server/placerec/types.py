@@ -33,7 +33,9 @@ class Thresholds:
 
 @dataclass(frozen=True)
 class PlaceRecOptions:
-    candidates_per_agent: int = 4  # paper 2.4: 4 x number of agents
+    # keyframes a look-up (merge, loop) retrieves by BoW score, whatever the size of the team: the paper's
+    # 4 x agents made a query's cost grow with the team and the server's with its square
+    retrieve_max: int = 16
     covisible_window: int = 5  # candidate + its 5 best covisible keyframes
     thresholds: Thresholds = Thresholds()
     gnss_retry_thresholds: Thresholds = Thresholds(min_matches=12, min_inliers=10, min_projected=25)
@@ -73,6 +75,8 @@ class PlaceRecOptions:
     # the best group are not (ORB-SLAM2: 10 covisible, 0.75). 0 disables (every retrieved keyframe).
     group_covisible: int = 10
     group_min_ratio: float = 0.75
+    # at most this many groups per look-up are verified, best first (ORB-SLAM3's DetectNBestCandidates: 3)
+    max_groups: int = 3
     # Loops (query and candidate in one map, whose frame already holds both): a candidate whose transform
     # would move the query keyframe farther, or turn it more, than this is a false match, rejected as
     # "implausible_correction" right after RANSAC and again after refinement, so it neither costs the
@@ -99,6 +103,7 @@ class CandidateReport:
     accepted: bool = False
     reason: str = ""
     time_ms: float = 0.0
+    cpu_ms: float = 0.0  # CPU time of the verification (thread time, in whichever process ran it)
     target_from_source: Sim3 | None = field(default=None, repr=False)
     query_points: list[PointKey] = field(default_factory=list, repr=False)
     candidate_points: list[PointKey] = field(default_factory=list, repr=False)
@@ -176,6 +181,7 @@ class RecognitionResult:
     feasibility: Feasibility | None = None
     reason: str = ""
     time_ms: float = 0.0
+    cpu_ms: float = 0.0  # CPU time of the verification (thread time, in whichever process ran it)
     retrieved: int = 0  # keyframes the BoW look-ups returned (``candidates``: those verified)
 
     @property

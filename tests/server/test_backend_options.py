@@ -31,9 +31,9 @@ TODAY: dict[str, Any] = {
     "loop_max_correction_deg": 5.0, "loop_max_correction_m": 1.0, "loop_max_gravity_deg": 1.0,
     "loop_sigma_bootstrap": 30, "min_pair_inlier_ratio": 0.5, "pose_graph": True,
     "pose_graph_max_move_m": 3.0, "pose_graph_sigma_rot": 0.01, "pose_graph_sigma_trans": 0.05,
-    "pose_graph_sigma_yaw": None, "queue_max": 5000, "transform_window": 20, "verifications_per_s": 40.0,
+    "pose_graph_sigma_yaw": None, "queue_max": 5000, "transform_window": 20,
     "placerec": {
-        "bow_max_distance": 50, "bow_ratio": 0.75, "candidates_per_agent": 4, "consistency_max_gap": 8,
+        "bow_max_distance": 50, "bow_ratio": 0.75, "consistency_max_gap": 8,
         "consistency_max_log_scale": 0.05, "consistency_max_rel_shift": 0.05, "consistency_max_rot_deg": 3.0,
         "consistency_required": 1, "covisible_window": 5, "feasibility_ratio": 0.3,
         "gnss_retry_thresholds": {"min_inliers": 10, "min_matches": 12, "min_projected": 25},
@@ -55,7 +55,7 @@ TODAY: dict[str, Any] = {
 
 # where each old option lives now: (stage, field); stage None = BackendOptions itself
 MOVED: dict[str, tuple[str | None, str]] = {
-    "verifications_per_s": ("scheduler", "verifications_per_s"), "queue_max": ("scheduler", "queue_max"),
+    "queue_max": ("scheduler", "queue_max"),
     "fix_scale": (None, "fix_scale"), "gnss": ("gnss", "enabled"),
     "ba_max_iterations": ("optimise", "ba_max_iterations"),
     "ba_max_keyframes": ("optimise", "ba_max_keyframes"),
@@ -101,8 +101,9 @@ def test_default_preset_equals_the_defaults_before_the_split() -> None:
     for old, (stage, name) in MOVED.items():
         holder = o if stage is None else getattr(o, stage)
         assert getattr(holder, name) == TODAY[old], old
-    # options added since the split (issue 23: candidates verified once per covisibility group)
-    added = {"group_covisible": 10, "group_min_ratio": 0.75}
+    # options added since the split (issue 23: candidates verified once per covisibility group, what a
+    # look-up retrieves independent of the team; its verification budget and 4 x agents are gone)
+    added = {"group_covisible": 10, "group_min_ratio": 0.75, "retrieve_max": 16, "max_groups": 3}
     plain = _plain(o.placerec)
     assert {k: plain.pop(k) for k in added} == added
     assert plain == TODAY["placerec"]

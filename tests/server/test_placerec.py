@@ -27,6 +27,7 @@ from hivemap.server.placerec import (
     match_bow,
     match_projected,
 )
+from hivemap.server.placerec.verify import verify
 
 CAM = PinholeCamera(640, 480, 450.0, 450.0, 320.0, 240.0, (-0.1, 0.01, 0.0, 0.0))
 S_TRUE = Sim3(so3_exp(np.array([0.3, -0.5, 1.2])), np.array([12.0, -7.0, 4.0]), 2.5)
@@ -191,7 +192,7 @@ def test_merge_recovers_known_sim3_after_three_consistent_detections(scene) -> N
     a, b = scene["A"], scene["B"]
     maps = {0: a, 1: b}
     pr = _recognizer(maps)
-    results = [pr.detect(maps, 0, ("uavA", k), n_agents=2, loop=False) for k in (5, 6, 7)]
+    results = [pr.detect(maps, 0, ("uavA", k), loop=False) for k in (5, 6, 7)]
     for r in results:
         assert r.detection is not None, [c.to_dict() for c in r.candidates]
         assert r.detection.candidate_map == 1
@@ -232,10 +233,10 @@ def test_retrieved_keyframes_of_one_place_are_verified_once_per_covisibility_gro
 
     maps = {0: scene["A"], 1: scene["B"]}
     pr = _recognizer(maps)
-    grouped = pr.detect(maps, 0, ("uavA", 6), n_agents=4, loop=False)
+    grouped = pr.detect(maps, 0, ("uavA", 6), loop=False)
     pr_all = _recognizer(maps)
     pr_all.options = replace(pr_all.options, group_covisible=0)
-    every = pr_all.detect(maps, 0, ("uavA", 6), n_agents=4, loop=False)
+    every = pr_all.detect(maps, 0, ("uavA", 6), loop=False)
     assert grouped.retrieved == every.retrieved == 10  # all of B's keyframes (16 asked for)
     verified = [c for c in every.candidates if c.reason != "covered_by_accepted_window"]
     assert len(verified) >= 2  # without grouping: several verifications of the one place
@@ -264,7 +265,7 @@ def test_metric_mode_recovers_se3_and_rejects_a_scaled_map(scene) -> None:
         )  # fmt: skip
     maps = {0: a, 5: b_metric}
     pr = _recognizer(maps)
-    r = pr.detect(maps, 0, ("uavA", 6), n_agents=2, fix_scale=True, loop=False)
+    r = pr.detect(maps, 0, ("uavA", 6), fix_scale=True, loop=False)
     assert r.detection is not None
     assert r.detection.target_from_source.s == 1.0
     _check_sim(r.detection.target_from_source, rigid)
@@ -273,7 +274,7 @@ def test_metric_mode_recovers_se3_and_rejects_a_scaled_map(scene) -> None:
     # passed) refuses it
     maps2 = {0: a, 1: b}
     pr2 = _recognizer(maps2)
-    r2 = pr2.detect(maps2, 0, ("uavA", 6), n_agents=2, fix_scale=True, loop=False)
+    r2 = pr2.detect(maps2, 0, ("uavA", 6), fix_scale=True, loop=False)
     assert r2.detection is None and r2.candidates
     assert all(c.reason == "few_ransac_inliers" for c in r2.candidates)
     rng = np.random.default_rng(5)
@@ -281,7 +282,7 @@ def test_metric_mode_recovers_se3_and_rejects_a_scaled_map(scene) -> None:
     a3 = _make_map(rng, 0, "uavA", pts, desc, np.linspace(-6, 8, 10), Sim3.identity())
     b3 = _make_map(rng, 1, "uavB", pts, desc, np.linspace(-2, 12, 10), Sim3(S_TRUE.R, S_TRUE.t, 1.5))
     maps3 = {0: a3, 1: b3}
-    r3 = _recognizer(maps3).detect(maps3, 0, ("uavA", 6), n_agents=2, fix_scale=True, loop=False)
+    r3 = _recognizer(maps3).detect(maps3, 0, ("uavA", 6), fix_scale=True, loop=False)
     assert r3.detection is None
     gated = [c for c in r3.candidates if c.reason == "metric_scale_inconsistent"]
     assert gated and all(c.scale == pytest.approx(1.5, rel=0.01) for c in gated)
@@ -296,7 +297,7 @@ def test_disjoint_or_inconsistent_maps_are_never_merged(scene, other: str) -> No
     pr = _recognizer(maps)
     pr.options = type(pr.options)(use_feasibility=False)  # verify every candidate geometrically
     for k in range(10):
-        r = pr.detect(maps, 0, ("uavA", k), n_agents=2, loop=False)
+        r = pr.detect(maps, 0, ("uavA", k), loop=False)
         assert r.detection is None, [c.to_dict() for c in r.candidates]
         assert all(not c.accepted for c in r.candidates)
     if other == "D":
@@ -324,7 +325,7 @@ def test_gnss_retry_with_lowered_thresholds(scene) -> None:
     e = _make_map(rng, 4, "ugvE", e_pts, e_desc, centres, S_TRUE)
     maps = {0: a, 4: e}
     pr = _recognizer(maps)
-    normal = pr.detect(maps, 0, ("uavA", 5), n_agents=2, loop=False)
+    normal = pr.detect(maps, 0, ("uavA", 5), loop=False)
     assert normal.detection is None
     retry = pr.verify_pair(maps, 0, ("uavA", 5), 4, [("ugvE", 0), ("ugvE", 1)], fix_scale=False)
     assert retry.detection is not None and retry.detection.confirmed, [c.to_dict() for c in retry.candidates]
@@ -350,7 +351,7 @@ def test_intra_map_loop_with_drift() -> None:
     maps = _loop_map()
     drift = LOOP_DRIFT
     pr = _recognizer(maps)
-    dets = [pr.detect(maps, 0, ("uavL", 10_000 + k), n_agents=1).detection for k in (3, 4, 5)]
+    dets = [pr.detect(maps, 0, ("uavL", 10_000 + k)).detection for k in (3, 4, 5)]
     assert all(d is not None and d.is_loop and d.candidate_key[1] < 10_000 for d in dets), dets
     last = dets[-1]
     assert last is not None and last.confirmed
@@ -373,7 +374,7 @@ def test_loop_candidate_asking_for_an_implausible_correction_is_rejected() -> No
         pr = PlaceRecognizer(default_vocabulary(), KeyframeDatabase(), PlaceRecOptions(**limits))  # type: ignore[arg-type]
         for kf in maps[0].keyframes.values():
             pr.add_keyframe(0, kf)
-        return pr, pr.detect(maps, 0, q, n_agents=1)
+        return pr, pr.detect(maps, 0, q)
 
     _, ok = detect(loop_max_correction_m=2 * true_move, loop_max_correction_deg=5.0)
     assert ok.detection is not None and ok.detection.candidate_key[1] < 10_000
@@ -387,6 +388,11 @@ def test_loop_candidate_asking_for_an_implausible_correction_is_rejected() -> No
         assert "implausible_correction" in reasons and not any(c.accepted for c in res.candidates), reasons
 
 
+def _verify(pr: PlaceRecognizer, maps: dict[int, Map], *args: Any) -> Any:
+    """One candidate's verification read straight from the maps (as a job's worker reads its slices)."""
+    return verify(pr.options, lambda kf: pr._fv(kf)[1], maps, *args)
+
+
 def test_candidate_in_a_map_merged_meanwhile_is_skipped_without_error(scene, caplog) -> None:
     """The event loop merges maps while the recognition thread verifies: a candidate whose map is gone
     is reported as such (not an exception with a traceback in the log) and the query goes on."""
@@ -395,11 +401,11 @@ def test_candidate_in_a_map_merged_meanwhile_is_skipped_without_error(scene, cap
     pr = _recognizer(maps)
     ck = sorted(b.keyframes)[5]
     with caplog.at_level("ERROR", logger="hivemap.server.placerec"):
-        rep = pr._verify({0: a}, 0, ("uavA", 5), 1, ck, True, pr.options.thresholds, "merge")
+        rep = _verify(pr, {0: a}, 0, ("uavA", 5), 1, ck, True, pr.options.thresholds, "merge")
     assert not rep.accepted and rep.reason == "map_merged_meanwhile"
     assert not caplog.records
     # with both maps there, the same pair verifies (the skip is only for the missing map)
-    assert pr._verify(maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge").reason != (
+    assert _verify(pr, maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge").reason != (
         "map_merged_meanwhile"
     )
 
@@ -426,13 +432,13 @@ def test_candidate_whose_points_were_fused_meanwhile_is_skipped_without_error(sc
     a.points = Racing(real)
     try:
         with caplog.at_level("ERROR", logger="hivemap.server.placerec"):
-            rep = pr._verify(maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge")
+            rep = _verify(pr, maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge")
     finally:
         a.points = real
     assert not rep.accepted and rep.reason == "points_fused_meanwhile", rep.reason
     assert not caplog.records
     # the same pair verifies with its points all there
-    assert pr._verify(maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge").accepted
+    assert _verify(pr, maps, 0, ("uavA", 5), 1, ck, False, pr.options.thresholds, "merge").accepted
 
 
 def test_point_masks_kept_across_queries_follow_points_arriving_and_leaving() -> None:

@@ -88,7 +88,7 @@ def test_merge_of_frontend_maps_matches_ground_truth(agents, scale: float) -> No
     pr = _recognizer(maps)
     confirmed = None
     for k in sorted(ma.keyframes):
-        r = pr.detect(maps, 0, k, n_agents=2, loop=False, fix_scale=scale == 1.0)
+        r = pr.detect(maps, 0, k, loop=False, fix_scale=scale == 1.0)
         if r.confirmed is not None:
             confirmed = r.confirmed
             break
@@ -109,6 +109,6 @@ def test_no_merge_between_different_scenes(agents) -> None:
     pr = _recognizer(maps)
     pr.options = type(pr.options)(use_feasibility=False)  # verify every candidate geometrically
     for k in sorted(ma.keyframes):
-        r = pr.detect(maps, 0, k, n_agents=2, loop=False)
+        r = pr.detect(maps, 0, k, loop=False)
         assert r.detection is None
         assert r.candidates and not any(c.accepted for c in r.candidates)

@@ -1,0 +1,70 @@
+"""A query's verification as a job: in a worker process it reports what the recogniser's own thread
+reports (the job carries the maps' slices as arrays); and what the queue skips in a backlog."""
+
+from __future__ import annotations
+
+import asyncio
+
+from test_placerec import _recognizer, scene  # noqa: F401  (the synthetic scene fixture)
+
+from hivemap.server.backend.backlog import QueryQueue
+from hivemap.server.backend.executor import ProcessVerifier
+from hivemap.server.placerec.verify import run_job
+
+
+def _summary(reports: list) -> list[tuple]:
+    return [(r.candidate_key, r.kind, r.accepted, r.reason, r.n_matches, r.n_inliers) for r in reports]
+
+
+def test_a_job_verified_in_a_worker_process_reports_what_the_thread_does(scene) -> None:  # noqa: F811
+    maps = {0: scene["A"], 1: scene["B"], 2: scene["C"], 3: scene["D"]}
+    pr = _recognizer(maps)
+    result, job = pr.prepare(maps, 0, ("uavA", 6), loop=False)
+    assert job.candidates, result.reason
+    # the job holds slices of the maps it reads, not the maps: the query's and the candidates' windows
+    assert {s.map_id for s in job.slices} <= {0, 1, 2, 3}
+    assert sum(len(s.keyframes) for s in job.slices) <= 1 + 6 * len(job.candidates)
+    inline = run_job(job)
+    pool = ProcessVerifier(1)
+    try:
+        remote = asyncio.run(pool.run(job))
+    finally:
+        pool.shutdown()
+    assert _summary(remote) == _summary(inline)
+    acc = [(a, b) for a, b in zip(inline, remote, strict=True) if a.accepted]
+    assert acc, _summary(inline)
+    for a, b in acc:
+        assert a.target_from_source is not None and b.target_from_source is not None
+        assert abs(a.target_from_source.s - b.target_from_source.s) < 1e-9
+        assert a.query_points == b.query_points and a.candidate_points == b.candidate_points
+    # the detection concluded from the worker's reports is the inline one's
+    det = pr.conclude(result, remote).detection
+    assert det is not None and det.candidate_map == 1
+
+
+def test_a_backlog_skips_keyframes_whose_place_their_agent_just_queried() -> None:
+    # a track of agent a: each keyframe's best covisible keyframes are its two predecessors
+    def best(key: tuple[str, int], n: int) -> list[tuple[str, int]]:
+        return [(key[0], key[1] - i) for i in range(1, n + 1)]
+
+    q = QueryQueue(queue_max=100, backlog=3)
+    for k in range(3):
+        q.push(("a", k))
+    # a short queue: every keyframe, in order
+    assert [q.pop(best)[0] for _ in range(3)] == [("a", 0), ("a", 1), ("a", 2)] and q.skipped == 0
+    for k in range(3, 10):
+        q.push(("a", k))
+    q.push(("b", 0))
+    # a backlog: a3 and a4 see the place a2 was queried at; a5 does not; in order per agent
+    assert q.pop(best) == (("a", 5), [("a", 3), ("a", 4)])
+    assert q.pop(best) == (("a", 8), [("a", 6), ("a", 7)])
+    # back at the backlog (2 waiting): every keyframe again
+    assert q.pop(best) == (("a", 9), []) and q.pop(best) == (("b", 0), [])
+    assert q.skipped == 4 and not q
+
+
+def test_a_full_queue_drops_the_oldest() -> None:
+    q = QueryQueue(queue_max=2, backlog=0)
+    assert q.push(("a", 0)) is None and q.push(("a", 1)) is None
+    assert q.push(("a", 2)) == ("a", 0) and q.dropped == 1
+    assert list(q) == [("a", 1), ("a", 2)]
