@@ -319,6 +319,7 @@ class HiveServer(Ingest):
         agent.mission = hello.mission
         if hello.cam_from_antenna is not None:
             agent.cam_from_antenna = np.array(hello.cam_from_antenna, dtype=np.float64)
+        agent.stereo_baseline = hello.stereo_baseline
         am_now = self._session_map(agent, hello.mission, hello.session, create=True, persist=False)
         self.map_for(am_now)  # the agent's map exists (maybe empty) from its hello on
         am_now.camera = camera
