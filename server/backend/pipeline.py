@@ -43,6 +43,8 @@ F64 = NDArray[np.float64]
 
 # The pose graph holds one keyframe per connected start, global BA two (its gauge includes scale).
 POSE_GRAPH_ANCHORS_PER_AGENT = 1
+# A metric map's global BA needs this share of its observations stereo (they hold its scale).
+STEREO_BA_MIN_SHARE = 0.2
 
 
 class Pipeline:
@@ -327,6 +329,12 @@ class Pipeline:
         map_id = m.id
         snap = self._snapshot(m)
         problem = optimise.ba_problem(m, snap.keys)
+        if self.options.fix_scale and problem.n_stereo < STEREO_BA_MIN_SHARE * len(problem.obs_kf):
+            # monocular residuals alone let a metric map's scale drift: no BA without the stereo ones
+            self.server.events.add("global_ba", f"map {map_id}: global BA skipped (metric map, "
+                                   f"{problem.n_stereo} stereo observations)", map_id=map_id,
+                                   data={"skipped": True, "n_stereo": problem.n_stereo})  # fmt: skip
+            return True
         fixed = optimise.anchor(m, snap.keys, self._agent_kind)
         t0 = time.perf_counter()
         res = await asyncio.get_running_loop().run_in_executor(
@@ -347,6 +355,7 @@ class Pipeline:
         corr, new_xyz = optimise.ba_corrections(snap, res, problem)
         self._apply_corrections(cur, corr, new_xyz)
         info = {"n_keyframes": len(snap.keys), "n_points": len(problem.point_keys), "ms": ba_ms,
+                "n_stereo": float(res.extras.get("n_stereo", 0.0)),
                 "rmse_before_px": res.initial_rmse_px, "rmse_after_px": res.final_rmse_px}  # fmt: skip
         info["accepted"] = bool(getattr(res, "accepted", True))  # rejected: inputs returned unchanged
         self.ba_runs.append(info)

@@ -30,6 +30,7 @@ from hivemap.maps.geometry import Sim3
 from hivemap.server.backend import accept, detect, evidence_store, fit, surgery
 from hivemap.server.backend.optimise import NewEdge
 from hivemap.server.backend.pipeline import Pipeline
+from hivemap.server.convert import split_folded
 from hivemap.server.placerec import Detection
 
 logger = logging.getLogger(__name__)
@@ -111,6 +112,15 @@ class Backend(Pipeline):
                 self._schedule_optimisation(map_id, [], time.monotonic())
 
     # -- nominal start configuration (paper 2.4) -----------------------------------------------------
+    async def on_mission_end(self, agent_id: str) -> None:
+        """An agent said bye: its maps get a last global BA (with nothing new to add, the pose graph is
+        skipped), so the map the team leaves is jointly refined with its points."""
+        if not self.options.optimise.global_ba:
+            return
+        for m in list(self.server.stack.maps.values()):
+            if any(split_folded(a)[0] == agent_id for a in m.agents):
+                self._schedule_optimisation(m.id, [], time.monotonic())
+
     def _record_start(self, map_id: int, key: KfKey) -> None:
         """An agent with a nominal start pose sent its first keyframe (taken at the start pose): its map's
         place in the common start frame is known to the prior's sigmas (no merge by itself)."""
