@@ -100,3 +100,38 @@ def test_without_stereo_observations_the_scale_stays_where_it_was() -> None:
     )
     assert res.accepted and res.extras["n_stereo"] == 0
     assert abs(_scale(res.world_from_cam[:, :3, 3], truth[:, :3, 3]) - 1) > 0.01
+
+
+def test_the_back_ends_ba_problem_carries_the_keyframes_stereo_observations() -> None:
+    """A map of stereo keyframes (``Keyframe.u_right``, ``stereo_baseline``) 3% too large: the back-end's
+    BA problem (:func:`optimise.ba_problem`) holds their stereo observations and its BA
+    (:func:`optimise.run_ba`) brings the scale within 0.2%; the same map's mono keyframes give none."""
+    from hivemap.maps import Keyframe, Map, MapPoint
+    from hivemap.server.backend import optimise
+
+    rng = np.random.default_rng(7)
+    n = 60
+    truth, pts, kf, pt, uv, ur = _stereo_corridor(rng, n, 0.5)
+    init, pts0 = _perturbed(rng, truth, pts, 1.03)
+
+    def build(stereo: bool) -> Map:
+        m = Map(0)
+        for j in np.unique(pt):
+            m.add_point(MapPoint("ugv", int(j), pts0[j]))
+        for k in range(n):
+            sel = kf == k
+            m.add_keyframe(
+                Keyframe("ugv", k, float(k), init[k], CAM, uv[sel], point_ids=pt[sel],
+                         u_right=ur[sel] if stereo else None, stereo_baseline=BASELINE if stereo else None)
+            )  # fmt: skip
+        return m
+
+    m = build(True)
+    keys = sorted(m.keyframes)
+    problem = optimise.ba_problem(m, keys)
+    assert problem.n_stereo == np.isfinite(ur).sum() and problem.baselines == [BASELINE]
+    poses = np.array([m.keyframes[k].world_from_cam for k in keys])
+    res = optimise.run_ba(poses, problem, [0], 30)
+    assert res.accepted
+    assert abs(_scale(res.world_from_cam[:, :3, 3], truth[:, :3, 3]) - 1) < 0.002
+    assert optimise.ba_problem(build(False), keys).n_stereo == 0
