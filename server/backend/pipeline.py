@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+import multiprocessing
 import time
 from collections import deque
 from functools import partial
@@ -63,6 +64,10 @@ class Pipeline:
         self._wake = asyncio.Event()
         self._pr_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-placerec")
         self._opt_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-optim")
+        # pycolmap holds the GIL through a whole Ceres solve, which stalled the event loop (agents dropped,
+        # REST timed out: docs/decisions.md), so global BA runs in a process of its own, started at the first
+        self._ba_exec: concurrent.futures.ProcessPoolExecutor | None = None
+        self._ba_solving = False
         self._tasks: set[asyncio.Task[Any]] = set()
         self._worker: asyncio.Task[None] | None = None
         self._busy = 0  # queries or optimisations in flight
@@ -337,14 +342,22 @@ class Pipeline:
             return True
         fixed = optimise.anchor(m, snap.keys, self._agent_kind)
         t0 = time.perf_counter()
-        res = await asyncio.get_running_loop().run_in_executor(
-            self._opt_exec,
-            optimise.run_ba,
-            snap.poses,
-            problem,
-            fixed,
-            self.options.optimise.ba_max_iterations,
-        )
+        if self._ba_exec is None:
+            self._ba_exec = concurrent.futures.ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("spawn")
+            )
+        self._ba_solving = True
+        try:
+            res = await asyncio.get_running_loop().run_in_executor(
+                self._ba_exec,
+                optimise.run_ba,
+                snap.poses,
+                problem,
+                fixed,
+                self.options.optimise.ba_max_iterations,
+            )
+        finally:
+            self._ba_solving = False
         ba_ms = (time.perf_counter() - t0) * 1e3
         cur = self._current(snap)
         if cur is None:

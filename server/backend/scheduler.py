@@ -87,6 +87,11 @@ class Backend(Pipeline):
         # a running global BA is not waited for: its task is cancelled, so its result is never applied
         self._pr_exec.shutdown(wait=False, cancel_futures=True)
         self._opt_exec.shutdown(wait=False, cancel_futures=True)
+        if self._ba_exec is not None:
+            # a BA still solving would hold the server's exit until it ends (3.11 has no terminate_workers)
+            for proc in list(getattr(self._ba_exec, "_processes", {}).values()) if self._ba_solving else []:
+                proc.terminate()
+            self._ba_exec.shutdown(wait=False, cancel_futures=True)
 
     def idle(self) -> bool:
         """Nothing queued and nothing in flight (tests and benches wait for this)."""
