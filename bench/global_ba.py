@@ -2,8 +2,9 @@
 500 / 1000 / 2000 keyframes shaped like factory01's (about 300 map points seen per keyframe, tracks of 3-10
 keyframes, about 70% of the observations with a stereo match), and the scale error before and after.
 
-Run: ``python bench/global_ba.py [--sizes 500 1000 2000] [--mono]`` (``--mono``: the same maps without
-their stereo observations, two held keyframes, for comparison).
+Run: ``python bench/global_ba.py [--sizes 500 1000 2000] [--mono] [--scale-error 0.02]`` (``--mono``: the
+same maps without their stereo observations, two held keyframes, for comparison; ``--scale-error``: how
+far the start map's scale is off).
 """
 
 from __future__ import annotations
@@ -25,12 +26,12 @@ NOISE_PX = 0.7
 OUTLIER_SHARE = 0.01
 
 
-def synthetic_map(n: int, seed: int) -> dict[str, np.ndarray]:
+def synthetic_map(n: int, seed: int, scale_error: float = 0.02) -> dict[str, np.ndarray]:
     """Keyframes every ``STEP`` m along a gently winding path, the camera looking sideways; keyframe ``k``
     starts ``POINTS_SEEN / 6.5`` points (depth 4-25 m) that keyframes ``k .. k + L - 1`` observe, L drawn
     from 3-10, so each keyframe sees ~``POINTS_SEEN``. Returns the truth, the perturbed start (poses off by
-    3 cm / 0.3 deg and the whole map 2% too large about keyframe 0, points off by 3 cm) and observations
-    with ``NOISE_PX`` noise, ``OUTLIER_SHARE`` of them gross outliers."""
+    3 cm / 0.3 deg and the whole map ``scale_error`` too large about keyframe 0, points off by 3 cm) and
+    observations with ``NOISE_PX`` noise, ``OUTLIER_SHARE`` of them gross outliers."""
     rng = np.random.default_rng(seed)
     heading = np.cumsum(rng.normal(0, 0.01, n))
     pos = np.cumsum(np.stack([STEP * np.cos(heading), rng.normal(0, 0.01, n), STEP * np.sin(heading)], 1), 0)
@@ -67,10 +68,10 @@ def synthetic_map(n: int, seed: int) -> dict[str, np.ndarray]:
     uv[bad] += rng.uniform(-40, 40, (int(bad.sum()), 2))
     c = truth[0, :3, 3]
     init = truth.copy()
-    init[:, :3, 3] = c + 1.02 * (truth[:, :3, 3] - c)
+    init[:, :3, 3] = c + (1 + scale_error) * (truth[:, :3, 3] - c)
     for k in range(1, n):
         init[k] = init[k] @ se3(so3_exp(rng.normal(0, 0.005, 3)), rng.normal(0, 0.03, 3))
-    P0 = c + 1.02 * (P - c) + rng.normal(0, 0.03, P.shape)
+    P0 = c + (1 + scale_error) * (P - c) + rng.normal(0, 0.03, P.shape)
     return {"truth": truth, "init": init, "points": P0, "obs_kf": okf, "obs_pt": opt, "uv": uv, "ur": ur}
 
 
@@ -82,10 +83,10 @@ def _scale_error(est: np.ndarray, ref: np.ndarray) -> float:
     return float((d * sign).sum() / (a**2).sum(1).mean() - 1.0)
 
 
-def bench(n: int, mono: bool) -> None:
+def bench(n: int, mono: bool, scale_error: float) -> None:
     from hivemap.server.optim import BundleAdjustmentOptions, global_bundle_adjustment
 
-    d = synthetic_map(n, seed=n)
+    d = synthetic_map(n, seed=n, scale_error=scale_error)
     ur = np.full_like(d["ur"], np.nan) if mono else d["ur"]
     track = np.bincount(d["obs_pt"])
     t0, w0 = time.process_time(), time.perf_counter()
@@ -113,11 +114,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[500, 1000, 2000])
     ap.add_argument("--mono", action="store_true", help="also without the stereo observations")
+    ap.add_argument("--scale-error", type=float, default=0.02, help="the start map's scale error (0.02: 2%%)")
     args = ap.parse_args(argv)
     for n in args.sizes:
-        bench(n, mono=False)
+        bench(n, mono=False, scale_error=args.scale_error)
         if args.mono:
-            bench(n, mono=True)
+            bench(n, mono=True, scale_error=args.scale_error)
     return 0
 
 
