@@ -68,7 +68,8 @@ class Pipeline:
         self._pr_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-placerec")
         self._opt_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-optim")
         # pycolmap holds the GIL through a whole Ceres solve, which stalled the event loop (agents dropped,
-        # REST timed out: docs/decisions.md), so global BA runs in a process of its own, started at the first BA
+        # REST timed out: docs/decisions.md), so global BA runs in a process of its own, started by the
+        # first BA
         self._ba_exec: concurrent.futures.ProcessPoolExecutor | None = None
         self._ba_solving = False
         self._tasks: set[asyncio.Task[Any]] = set()
