@@ -128,10 +128,12 @@ def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = 
     refs: list[PointKey] = []
     per_kf: list[tuple[NDArray[np.intp], list[PointKey]]] = []
     for kf in kfs:
-        pk = _point_keys(kf)
-        mask = has.get(m, kf, pk) if has is not None else _has_point(pk, m.points)
-        idx = np.flatnonzero(mask)
-        r: list[PointKey] = [pk[i] for i in idx.tolist()]  # type: ignore[misc]
+        if has is not None:
+            idx, r = has.refs(m, kf)
+        else:
+            pk = _point_keys(kf)
+            idx = np.flatnonzero(_has_point(pk, m.points))
+            r = [pk[i] for i in idx.tolist()]  # type: ignore[misc]
         per_kf.append((idx, r))
         refs.extend(r)
     found = dict(zip(refs, map(m.points.get, refs), strict=True))  # each point once, in first-seen order
@@ -147,7 +149,7 @@ def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = 
     # the observations in the slice's keyframes, from the keyframes' side (a point's full observation list
     # is ~8x larger), ordered per point as the map adds them: by its keyframes' order of arrival
     row_of = {k: i for i, k in enumerate(points)}
-    arrival = {k: i for i, k in enumerate(m.keyframes)}
+    arrival = has.arrival(m) if has is not None else {k: i for i, k in enumerate(m.keyframes)}
     cols: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.intp]]] = []
     for j, (idx, r) in enumerate(per_kf):
         rows = np.fromiter(map(row_of.get, r, itertools.repeat(-1)), np.int64, len(r))
