@@ -30,6 +30,7 @@ class HasCache:
     def __init__(self) -> None:
         self._masks: dict[KfKey, _Refs] = {}
         self._arrival: dict[int, tuple[int, KfKey | None, dict[KfKey, int]]] = {}
+        self._agents: dict[str, int] = {}
 
     def _entry(self, m: Any, kf: Any, pk: list[PointKey | None] | None = None) -> _Refs:
         stamp = hash((kf.point_ids.tobytes(), tuple(sorted(kf.point_agents.items()))))
@@ -51,13 +52,20 @@ class HasCache:
     def get(self, m: Any, kf: Any, pk: list[PointKey | None]) -> NDArray[np.bool_]:
         return self._entry(m, kf, pk).has
 
-    def refs(self, m: Any, kf: Any) -> tuple[NDArray[np.intp], list[PointKey]]:
-        """The keypoints of ``kf`` referencing a point of ``m`` and those points' keys."""
+    def refs(self, m: Any, kf: Any) -> tuple[NDArray[np.intp], list[PointKey], NDArray[np.int64]]:
+        """The keypoints of ``kf`` referencing a point of ``m``, those points' keys, and the keys as one
+        integer each (agent and id; equal keys, equal codes) for array work on a slice's points."""
         e = self._entry(m, kf)
         if e.idx is None:
             e.idx = np.flatnonzero(e.has)
             e.keys = [e.pk[i] for i in e.idx.tolist()]  # type: ignore[misc]
-        return e.idx, e.keys
+            agents = self._agents
+            e.codes = np.fromiter(
+                ((agents.setdefault(a, len(agents)) << _ID_BITS) | p for a, p in e.keys),
+                np.int64,
+                len(e.keys),
+            )
+        return e.idx, e.keys, e.codes
 
     def arrival(self, m: Any) -> dict[KfKey, int]:
         """Each keyframe of ``m`` -> its rank in the order the map added them (rebuilt when it changed:
@@ -75,13 +83,17 @@ class HasCache:
         self._masks.pop(key, None)
 
 
+_ID_BITS = 40  # point ids stay below 2**40; the agent's number goes above
+
+
 class _Refs:
-    __slots__ = ("map_id", "stamp", "pk", "has", "idx", "keys")
+    __slots__ = ("map_id", "stamp", "pk", "has", "idx", "keys", "codes")
 
     def __init__(self, map_id: int, stamp: int, pk: list[PointKey | None], has: NDArray[np.bool_]) -> None:
         self.map_id, self.stamp, self.pk, self.has = map_id, stamp, pk, has
         self.idx: NDArray[np.intp] | None = None
         self.keys: list[PointKey] = []
+        self.codes = np.zeros(0, np.int64)
 
 
 class KeyframeViews:
