@@ -366,7 +366,7 @@ class _Stream:
         self.link = AgentLink(
             server, agent.agent_id, agent.kind, agent.camera.to_dict(), token, self.box,
             on_correction=agent.submit_correction, cam_from_antenna=lever, session=self.first_session,
-            options=LinkOptions(max_connect_attempts=max_attempts),
+            options=LinkOptions(max_connect_attempts=max_attempts), stereo_baseline=agent.rig.baseline,
         )  # fmt: skip
         # the link's log lines carry the agent tag of the context that connected (hivemap.client.logtags)
         ctx = contextvars.copy_context()
@@ -411,6 +411,7 @@ class _Stream:
                     ev.point_ids, None if fix is None else g.enu[fix], None if fix is None else g.cov[fix],
                     session, core.up_in_cam(ev.session, ev.kf_id), ev.prev_session_from_world,
                     None if ev.prev_session_sigma is None else np.asarray(ev.prev_session_sigma, np.float64),
+                    ev.u_right,
                 )
             )  # fmt: skip
         elif isinstance(ev, PoseUpdateEvent):

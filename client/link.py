@@ -108,8 +108,10 @@ class AgentLink:
         session: int = 0,
         options: LinkOptions | None = None,
         cam_from_antenna: np.ndarray | None = None,
+        stereo_baseline: float | None = None,
     ) -> None:
         self.url = url
+        self.stereo_baseline = stereo_baseline  # m, sent in the hello: the server's BA holds scale with it
         self.cam_from_antenna = cam_from_antenna  # (3,) GNSS lever arm in cam0, sent in the hello
         self.agent_id = agent_id
         self.kind = kind
@@ -229,7 +231,7 @@ class AgentLink:
             self._ws = ws
             hello = Hello(
                 self.agent_id, self.kind, self.camera, self.token, self.outbox.last_acked, self.session,
-                self.cam_from_antenna, self.outbox.mission,
+                self.cam_from_antenna, self.outbox.mission, self.stereo_baseline,
             )  # fmt: skip
             await ws.send(encode(hello, 0))
             first = await asyncio.wait_for(ws.recv(), self.options.open_timeout_s)

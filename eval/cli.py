@@ -192,6 +192,14 @@ def experiment_command(
         Path | None,
         typer.Option("--report-dir", help="Write report.md/html/json and img/ here (default: --out)."),
     ] = None,
+    server_config: Annotated[
+        Path | None,
+        typer.Option(
+            "--server-config",
+            help="A TOML file appended to every run's server config (e.g. a [backend.optimise] table), to "
+            "compare back-end options on the same worlds.",
+        ),
+    ] = None,
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment
@@ -217,6 +225,7 @@ def experiment_command(
         start_poses=starts,
         report_only=report_only,
         report_dir=report_dir,
+        server_toml=server_config.read_text() if server_config is not None else "",
     )
     try:
         report = run_experiment(opts)

@@ -84,6 +84,7 @@ class ExperimentOptions:
     report_dir: Path | None = None  # where the report goes (default ``out``)
     # world seeds: each scenario runs once per seed (None in the list: the preset's own seed); None: once
     seeds: Sequence[int | None] | None = None
+    server_toml: str = ""  # appended to every run's server config (back-end options under comparison)
 
     def worlds(self) -> list[tuple[str, str, int | None]]:
         """(results key, scenario, world seed) of every world to run: ``factory01-s7`` for seed 7."""
@@ -166,13 +167,16 @@ def write_server_config(
     tokens: dict[str, str],
     start_table: dict[str, Any] | None = None,
     event_buffer: int | None = None,
+    extra: str = "",
 ) -> None:
-    """A server TOML config: one token per agent and the start configuration (:mod:`.startposes`)."""
+    """A server TOML config: one token per agent, the start configuration (:mod:`.startposes`) and the
+    ``extra`` TOML tables."""
     path.write_text(
         ("" if event_buffer is None else f"event_buffer = {int(event_buffer)}\n")
         + "[tokens]\n"
         + "".join(f'{a} = "{t}"\n' for a, t in tokens.items())
         + (start_poses_toml(start_table) if start_table else "")
+        + ("\n" + extra if extra else "")
     )
 
 
@@ -321,7 +325,9 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
     sdir.mkdir(parents=True)
     cfg = sdir / "server.toml"
     start_table = start_poses(scen, list(tokens), opts.start_poses, world_seed)
-    write_server_config(cfg, tokens, start_table, event_buffer=EXPERIMENT_EVENT_BUFFER)
+    write_server_config(
+        cfg, tokens, start_table, event_buffer=EXPERIMENT_EVENT_BUFFER, extra=opts.server_toml
+    )
     env = clean_env()
     slog = open(sdir / "server.log", "wb")  # noqa: SIM115
     server = subprocess.Popen(

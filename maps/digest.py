@@ -39,6 +39,9 @@ def map_digest(m: Map) -> str:
             _arr(h, getattr(kf, name))
         for name in ("gnss_enu", "gnss_cov", "up_cam"):
             _arr(h, getattr(kf, name))
+        if kf.u_right is not None:  # a mono keyframe's digest is what it was before stereo existed
+            _arr(h, kf.u_right)
+            h.update(np.float64(kf.stereo_baseline).tobytes())
     for k in sorted(m.points):
         p = m.points[k]
         h.update(json.dumps([list(k), sorted((list(o), i) for o, i in p.observations.items())]).encode())

@@ -61,7 +61,9 @@ class Keyframe:
     Arrays: ``world_from_cam`` f64 (4, 4); ``keypoints`` f32 (N, 2) distorted pixels; ``octaves`` u8 (N,);
     ``descriptors`` u8 (N, 32); ``point_ids`` i64 (N,) (-1 = no point); ``gnss_enu`` f64 (3,) or None;
     ``gnss_cov`` f64 (3, 3) or None; ``up_cam`` f64 (3,) or None (the agent's IMU up direction in the
-    camera frame).
+    camera frame); ``u_right`` f32 (N,) or None with ``stereo_baseline`` (m): per keypoint its stereo
+    match's u in the virtual rectified right camera (the camera's undistorted pinhole intrinsics, the
+    baseline along x), NaN where none (``hivemap.protocol.Keyframe``); None for a monocular keyframe.
 
     Point references: keypoint ``i`` references point ``(agent, point_ids[i])`` where ``agent`` is
     ``point_agents.get(i, agent_id)`` (``point_agents`` only lists keypoints that reference another agent's
@@ -86,6 +88,8 @@ class Keyframe:
         "gnss_enu",
         "gnss_cov",
         "up_cam",
+        "u_right",
+        "stereo_baseline",
         "parent",
     )
 
@@ -105,6 +109,8 @@ class Keyframe:
         *,
         point_keys: Sequence[PointKey | None] | None = None,
         up_cam: ArrayLike | None = None,
+        u_right: ArrayLike | None = None,
+        stereo_baseline: float | None = None,
     ) -> None:
         self.agent_id = str(agent_id)
         self.id = int(id)
@@ -152,6 +158,15 @@ class Keyframe:
         self.gnss_cov: F64 | None = None if gnss_cov is None else np.array(gnss_cov, np.float64).reshape(3, 3)
         # up direction (unit, against gravity) in the camera frame as the agent's IMU measured it
         self.up_cam: F64 | None = None if up_cam is None else np.array(up_cam, np.float64).reshape(3)
+        self.u_right: NDArray[np.float32] | None = None
+        self.stereo_baseline: float | None = None
+        if u_right is not None and stereo_baseline is not None:
+            self.u_right = np.array(u_right, dtype=np.float32).reshape(-1)
+            if self.u_right.shape != (n,):
+                raise ValueError(f"u_right {self.u_right.shape} does not match {n} keypoints")
+            if not stereo_baseline > 0:
+                raise ValueError(f"stereo_baseline must be positive, got {stereo_baseline}")
+            self.stereo_baseline = float(stereo_baseline)
         self.parent: KfKey | None = None
 
     @property

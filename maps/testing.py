@@ -60,6 +60,10 @@ def random_keyframes_and_points(
                 up_cam=T[2, :3] if k % 3 == 1 else None,  # the pose's own up axis in the camera frame
             )
         )
+        if k % 4 == 2:  # a stereo keyframe: every other keypoint matched (no draws: other streams unchanged)
+            kp = kfs[-1].keypoints
+            kfs[-1].u_right = np.where(np.arange(n_kp) % 2 == 0, kp[:, 0] - 7.5, np.nan).astype(np.float32)
+            kfs[-1].stereo_baseline = 0.11
     return kfs, pts
 
 

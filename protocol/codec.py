@@ -1,6 +1,6 @@
-"""msgpack codec for protocol v1 with validation on decode.
+"""msgpack codec for protocol v2 (reads v1) with validation on decode.
 
-A frame is one msgpack map ``{"v": 1, "type": str, "seq": int, "body": {...}}``. numpy arrays travel
+A frame is one msgpack map ``{"v": 2, "type": str, "seq": int, "body": {...}}``. numpy arrays travel
 as msgpack ext type 1: ``dtype code (1 byte) | ndim (1 byte) | shape (ndim x uint32 LE) | raw bytes``,
 so encoding is a memcpy and decoding is ``np.frombuffer`` (read-only, no copy). Every decoded frame is
 validated: version, type, field names, types, dtypes, shapes, sizes against :class:`Limits`,
@@ -20,7 +20,7 @@ import msgpack
 import numpy as np
 
 from hivemap.protocol.errors import FieldError, FrameTooLarge, ProtocolError, UnknownTypeError, VersionError
-from hivemap.protocol.limits import PROTOCOL_VERSION, Limits
+from hivemap.protocol.limits import PROTOCOL_VERSION, SUPPORTED_VERSIONS, Limits
 from hivemap.protocol.messages import (
     MESSAGE_TYPES,
     Ack,
@@ -55,9 +55,9 @@ def _pack_array(a: np.ndarray) -> msgpack.ExtType:
     dt = a.dtype.newbyteorder("<") if a.dtype.byteorder == ">" else a.dtype
     code = _CODES.get(np.dtype(dt))
     if code is None:
-        raise TypeError(f"dtype {a.dtype} cannot travel in protocol v1")
+        raise TypeError(f"dtype {a.dtype} cannot travel in the protocol")
     if a.ndim > _MAX_NDIM:
-        raise TypeError(f"arrays of {a.ndim} dimensions cannot travel in protocol v1")
+        raise TypeError(f"arrays of {a.ndim} dimensions cannot travel in the protocol")
     head = struct.pack(f"<BB{a.ndim}I", code, a.ndim, *a.shape)
     return msgpack.ExtType(_ND_EXT, head + np.ascontiguousarray(a, dtype=dt).tobytes())
 
@@ -269,7 +269,19 @@ def _v_hello(b: dict[str, Any], lim: Limits) -> Hello:
             else _arr(b["cam_from_antenna"], "body.cam_from_antenna", "<f8", (3,))
         ),
         mission=_mission(b.get("mission")),
+        stereo_baseline=_baseline(b.get("stereo_baseline"), lim),
     )
+
+
+def _baseline(v: Any, lim: Limits) -> float | None:
+    if v is None:
+        return None
+    b = _float(v, "body.stereo_baseline")
+    if not 0 < b <= lim.max_baseline_m:
+        raise FieldError(
+            f"stereo baseline must be in (0, {lim.max_baseline_m}] m, got {b}", "body.stereo_baseline"
+        )
+    return b
 
 
 def _mission(v: Any) -> str:
@@ -301,6 +313,9 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         raise FieldError("point ids must be >= 0, or -1 for none", "body.point_ids")
     pose = _arr(b["world_from_cam"], "body.world_from_cam", "<f8", (4, 4))
     _rigid(pose, "body.world_from_cam")
+    ur = b.get("u_right")
+    if ur is not None:
+        ur = _u_right(ur, kp)
     enu = b.get("gnss_enu")
     cov = b.get("gnss_cov")
     if (enu is None) != (cov is None):
@@ -346,7 +361,19 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         up_cam=up,
         prev_session_from_world=guess,
         prev_session_sigma=sigma,
+        u_right=ur,
     )
+
+
+def _u_right(v: Any, kp: np.ndarray) -> np.ndarray:
+    """One f32 per keypoint: finite, or NaN for a keypoint without a stereo match (never inf)."""
+    if not isinstance(v, np.ndarray) or v.dtype != np.dtype("<f4") or v.ndim != 1:
+        what = type(v).__name__ if not isinstance(v, np.ndarray) else f"{v.dtype} {v.shape}"
+        raise FieldError(f"expected an f32 array of one value per keypoint, got {what}", "body.u_right")
+    _same_rows("body.keypoints", kp, "body.u_right", v)
+    if np.isinf(v).any():
+        raise FieldError("contains inf (NaN marks a keypoint without a stereo match)", "body.u_right")
+    return v
 
 
 def _v_map_points(b: dict[str, Any], lim: Limits) -> MapPoints:
@@ -429,6 +456,8 @@ _VALIDATORS: dict[str, Callable[[dict[str, Any], Limits], Message]] = {
     "bye": _v_bye,
 }
 _FIELDS = {name: {f.name for f in fields(cls)} for name, cls in MESSAGE_TYPES.items()}
+# fields a v1 frame cannot have (its reader takes their defaults: a v1 keyframe is all mono)
+_V2_FIELDS = {"hello": {"stereo_baseline"}, "keyframe": {"u_right"}}
 _REQUIRED = {
     name: {f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING}
     for name, cls in MESSAGE_TYPES.items()
@@ -461,8 +490,9 @@ def decode(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, Message]
         raise ProtocolError(f"frame must be a map, got {type(obj).__name__}", "frame")
     if set(obj) != {"v", "type", "seq", "body"}:
         raise ProtocolError(f"frame keys must be v, type, seq, body; got {sorted(map(str, obj))}", "frame")
-    if obj["v"] != PROTOCOL_VERSION or isinstance(obj["v"], bool):
-        raise VersionError(f"protocol version {obj['v']!r} not supported (this is v{PROTOCOL_VERSION})", "v")
+    version = obj["v"]
+    if isinstance(version, bool) or not isinstance(version, int) or version not in SUPPORTED_VERSIONS:
+        raise VersionError(f"protocol version {version!r} not supported (this is v{PROTOCOL_VERSION})", "v")
     mtype = obj["type"]
     if not isinstance(mtype, str) or mtype not in _VALIDATORS:
         raise UnknownTypeError(f"unknown message type {mtype!r}", "type")
@@ -471,7 +501,7 @@ def decode(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, Message]
     if not isinstance(body, dict):
         raise FieldError(f"expected a map, got {type(body).__name__}", "body")
     keys = set(body)
-    unknown = keys - _FIELDS[mtype]
+    unknown = keys - (_FIELDS[mtype] if version >= 2 else _FIELDS[mtype] - _V2_FIELDS.get(mtype, set()))
     if unknown:
         raise FieldError(
             f"unknown field(s) {sorted(map(str, unknown))}", f"body.{sorted(map(str, unknown))[0]}"

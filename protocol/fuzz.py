@@ -38,6 +38,7 @@ def sample_messages(rng: np.random.Generator, n_features: int = 200) -> list[Mes
             },
             "token-uav1",
             mission="0f8e4c2a9b1d4e6f8a7b6c5d4e3f2a1b",
+            stereo_baseline=0.11,
         ),
         Keyframe(
             kf_id=int(rng.integers(0, 1000)),
@@ -47,6 +48,9 @@ def sample_messages(rng: np.random.Generator, n_features: int = 200) -> list[Mes
             octaves=rng.integers(0, 8, n_features).astype(np.uint8),
             descriptors=rng.integers(0, 256, (n_features, 32)).astype(np.uint8),
             point_ids=rng.integers(-1, 500, n_features).astype(np.int64),
+            u_right=np.where(rng.random(n_features) < 0.6, rng.uniform(0, 640, n_features), np.nan).astype(
+                np.float32
+            ),
         ),
         MapPoints(
             np.arange(50, dtype=np.int64),
@@ -118,9 +122,10 @@ def fuzz_frames(n: int, seed: int = 0) -> Iterator[bytes]:
         elif k == 4:  # random msgpack object
             yield msgpack.packb(_random_obj(r), use_bin_type=True)
         elif k == 5:  # well-formed envelope, hostile body
-            body = {"kf_id": _random_obj(r), "keypoints": _lying_array(r), "agent_id": _random_obj(r)}
+            body = {"kf_id": _random_obj(r), "keypoints": _lying_array(r), "agent_id": _random_obj(r),
+                    "u_right": r.choice([_lying_array(r), _random_obj(r)])}  # fmt: skip
             frame = {
-                "v": r.choice([1, 1, 1, 2, "1", None]),
+                "v": r.choice([1, 2, 2, 2, 3, "2", None]),
                 "type": r.choice(types),
                 "seq": _random_obj(r),
                 "body": body,

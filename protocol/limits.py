@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-PROTOCOL_VERSION = 1
+# 2: keyframes carry ``u_right``, hellos ``stereo_baseline``. A v1 frame still reads (all keypoints mono).
+PROTOCOL_VERSION = 2
+SUPPORTED_VERSIONS = (1, 2)
 
 
 @dataclass(frozen=True)
@@ -19,3 +21,4 @@ class Limits:
     max_token_len: int = 256
     max_string_len: int = 1024
     max_seq: int = 2**62
+    max_baseline_m: float = 100.0

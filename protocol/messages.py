@@ -1,4 +1,4 @@
-"""Protocol v1 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
+"""Protocol v2 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
 
 Arrays are numpy arrays with fixed dtypes; shapes are given per field. Poses are 4x4 float64
 ``world_from_cam`` in the sender's frame (the agent's VIO frame for agent -> server messages, the
@@ -35,6 +35,9 @@ class Hello:
     # server's GNSS stage needs it: a fix is the antenna's position, a keyframe pose the camera's.
     cam_from_antenna: NDArray[np.float64] | None = None
     mission: str = ""
+    # The stereo baseline (m) of a stereo agent's rig (None: monocular): the virtual rectified right
+    # camera of its keyframes' ``u_right`` sits this far along cam0's x axis (protocol v2).
+    stereo_baseline: float | None = None
 
 
 @dataclass(frozen=True)
@@ -58,7 +61,10 @@ class Keyframe:
     Optional on the first keyframe of a session after a tracking loss (``session`` >= 1):
     ``prev_session_from_world`` f64 (4,4), the agent's guess of this session's frame in the previous
     session's, from the IMU propagation that bridged the loss, and ``prev_session_sigma`` f64 (2,) its
-    1-sigma uncertainty [position m, attitude deg], so the server can merge the session back."""
+    1-sigma uncertainty [position m, attitude deg], so the server can merge the session back.
+    Optional ``u_right`` f32 (N,) (protocol v2): per keypoint, its stereo match's u in the virtual
+    rectified right camera (cam0's undistorted pinhole intrinsics, ``Hello.stereo_baseline`` along x),
+    NaN where the keypoint has no stereo match; what lets the server's global BA hold metric scale."""
 
     TYPE: ClassVar[str] = "keyframe"
     kf_id: int
@@ -74,6 +80,7 @@ class Keyframe:
     up_cam: NDArray[np.float64] | None = None
     prev_session_from_world: NDArray[np.float64] | None = None
     prev_session_sigma: NDArray[np.float64] | None = None
+    u_right: NDArray[np.float32] | None = None
 
 
 @dataclass(frozen=True)

@@ -101,6 +101,7 @@ class AgentState:
     duplicates: int = 0
     errors: int = 0
     cam_from_antenna: NDArray[np.float64] | None = None  # GNSS lever arm from the hello (not persisted)
+    stereo_baseline: float | None = None  # m, from the hello (not persisted: every connection sends it)
 
     @property
     def state(self) -> str:

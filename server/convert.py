@@ -23,9 +23,14 @@ def split_folded(folded: str) -> tuple[str, int]:
 
 
 def keyframe_from_msg(
-    folded: str, msg: Keyframe, camera: PinholeCamera, global_from_vio: Sim3
+    folded: str,
+    msg: Keyframe,
+    camera: PinholeCamera,
+    global_from_vio: Sim3,
+    stereo_baseline: float | None = None,
 ) -> MapKeyframe:
-    """A map keyframe from a wire keyframe, its pose moved from the VIO frame by ``global_from_vio``."""
+    """A map keyframe from a wire keyframe, its pose moved from the VIO frame by ``global_from_vio``;
+    its stereo observations kept when the agent's hello gave ``stereo_baseline``."""
     T = np.array(msg.world_from_cam, dtype=np.float64)
     return MapKeyframe(
         agent_id=folded,
@@ -40,6 +45,8 @@ def keyframe_from_msg(
         gnss_enu=None if msg.gnss_enu is None else np.array(msg.gnss_enu, dtype=np.float64),
         gnss_cov=None if msg.gnss_cov is None else np.array(msg.gnss_cov, dtype=np.float64),
         up_cam=None if msg.up_cam is None else np.array(msg.up_cam, dtype=np.float64),
+        u_right=None if msg.u_right is None or stereo_baseline is None else msg.u_right,
+        stereo_baseline=stereo_baseline,
     )
 
 

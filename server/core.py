@@ -19,6 +19,8 @@ Hooks for the collaboration back-end:
 * ``server.events.add(kind, message, ...)``: publish merges, loops, corrections on ``/events``.
 * ``server.startup_hooks`` / ``server.shutdown_hooks``: async ``(server) -> None`` run after the reload /
   before the store closes (start and stop the back-end's workers there).
+* ``server.mission_end_observers``: async ``(agent_id) -> None`` run when an agent says bye (its mission's
+  data is all in: the back-end's mission-end global BA).
 * ``server.loop``: the event loop; from a worker thread use ``asyncio.run_coroutine_threadsafe(.., loop)``.
 """
 
@@ -88,6 +90,7 @@ class HiveServer(Ingest):
         #: async callables ``(server) -> None`` run after the stack is loaded / before the store closes
         self.startup_hooks: list[Callable[[HiveServer], Awaitable[None]]] = []
         self.shutdown_hooks: list[Callable[[HiveServer], Awaitable[None]]] = []
+        self.mission_end_observers: list[Callable[[str], Awaitable[None]]] = []
         self._uncommitted: asyncio.Semaphore | None = None
         self.quotas = Quotas(settings.quotas)
         # the highest seq that passed the step check, per agent (rejected messages included, so an agent
@@ -319,6 +322,7 @@ class HiveServer(Ingest):
         agent.mission = hello.mission
         if hello.cam_from_antenna is not None:
             agent.cam_from_antenna = np.array(hello.cam_from_antenna, dtype=np.float64)
+        agent.stereo_baseline = hello.stereo_baseline
         am_now = self._session_map(agent, hello.mission, hello.session, create=True, persist=False)
         self.map_for(am_now)  # the agent's map exists (maybe empty) from its hello on
         am_now.camera = camera
@@ -444,6 +448,10 @@ class HiveServer(Ingest):
         raise Rejected(over.code, over.message, field)
 
     # -- hooks for the back-end ---------------------------------------------------------------------
+    async def agent_said_bye(self, agent_id: str) -> None:
+        for observer in self.mission_end_observers:
+            await observer(agent_id)
+
     async def send_correction(self, agent_id: str, correction: Correction) -> bool:
         """Send a correction to an agent now, or when it next connects. ``correction.session`` is the
         server session of the agent map it corrects; it reaches only that map's mission, under the

@@ -162,7 +162,9 @@ class Ingest:
         return op, [(map_id, kf.key)]
 
     def _insert_keyframe(self, am: AgentMap, m: Any, msg: Keyframe) -> Any:
-        kf = keyframe_from_msg(am.folded, msg, am.camera, am.global_from_vio)
+        owner = self.agents.get(am.agent_id)
+        baseline = None if owner is None else owner.stereo_baseline
+        kf = keyframe_from_msg(am.folded, msg, am.camera, am.global_from_vio, baseline)
         m.add_keyframe(kf)
         am.arrived_kfs.add(msg.kf_id)
         am.vio_poses[msg.kf_id] = np.array(msg.world_from_cam, dtype=np.float64)

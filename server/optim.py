@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import Sim3, se3, se3_inverse
+from hivemap.server import ba_build
 
 log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
@@ -260,6 +261,8 @@ class BundleAdjustmentOptions:
     position_prior_m: float | None = None
     # Ceres: stop when the cost changes by less than this fraction per iteration.
     function_tolerance: float = 1e-6
+    # Use the stereo observations (``u_right``) where the keyframes carry them.
+    stereo: bool = True
 
 
 @dataclass
@@ -325,6 +328,8 @@ def global_bundle_adjustment(
     obs_uv: F64,
     fixed_kfs: set[int] | frozenset[int],
     options: BundleAdjustmentOptions = BundleAdjustmentOptions(),
+    obs_ur: F64 | None = None,
+    baselines: Sequence[float | None] | None = None,
 ) -> BundleAdjustmentResult:
     """Jointly refine keyframe poses and points (pycolmap / Ceres), intrinsics held constant.
 
@@ -332,7 +337,10 @@ def global_bundle_adjustment(
     world_from_cam (N, 4, 4); points (M, 3); observations as parallel arrays obs_kf (K,), obs_pt (K,),
     obs_uv (K, 2) in distorted pixels. ``fixed_kfs``: keyframes held constant; at least two of them,
     or one plus the two-camera gauge, so the problem has no free similarity (DESIGN.md: holding one
-    pose fixes only 6 DoF).
+    pose fixes only 6 DoF), unless there are stereo observations.
+    ``obs_ur`` (K,): each observation's ``u_right`` in its keyframe's virtual rectified right camera
+    (NaN: mono) and ``baselines``: per camera its stereo baseline (m) or None; with them the BA is a
+    stereo rig BA (:mod:`hivemap.server.ba_build`) whose scale is held by the baseline.
     """
     import pycolmap
 
@@ -348,40 +356,22 @@ def global_bundle_adjustment(
     keep = np.flatnonzero(inlier)
     obs_kf_all = obs_kf
     obs_kf, obs_pt, obs_uv = obs_kf[keep], obs_pt[keep], obs_uv[keep]
-    rec = pycolmap.Reconstruction()
-    for ci, cam in enumerate(cameras):
-        c = pycolmap.Camera(
-            model="OPENCV",
-            width=cam.width,
-            height=cam.height,
-            params=[cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist],
-            camera_id=ci + 1,
+    if obs_ur is None or baselines is None or not options.stereo:
+        obs_ur_kept = np.full(len(obs_kf), np.nan)
+        cam_baselines: Sequence[float | None] = [None] * len(cameras)
+    else:
+        cam_baselines = baselines
+        obs_ur_kept = np.asarray(obs_ur, dtype=np.float64)[keep].copy()
+        err_r = ba_build.right_errors(
+            cameras, cam_baselines, camera_index, poses, pts, obs_kf, obs_pt, obs_ur_kept
         )
-        rec.add_camera_with_trivial_rig(c)
-    order = np.argsort(obs_kf, kind="stable")
-    kf_sorted = obs_kf[order]
-    starts = np.searchsorted(kf_sorted, np.arange(n + 1))
-    point2d_index = np.empty(len(obs_kf), dtype=np.int64)
-    for k in range(n):
-        sel = order[starts[k] : starts[k + 1]]
-        point2d_index[sel] = np.arange(len(sel))
-        img = pycolmap.Image(
-            name=f"kf{k}",
-            keypoints=np.asarray(obs_uv[sel], dtype=np.float64).reshape(-1, 2),
-            camera_id=int(camera_index[k]) + 1,
-            image_id=k + 1,
-        )
-        cw = se3_inverse(poses[k])
-        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(cw[:3, :]))
-    tracks: list[list[tuple[int, int]]] = [[] for _ in range(m)]
-    for o in range(len(obs_kf)):
-        tracks[int(obs_pt[o])].append((int(obs_kf[o]) + 1, int(point2d_index[o])))
-    point_ids = np.full(m, -1, dtype=np.int64)
-    for p in range(m):
-        if len(tracks[p]) < 2:
-            continue
-        track = pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in tracks[p]])
-        point_ids[p] = rec.add_point3D(pts[p], track)
+        # a wrong stereo match is dropped alone; its left observation may still be right
+        obs_ur_kept[~(err_r <= options.max_initial_error_px)] = np.nan
+    built = ba_build.build(
+        cameras, cam_baselines, camera_index, poses, pts, obs_kf, obs_pt, obs_uv, obs_ur_kept
+    )
+    rec, point_ids = built.rec, built.point_ids
+    stereo = built.n_stereo > 0
 
     ba_opts = pycolmap.BundleAdjustmentOptions()
     ba_opts.print_summary = False
@@ -396,17 +386,23 @@ def global_bundle_adjustment(
     # Beyond 1000 images COLMAP switches to ITERATIVE_SCHUR, ~5x slower here than the direct sparse
     # Schur solver (2000 keyframes: 176 s before this change).
     ba_opts.ceres.max_num_images_direct_sparse_cpu_solver = 100000
+    ba_opts.refine_sensor_from_rig = False  # the stereo baseline is calibrated: it holds the scale
     config = pycolmap.BundleAdjustmentConfig()
     for k in range(n):
         config.add_image(k + 1)
         if k in fixed_kfs:
             config.set_constant_rig_from_world_pose(k + 1)
-    # pycolmap's pose-prior BA needs >= 3 priors (DESIGN.md); the priors then fix the gauge
-    use_priors = options.position_prior_m is not None and n >= 3
-    if len(fixed_kfs) < 2 and not use_priors:
+        if rec.exists_image(n + k + 1):
+            config.add_image(n + k + 1)
+    for sensor in built.right_sensors:
+        config.set_constant_sensor_from_rig_pose(sensor)
+    # pycolmap's pose-prior BA needs >= 3 priors (DESIGN.md); the priors then fix the gauge. Stereo
+    # observations hold the scale themselves: one held keyframe fixes the remaining 6 DoF.
+    use_priors = options.position_prior_m is not None and n >= 3 and not stereo
+    if len(fixed_kfs) < 2 and not use_priors and not stereo:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    for ci in range(len(cameras)):
-        config.set_constant_cam_intrinsics(ci + 1)
+    for cam_id in rec.cameras:
+        config.set_constant_cam_intrinsics(cam_id)
     if use_priors:
         assert options.position_prior_m is not None
         sigma2 = float(options.position_prior_m) ** 2
@@ -433,7 +429,7 @@ def global_bundle_adjustment(
     for p in range(m):
         if point_ids[p] >= 0:
             out_pts[p] = rec.point3D(int(point_ids[p])).xyz
-    iters = int(getattr(summary, "num_successful_steps", 0) or 0)
+    iters = int(getattr(getattr(summary, "ceres_summary", summary), "num_successful_steps", 0) or 0)
     # Points that ended far from their observations keep their old position.
     err1, depth1 = reprojection_errors(cameras, camera_index, out_poses, out_pts, obs_kf, obs_pt, obs_uv)
     bad = np.zeros(m, dtype=bool)
@@ -462,4 +458,7 @@ def global_bundle_adjustment(
         return BundleAdjustmentResult(
             poses.copy(), pts.copy(), initial, final, iters, {}, False, obs_inlier, point_ok
         )
-    return BundleAdjustmentResult(out_poses, out_pts, initial, final, iters, {}, True, obs_inlier, point_ok)
+    extras = {"n_stereo": float(built.n_stereo)}
+    return BundleAdjustmentResult(
+        out_poses, out_pts, initial, final, iters, extras, True, obs_inlier, point_ok
+    )

@@ -218,6 +218,8 @@ class AgentConnection:
             return
         if isinstance(msg, Bye):  # not stored, not acked: the agent leaves
             await self.close(1000, f"bye: {msg.reason}")
+            if self.agent_id is not None:
+                await self.server.agent_said_bye(self.agent_id)
             return
         try:
             await self.server.handle(self, seq, msg, received_at)

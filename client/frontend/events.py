@@ -74,6 +74,8 @@ class KeyframeEvent:
     new_point_descriptors: NDArray[np.uint8]
     prev_session_from_world: F64 | None = None
     prev_session_sigma: tuple[float, float] | None = None
+    # per keypoint its stereo match's u in the virtual rectified right camera (undistorted), NaN if none
+    u_right: NDArray[np.float32] | None = None
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,8 @@ def install(server: Any, options: BackendOptions | None = None) -> Backend:
     server.keyframe_observers.append(backend.on_keyframe)
     server.startup_hooks.append(backend.start)
     server.shutdown_hooks.append(backend.stop)
+    if hasattr(server, "mission_end_observers"):
+        server.mission_end_observers.append(backend.on_mission_end)
     return backend
 
 

@@ -196,6 +196,9 @@ def pose_graph(
 
 @dataclass
 class BAProblem:
+    """``obs_ur``: each observation's ``u_right`` (NaN: mono), ``baselines``: per camera its stereo
+    baseline (m) or None (``Keyframe.u_right``, ``Keyframe.stereo_baseline``)."""
+
     cameras: list[Any]
     camera_index: NDArray[np.int64]
     point_keys: list[Any]
@@ -203,25 +206,35 @@ class BAProblem:
     obs_kf: NDArray[np.int64]
     obs_pt: NDArray[np.int64]
     obs_uv: F64
+    obs_ur: F64 = field(default_factory=lambda: np.zeros(0))
+    baselines: list[float | None] = field(default_factory=list)
+
+    @property
+    def n_stereo(self) -> int:
+        return int(np.isfinite(self.obs_ur).sum())
 
 
 def ba_problem(m: Any, keys: list[KfKey]) -> BAProblem:
     """Copy what the BA needs out of the map (on the loop, quick)."""
     cams: dict[Any, int] = {}
     cam_list: list[Any] = []
+    baselines: list[float | None] = []
     cam_idx = np.zeros(len(keys), dtype=np.int64)
     pidx: dict[Any, int] = {}
     pkeys: list[Any] = []
-    obs_kf: list[int] = []
-    obs_pt: list[int] = []
+    obs_kf: list[Any] = []
+    obs_pt: list[Any] = []
     obs_uv: list[Any] = []
+    obs_ur: list[Any] = []
     for i, k in enumerate(keys):
         kf = m.keyframes[k]
-        ck = id(kf.camera)
+        ck = (id(kf.camera), kf.stereo_baseline)
         if ck not in cams:
             cams[ck] = len(cam_list)
             cam_list.append(kf.camera)
+            baselines.append(kf.stereo_baseline)
         cam_idx[i] = cams[ck]
+        idx_kp, idx_pt = [], []
         for idx, pk in kf.referenced_points():
             pk = m.resolve_point(pk)
             if pk not in m.points:
@@ -230,19 +243,22 @@ def ba_problem(m: Any, keys: list[KfKey]) -> BAProblem:
             if j is None:
                 j = pidx[pk] = len(pkeys)
                 pkeys.append(pk)
-            obs_kf.append(i)
-            obs_pt.append(j)
-            obs_uv.append(kf.keypoints[idx])
+            idx_kp.append(idx)
+            idx_pt.append(j)
+        obs_kf.append(np.full(len(idx_kp), i, dtype=np.int64))
+        obs_pt.append(np.asarray(idx_pt, dtype=np.int64))
+        obs_uv.append(kf.keypoints[idx_kp].reshape(-1, 2))
+        ur = kf.u_right[idx_kp] if kf.u_right is not None else np.full(len(idx_kp), np.nan)
+        obs_ur.append(np.asarray(ur, dtype=np.float64))
     pts = np.array([m.points[pk].xyz for pk in pkeys], dtype=np.float64).reshape(-1, 3)
+
+    def cat(parts: list[Any], dtype: Any, shape: tuple[int, ...]) -> Any:
+        return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
+
     return BAProblem(
-        cam_list,
-        cam_idx,
-        pkeys,
-        pts,
-        np.array(obs_kf, dtype=np.int64),
-        np.array(obs_pt, dtype=np.int64),
-        np.array(obs_uv, dtype=np.float64).reshape(-1, 2),
-    )
+        cam_list, cam_idx, pkeys, pts, cat(obs_kf, np.int64, (0,)), cat(obs_pt, np.int64, (0,)),
+        cat(obs_uv, np.float64, (0, 2)), cat(obs_ur, np.float64, (0,)), baselines,
+    )  # fmt: skip
 
 
 def run_ba(poses: F64, p: BAProblem, fixed: list[int], max_iterations: int) -> Any:
@@ -250,7 +266,7 @@ def run_ba(poses: F64, p: BAProblem, fixed: list[int], max_iterations: int) -> A
 
     return global_bundle_adjustment(
         p.cameras, p.camera_index, poses, p.points, p.obs_kf, p.obs_pt, p.obs_uv, set(fixed),
-        BundleAdjustmentOptions(max_iterations=max_iterations),
+        BundleAdjustmentOptions(max_iterations=max_iterations), obs_ur=p.obs_ur, baselines=p.baselines,
     )  # fmt: skip
 
 

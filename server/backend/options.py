@@ -85,8 +85,9 @@ class FitOptions:
 class OptimiseOptions:
     """Pose graph and global BA (:mod:`hivemap.server.backend.optimise`)."""
 
-    # Global BA after each merge or loop. pycolmap's BA has only monocular residuals: it lets a stereo
-    # map's metric scale drift, so the default (metric) preset leaves it off.
+    # Global BA after each merge or loop and at an agent's mission end. A metric map's BA holds its scale
+    # with the agents' stereo observations (none: no BA); the default preset leaves it off until it is
+    # shown to help on the worlds of docs/decisions.md.
     global_ba: bool = False
     ba_max_keyframes: int = 4000
     ba_max_iterations: int = 30

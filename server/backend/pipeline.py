@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+import multiprocessing
 import time
 from functools import partial
 from typing import Any
@@ -45,6 +46,8 @@ F64 = NDArray[np.float64]
 
 # The pose graph holds one keyframe per connected start, global BA two (its gauge includes scale).
 POSE_GRAPH_ANCHORS_PER_AGENT = 1
+# A metric map's global BA needs this share of its observations stereo (they hold its scale).
+STEREO_BA_MIN_SHARE = 0.2
 
 
 class Pipeline:
@@ -64,6 +67,10 @@ class Pipeline:
         self._wake = asyncio.Event()
         self._pr_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-placerec")
         self._opt_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-optim")
+        # pycolmap holds the GIL through a whole Ceres solve, which stalled the event loop (agents dropped,
+        # REST timed out: docs/decisions.md), so global BA runs in a process of its own, started at the first BA
+        self._ba_exec: concurrent.futures.ProcessPoolExecutor | None = None
+        self._ba_solving = False
         self._tasks: set[asyncio.Task[Any]] = set()
         self._worker: asyncio.Task[None] | None = None
         self._inflight: set[asyncio.Task[None]] = set()  # queries being prepared, verified or applied
@@ -347,16 +354,30 @@ class Pipeline:
         map_id = m.id
         snap = self._snapshot(m)
         problem = optimise.ba_problem(m, snap.keys)
+        if self.options.fix_scale and problem.n_stereo < STEREO_BA_MIN_SHARE * len(problem.obs_kf):
+            # monocular residuals alone let a metric map's scale drift: no BA without the stereo ones
+            self.server.events.add("global_ba", f"map {map_id}: global BA skipped (metric map, "
+                                   f"{problem.n_stereo} stereo observations)", map_id=map_id,
+                                   data={"skipped": True, "n_stereo": problem.n_stereo})  # fmt: skip
+            return True
         fixed = optimise.anchor(m, snap.keys, self._agent_kind)
         t0 = time.perf_counter()
-        res = await asyncio.get_running_loop().run_in_executor(
-            self._opt_exec,
-            optimise.run_ba,
-            snap.poses,
-            problem,
-            fixed,
-            self.options.optimise.ba_max_iterations,
-        )
+        if self._ba_exec is None:
+            self._ba_exec = concurrent.futures.ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("spawn")
+            )
+        self._ba_solving = True
+        try:
+            res = await asyncio.get_running_loop().run_in_executor(
+                self._ba_exec,
+                optimise.run_ba,
+                snap.poses,
+                problem,
+                fixed,
+                self.options.optimise.ba_max_iterations,
+            )
+        finally:
+            self._ba_solving = False
         ba_ms = (time.perf_counter() - t0) * 1e3
         cur = self._current(snap)
         if cur is None:
@@ -367,6 +388,7 @@ class Pipeline:
         corr, new_xyz = optimise.ba_corrections(snap, res, problem)
         self._apply_corrections(cur, corr, new_xyz)
         info = {"n_keyframes": len(snap.keys), "n_points": len(problem.point_keys), "ms": ba_ms,
+                "n_stereo": float(res.extras.get("n_stereo", 0.0)),
                 "rmse_before_px": res.initial_rmse_px, "rmse_after_px": res.final_rmse_px}  # fmt: skip
         info["accepted"] = bool(getattr(res, "accepted", True))  # rejected: inputs returned unchanged
         self.ba_runs.append(info)

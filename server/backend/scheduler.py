@@ -34,6 +34,7 @@ from hivemap.maps.geometry import Sim3
 from hivemap.server.backend import accept, detect, evidence_store, executor, fit, sessionguess, surgery
 from hivemap.server.backend.optimise import NewEdge
 from hivemap.server.backend.pipeline import Pipeline
+from hivemap.server.convert import split_folded
 from hivemap.server.placerec import Detection
 
 logger = logging.getLogger(__name__)
@@ -100,6 +101,11 @@ class Backend(Pipeline):
         # a running global BA is not waited for: its task is cancelled, so its result is never applied
         self._pr_exec.shutdown(wait=False, cancel_futures=True)
         self._opt_exec.shutdown(wait=False, cancel_futures=True)
+        if self._ba_exec is not None:
+            # a BA still solving would hold the server's exit until it ends (3.11 has no terminate_workers)
+            for proc in list(getattr(self._ba_exec, "_processes", {}).values()) if self._ba_solving else []:
+                proc.terminate()
+            self._ba_exec.shutdown(wait=False, cancel_futures=True)
 
     def idle(self) -> bool:
         """Nothing queued and nothing in flight (tests and benches wait for this)."""
@@ -136,6 +142,15 @@ class Backend(Pipeline):
         self._wake.set()
 
     # -- nominal start configuration (paper 2.4) -----------------------------------------------------
+    async def on_mission_end(self, agent_id: str) -> None:
+        """An agent said bye: its maps get a last global BA (with nothing new to add, the pose graph is
+        skipped), so the map the team leaves is jointly refined with its points."""
+        if not self.options.optimise.global_ba:
+            return
+        for m in list(self.server.stack.maps.values()):
+            if any(split_folded(a)[0] == agent_id for a in m.agents):
+                self._schedule_optimisation(m.id, [], time.monotonic())
+
     def _record_start(self, map_id: int, key: KfKey) -> None:
         """An agent with a nominal start pose sent its first keyframe (taken at the start pose): its map's
         place in the common start frame is known to the prior's sigmas (no merge by itself)."""

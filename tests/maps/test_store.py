@@ -184,16 +184,17 @@ def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
     store.save_stack(stack)
     store.close()
     con = sqlite3.connect(path)  # make it a version-1 file: no up_cam column
-    con.execute("ALTER TABLE map_keyframes DROP COLUMN up_cam")
+    for col in ("up_cam", "u_right", "stereo_baseline"):
+        con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
     con.execute("UPDATE map_schema SET version = 1")
     con.commit()
     con.close()
     store = MapStore(path)
-    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == 2
+    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == 3
     loaded = store.load_stack()
     for m in stack.maps.values():
         for kf in m.keyframes.values():
-            kf.up_cam = None  # what a version-1 file held
+            kf.up_cam = kf.u_right = kf.stereo_baseline = None  # what a version-1 file held
     assert_stacks_equal(stack, loaded)
     kf = next(iter(loaded.maps[0].keyframes.values()))
     kf.up_cam = np.array([0.0, 0.6, 0.8])
@@ -201,6 +202,37 @@ def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
     store.close()
     again = MapStore(path).load_stack()
     assert np.array_equal(again.maps[0].keyframes[kf.key].up_cam, [0.0, 0.6, 0.8])
+
+
+def test_version_2_file_is_migrated_and_its_keyframes_load_as_mono(tmp_path: Path) -> None:
+    """A store written before keyframes carried stereo observations (schema 2) opens with every keyframe
+    mono, and stores ``u_right`` from then on."""
+    path = tmp_path / "v2.sqlite"
+    stack = build_stack(12, 40, 2000)
+    assert any(kf.u_right is not None for m in stack.maps.values() for kf in m.keyframes.values())
+    store = MapStore(path)
+    store.save_stack(stack)
+    store.close()
+    con = sqlite3.connect(path)
+    for col in ("u_right", "stereo_baseline"):
+        con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
+    con.execute("UPDATE map_schema SET version = 2")
+    con.commit()
+    con.close()
+    store = MapStore(path)
+    loaded = store.load_stack()
+    for m in stack.maps.values():
+        for kf in m.keyframes.values():
+            kf.u_right = kf.stereo_baseline = None
+    assert_stacks_equal(stack, loaded)
+    kf = next(iter(loaded.maps[0].keyframes.values()))
+    kf.u_right = np.full(kf.n_keypoints, 100.5, np.float32)
+    kf.stereo_baseline = 0.12
+    store.put_keyframe(0, kf)
+    store.close()
+    again = MapStore(path).load_stack().maps[0].keyframes[kf.key]
+    assert again.stereo_baseline == 0.12 and again.u_right is not None
+    assert again.u_right.dtype == np.float32 and (again.u_right == 100.5).all()
 
 
 def test_refuses_newer_or_unknown_schema(tmp_path: Path) -> None:

@@ -1,4 +1,5 @@
-"""Protocol v1: every message round-trips exactly; bad frames raise ProtocolError naming the field."""
+"""Protocol v2: every message round-trips exactly; bad frames raise ProtocolError naming the field; v1
+frames still read."""
 
 from __future__ import annotations
 
@@ -77,6 +78,8 @@ def keyframes(draw: Any) -> Keyframe:
     guess = session >= 1 and draw(st.booleans())
     if up is not None and np.linalg.norm(up) < 0.1:
         up = None
+    stereo = draw(st.booleans())
+    ur = st.one_of(st.just(float("nan")), st.floats(-1e4, 1e4, width=32))
     return Keyframe(
         kf_id=draw(ids),
         timestamp=draw(finite),
@@ -91,6 +94,7 @@ def keyframes(draw: Any) -> Keyframe:
         up_cam=None if up is None else up / np.linalg.norm(up),
         prev_session_from_world=draw(poses()) if guess else None,
         prev_session_sigma=draw(arr(np.float64, (2,), st.floats(1e-3, 100))) if guess else None,
+        u_right=draw(arr(np.float32, (n,), ur)) if stereo else None,
     )
 
 
@@ -135,6 +139,7 @@ messages = st.one_of(
         st.integers(0, 1000),
         st.none(),
         st.text("0123456789abcdef-_", min_size=1, max_size=64),
+        st.none() | st.floats(1e-3, 100),
     ),
     st.builds(Welcome, seqs, text, st.booleans()),
     keyframes(),
@@ -205,6 +210,10 @@ def _tamper(frame: bytes, **changes: Any) -> bytes:
         (lambda m: replace(m, up_cam=np.array([0.0, 0.0, 2.0])), FieldError, "body.up_cam"),
         (lambda m: replace(m, up_cam=np.array([np.nan, 0.0, 1.0])), FieldError, "body.up_cam"),
         (lambda m: replace(m, up_cam=np.zeros(2)), FieldError, "body.up_cam"),
+        (lambda m: replace(m, u_right=np.zeros(99, np.float32)), FieldError, "body.u_right"),
+        (lambda m: replace(m, u_right=np.zeros(100, np.float64)), FieldError, "body.u_right"),
+        (lambda m: replace(m, u_right=np.full(100, np.inf, np.float32)), FieldError, "body.u_right"),
+        (lambda m: replace(m, u_right=np.zeros((100, 1), np.float32)), FieldError, "body.u_right"),
         (
             lambda m: replace(m, session=1, prev_session_from_world=np.eye(4)),
             FieldError,
@@ -250,7 +259,7 @@ def test_limits_are_enforced() -> None:
 def test_envelope_errors() -> None:
     frame = encode(Ack(5), 9)
     with pytest.raises(VersionError):
-        decode(_tamper(frame, v=2))
+        decode(_tamper(frame, v=3))
     with pytest.raises(UnknownTypeError):
         decode(_tamper(frame, type="teleport"))
     with pytest.raises(FieldError) as e:
@@ -348,3 +357,43 @@ def test_hello_needs_a_mission_id_and_welcome_carries_whether_it_is_known() -> N
     assert isinstance(ok, Hello) and ok.mission == "3f2b-9c_1"
     _, w = decode(encode(Welcome(7, "v", mission_known=False), 0))
     assert isinstance(w, Welcome) and w.last_seq == 7 and w.mission_known is False
+
+
+def test_a_v1_keyframe_still_reads_as_all_mono() -> None:
+    """An older agent's v1 frames (no ``u_right``, no ``stereo_baseline``) decode with those unset; a v1
+    frame carrying a v2 field is refused, naming it."""
+    kf = _kf()
+    _, got = decode(_tamper(encode(kf, 4), v=1, body_u_right=None))
+    assert isinstance(got, Keyframe) and got.u_right is None
+    assert_same(kf, got)
+    stereo = replace(kf, u_right=np.where(np.arange(100) % 2 == 0, 300.0, np.nan).astype(np.float32))
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(encode(stereo, 4), v=1))
+    assert e.value.field == "body.u_right"
+    hello = Hello("uav1", "uav", _CAMERA, "t", mission="m1", stereo_baseline=0.11)
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(encode(hello, 1), v=1))
+    assert e.value.field == "body.stereo_baseline"
+    _, h = decode(_tamper(encode(hello, 1), v=1, body_stereo_baseline=None))
+    assert isinstance(h, Hello) and h.stereo_baseline is None
+
+
+def test_u_right_costs_four_bytes_per_keypoint() -> None:
+    """The stereo observation grows a keyframe frame by 4 bytes per keypoint plus a fixed header."""
+    kf = _kf(1000)
+    stereo = replace(kf, u_right=np.full(1000, 300.0, np.float32))
+    grow = len(encode(stereo, 1)) - len(encode(kf, 1))
+    assert 4000 <= grow <= 4000 + 32, grow
+
+
+@pytest.mark.parametrize("baseline", [0.0, -0.1, 1e3, float("nan")])
+def test_bad_stereo_baseline_is_named(baseline: float) -> None:
+    hello = Hello("uav1", "uav", _CAMERA, "t", mission="m1", stereo_baseline=baseline)
+    with pytest.raises(FieldError) as e:
+        decode(encode(hello, 1))
+    assert e.value.field == "body.stereo_baseline"
+
+
+_CAMERA: dict[str, object] = {
+    "width": 640, "height": 480, "fx": 400.0, "fy": 400.0, "cx": 320.0, "cy": 240.0, "dist": [0.0] * 4,
+}  # fmt: skip
