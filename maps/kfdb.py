@@ -1,11 +1,12 @@
 """Keyframe database: an inverted index (word -> keyframes) over every map of the stack.
 
 Scores are DBoW2 L1 scores (``sum_i min(v_i, w_i)`` over common words of L1-normalised tf-idf
-vectors), computed for all keyframes at once: the postings of the query's words are concatenated and
-accumulated with ``np.bincount`` (measured: a few ms at 10k keyframes; bench/placerec.py).
+vectors). As DBoW2's ``detectLoopCandidates``, only the keyframes sharing a word with the query are
+touched: the postings of the query's words are gathered from one word-sorted array and accumulated with
+``np.bincount``, with no Python loop per word or posting (:class:`_Postings`).
 
 Each keyframe occupies a slot; ``slot -> key, map id`` live in arrays so map filters are vectorised.
-Removing a keyframe deletes its postings (swap-with-last) and frees the slot for reuse.
+Removing a keyframe zeroes its postings and frees the slot for reuse.
 After a merge, ``reassign_map(source, target)`` relabels every keyframe of the source map.
 The BoW vector and direct index (``FeatureVector``) of each keyframe are kept for the matcher.
 """
@@ -26,31 +27,76 @@ log = logging.getLogger(__name__)
 KfKey = tuple[str, int]
 
 
-class _Posting:
-    """Growable (slot, weight) arrays of one word."""
+class _Postings:
+    """The inverted index as arrays (word, slot, weight), sorted by word, plus the keyframes added since
+    the last merge into them: scoring a query gathers its words' ranges and accumulates them in C, with no
+    Python loop per word or per posting (that loop, and appending postings one by one, were most of a
+    look-up's BoW time and grew with the database). A posting's order within its word is its arrival's.
+    Removing a keyframe zeroes its weights (its slot may be reused: zeros add nothing to a score)."""
 
-    __slots__ = ("slots", "weights", "n")
+    MERGE_EVERY = 16  # keyframes kept aside before they are merged into the sorted arrays
 
     def __init__(self) -> None:
-        self.slots = np.empty(8, dtype=np.int32)
-        self.weights = np.empty(8, dtype=np.float32)
-        self.n = 0
+        self.words = np.zeros(0, dtype=np.int32)
+        self.slots = np.zeros(0, dtype=np.int32)
+        self.weights = np.zeros(0, dtype=np.float32)
+        self._new: list[tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.float32]]] = []
+        self._new_cat: tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.float32]] | None = None
 
-    def append(self, slot: int, weight: float) -> None:
-        if self.n == len(self.slots):
-            self.slots = np.resize(self.slots, 2 * self.n)
-            self.weights = np.resize(self.weights, 2 * self.n)
-        self.slots[self.n] = slot
-        self.weights[self.n] = weight
-        self.n += 1
+    def add(self, slot: int, words: NDArray[np.int32], weights: NDArray[np.float32]) -> None:
+        self._new.append((words, np.full(len(words), slot, np.int32), weights))
+        self._new_cat = None
+        if len(self._new) >= self.MERGE_EVERY:
+            self._merge()
+
+    def _pending(self) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.float32]]:
+        if self._new_cat is None:
+            if self._new:
+                w, s, x = zip(*self._new, strict=True)
+                self._new_cat = (np.concatenate(w), np.concatenate(s), np.concatenate(x))
+            else:
+                self._new_cat = (self.words[:0], self.slots[:0], self.weights[:0])
+        return self._new_cat
+
+    def _merge(self) -> None:
+        w, s, x = self._pending()
+        order = np.argsort(w, kind="stable")
+        pos = np.searchsorted(self.words, w[order], side="right")  # after the word's older postings
+        self.words = np.insert(self.words, pos, w[order])
+        self.slots = np.insert(self.slots, pos, s[order])
+        self.weights = np.insert(self.weights, pos, x[order])
+        self._new, self._new_cat = [], None
 
     def remove(self, slot: int) -> None:
-        hit = np.flatnonzero(self.slots[: self.n] == slot)
-        for i in hit[::-1]:
-            last = self.n - 1
-            self.slots[i] = self.slots[last]
-            self.weights[i] = self.weights[last]
-            self.n = last
+        self.weights[self.slots == slot] = 0.0
+        self._new = [(w, s, np.where(s == slot, np.float32(0.0), x)) for w, s, x in self._new]
+        self._new_cat = None
+
+    def scores(
+        self, words: NDArray[np.int32], weights: NDArray[np.float64], n_slots: int
+    ) -> NDArray[np.float64]:
+        """Per slot, the sum over the query's words of ``min(query weight, posting weight)``; each slot's
+        terms are summed in the query's word order, as one loop over the words would."""
+        qw = weights.astype(np.float32)
+        lo = np.searchsorted(self.words, words, side="left")
+        hi = np.searchsorted(self.words, words, side="right")
+        lens = hi - lo
+        total = int(lens.sum())
+        out = np.zeros(n_slots)
+        if total:
+            # the postings of every query word, in the query's word order: ranges lo[i]:hi[i] laid end to end
+            starts = np.repeat(lo - np.cumsum(lens) + lens, lens)
+            idx = starts + np.arange(total)
+            terms = np.minimum(self.weights[idx], np.repeat(qw, lens))
+            out += np.bincount(self.slots[idx], weights=terms, minlength=n_slots)[:n_slots]
+        pw, ps, px = self._pending()
+        if len(pw):
+            i = np.searchsorted(words, pw)
+            hit = (i < len(words)) & (words[np.minimum(i, len(words) - 1)] == pw) if len(words) else pw < 0
+            if hit.any():
+                terms = np.minimum(px[hit], qw[i[hit]])
+                out += np.bincount(ps[hit], weights=terms, minlength=n_slots)[:n_slots]
+        return out
 
 
 @dataclass(frozen=True)
@@ -74,7 +120,7 @@ class KeyframeDatabase:
     """Inverted index over the keyframes of every map in the stack."""
 
     def __init__(self) -> None:
-        self._postings: dict[int, _Posting] = {}
+        self._postings = _Postings()
         self._slot_of: dict[KfKey, int] = {}
         self._keys: list[KfKey | None] = []
         self._map = np.zeros(0, dtype=np.int64)
@@ -127,24 +173,16 @@ class KeyframeDatabase:
         self._bows[key] = bow
         if features is not None:
             self._features[key] = features
-        postings = self._postings
-        for w, x in zip(bow.words.tolist(), bow.weights.tolist(), strict=True):
-            p = postings.get(w)
-            if p is None:
-                p = postings[w] = _Posting()
-            p.append(slot, x)
+        self._postings.add(slot, bow.words, bow.weights.astype(np.float32))
 
     def remove(self, key: KfKey) -> None:
         """Forget a keyframe (no-op if unknown)."""
         slot = self._slot_of.pop(key, None)
         if slot is None:
             return
-        bow = self._bows.pop(key)
+        self._bows.pop(key)
         self._features.pop(key, None)
-        for w in bow.words.tolist():
-            p = self._postings.get(w)
-            if p is not None:
-                p.remove(slot)
+        self._postings.remove(slot)
         self._keys[slot] = None
         self._alive[slot] = False
         self._free.append(slot)
@@ -160,28 +198,8 @@ class KeyframeDatabase:
 
     # ------------------------------------------------------------------------------------------
     def scores(self, bow: BowVector) -> NDArray[np.float64]:
-        """L1 score of ``bow`` against every slot (dead slots score 0)."""
-        n_slots = len(self._keys)
-        slot_parts: list[NDArray[np.int32]] = []
-        weight_parts: list[NDArray[np.float32]] = []
-        qw: list[float] = []
-        lens: list[int] = []
-        postings = self._postings
-        for w, x in zip(bow.words.tolist(), bow.weights.tolist(), strict=True):
-            p = postings.get(w)
-            if p is None or p.n == 0:
-                continue
-            slot_parts.append(p.slots[: p.n])
-            weight_parts.append(p.weights[: p.n])
-            qw.append(x)
-            lens.append(p.n)
-        if not slot_parts:
-            return np.zeros(n_slots)
-        slots = np.concatenate(slot_parts)
-        weights = np.concatenate(weight_parts)
-        qrep = np.repeat(np.asarray(qw, dtype=np.float32), lens)
-        out = np.bincount(slots, weights=np.minimum(weights, qrep), minlength=n_slots).astype(np.float64)
-        return out
+        """L1 score of ``bow`` against every slot (dead slots and keyframes sharing no word score 0)."""
+        return self._postings.scores(bow.words, bow.weights, len(self._keys))
 
     def scores_of(self, keys: list[KfKey], scores: NDArray[np.float64]) -> NDArray[np.float64]:
         """The entries of ``scores`` (from :meth:`scores`) for ``keys`` (0 for unknown keys)."""

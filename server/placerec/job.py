@@ -25,7 +25,6 @@ from numpy.typing import NDArray
 
 from hivemap.maps.elements import Keyframe
 from hivemap.maps.vocabulary import FeatureVector
-from hivemap.server.placerec.match import _has_point, _point_keys
 from hivemap.server.placerec.types import PlaceRecOptions, Thresholds
 from hivemap.server.placerec.views import HasCache
 
@@ -124,20 +123,26 @@ def _copy_keyframe(kf: Keyframe) -> Keyframe:
 def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = None) -> MapSlice:
     """The slice of map ``m`` (``map_id`` in the stack) holding keyframes ``keys`` (those still in it) and
     their points (``has``: which keypoints reference a point of the map, kept across queries)."""
+    has = has if has is not None else HasCache()
     kfs = [_copy_keyframe(m.keyframes[k]) for k in dict.fromkeys(keys) if k in m.keyframes]
-    refs: list[PointKey] = []
-    per_kf: list[tuple[NDArray[np.intp], list[PointKey]]] = []
-    for kf in kfs:
-        pk = _point_keys(kf)
-        mask = has.get(m, kf, pk) if has is not None else _has_point(pk, m.points)
-        idx = np.flatnonzero(mask)
-        r: list[PointKey] = [pk[i] for i in idx.tolist()]  # type: ignore[misc]
-        per_kf.append((idx, r))
-        refs.extend(r)
-    found = dict(zip(refs, map(m.points.get, refs), strict=True))  # each point once, in first-seen order
-    points = {k: p for k, p in found.items() if p is not None}
+    per_kf = [has.refs(m, kf) for kf in kfs]
+    # the references of all keyframes end to end; each point once, in first-seen order, found by its code
+    # (array work: a slice's keyframes hold ~10-20k references to ~2-5k points)
+    kp_all = np.concatenate([r[0] for r in per_kf]) if per_kf else np.zeros(0, np.intp)
+    codes = np.concatenate([r[2] for r in per_kf]) if per_kf else np.zeros(0, np.int64)
+    kf_all = np.repeat(np.arange(len(kfs), dtype=np.int64), [len(r[0]) for r in per_kf])
+    flat = list(itertools.chain.from_iterable(r[1] for r in per_kf))
+    _, first, inverse = np.unique(codes, return_index=True, return_inverse=True)
+    seen = np.argsort(first, kind="stable")
+    cand = [flat[i] for i in first[seen].tolist()]
+    found = list(map(m.points.get, cand))
+    if None in found:  # a point left the map without its keyframes' references being rewritten
+        ok = np.fromiter((p is not None for p in found), bool, len(found))
+        points = {k: p for k, p in zip(cand, found, strict=True) if p is not None}
+    else:
+        ok = np.ones(len(found), bool)
+        points = dict(zip(cand, found, strict=True))
     pts = list(points.values())
-    # column-wise through C-level iterators (map, zip): a slice holds ~1-2k points
     agent_col, id_col = tuple(zip(*points, strict=True)) if points else ((), ())
     agents = list(dict.fromkeys(agent_col))
     agent_idx = np.array(list(map({a: i for i, a in enumerate(agents)}.__getitem__, agent_col)), np.int32)
@@ -146,16 +151,13 @@ def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = 
     desc = np.array(list(map(_DESC, pts)), dtype=np.uint8).reshape(-1, 32)
     # the observations in the slice's keyframes, from the keyframes' side (a point's full observation list
     # is ~8x larger), ordered per point as the map adds them: by its keyframes' order of arrival
-    row_of = {k: i for i, k in enumerate(points)}
-    arrival = {k: i for i, k in enumerate(m.keyframes)}
-    cols: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.intp]]] = []
-    for j, (idx, r) in enumerate(per_kf):
-        rows = np.fromiter(map(row_of.get, r, itertools.repeat(-1)), np.int64, len(r))
-        keep = rows >= 0
-        cols.append((rows[keep], np.full(int(keep.sum()), j, np.int64), idx[keep]))
-    obs_pt = np.concatenate([c[0] for c in cols]) if cols else np.zeros(0, np.int64)
-    obs_kf = np.concatenate([c[1] for c in cols]) if cols else np.zeros(0, np.int64)
-    obs_kp = np.concatenate([c[2] for c in cols]) if cols else np.zeros(0, np.intp)
+    rank = np.empty(len(seen), np.int64)
+    rank[seen] = np.arange(len(seen))
+    row_by_seen = np.where(ok, np.cumsum(ok) - 1, -1)
+    rows = row_by_seen[rank[inverse.reshape(-1)]] if len(codes) else np.zeros(0, np.int64)
+    keep = rows >= 0
+    obs_pt, obs_kf, obs_kp = rows[keep], kf_all[keep], kp_all[keep]
+    arrival = has.arrival(m)
     kf_arrival = np.array([arrival.get(kf.key, len(arrival)) for kf in kfs], dtype=np.int64)
     order = np.lexsort((kf_arrival[obs_kf] if len(obs_kf) else obs_kf, obs_pt))
     return MapSlice(

@@ -50,6 +50,7 @@ def _covisible_keys(m: Any, key: KfKey) -> list[KfKey]:
 
 
 _DEFAULT_OPTIONS = PlaceRecOptions()
+_UNINDEXED_MAX = 4096
 
 
 class PlaceRecognizer:
@@ -70,6 +71,7 @@ class PlaceRecognizer:
         self.options = options
         self._consistency: dict[tuple[int, int, str], _Consistency] = {}
         self._has = HasCache()
+        self._unindexed: dict[KfKey, tuple[NDArray[np.uint8], BowVector, FeatureVector]] = {}
         # agent groups of one map joined only by a loose edge (a session guess on trial): a loop between
         # them may ask for any correction, it is the evidence that judges the guess (set by the back-end
         # from the event loop, replaced whole)
@@ -77,13 +79,15 @@ class PlaceRecognizer:
 
     # --- database ------------------------------------------------------------------------------
     def add_keyframe(self, map_id: int, kf: Any) -> BowVector:
-        bow, fv = self.vocabulary.transform(kf.descriptors)
+        bow, fv = self._transform(kf)
+        self._unindexed.pop(kf.key, None)
         self.kfdb.add(kf.key, map_id, bow, fv)
         return bow
 
     def remove_keyframe(self, key: KfKey) -> None:
         self.kfdb.remove(key)
         self._has.forget(key)
+        self._unindexed.pop(key, None)
 
     def on_merge(self, target_map: int, source_map: int) -> None:
         """After ``source_map`` was merged into ``target_map``: relabel the index, drop stale state."""
@@ -94,9 +98,21 @@ class PlaceRecognizer:
     def _fv(self, kf: Any) -> tuple[BowVector, FeatureVector]:
         fv = self.kfdb.features(kf.key) if kf.key in self.kfdb else None
         if fv is None:
-            bow, fv = self.vocabulary.transform(kf.descriptors)
-            return bow, fv
+            return self._transform(kf)
         return self.kfdb.bow(kf.key), fv
+
+    def _transform(self, kf: Any) -> tuple[BowVector, FeatureVector]:
+        """The keyframe's BoW vector and direct index; kept for keyframes a job reads before (or without)
+        their own query (a window's neighbours skipped in a backlog): its descriptors never change."""
+        hit = self._unindexed.get(kf.key)
+        if hit is not None and hit[0] is kf.descriptors:
+            return hit[1], hit[2]
+        bow, fv = self.vocabulary.transform(kf.descriptors)
+        if len(self._unindexed) >= _UNINDEXED_MAX:  # culled keyframes are never indexed nor removed
+            for k in list(self._unindexed)[: _UNINDEXED_MAX // 2]:
+                del self._unindexed[k]
+        self._unindexed[kf.key] = (kf.descriptors, bow, fv)
+        return bow, fv
 
     # --- main entry ------------------------------------------------------------------------------
     def detect(

@@ -20,30 +20,80 @@ PointKey = tuple[str, int]
 
 
 class HasCache:
-    """ "Which keypoints reference a point of the map" per keyframe, kept across queries.
+    """ "Which keypoints reference a point of the map" per keyframe, kept across queries, with what a job's
+    slice reads of it (the referencing keypoints and their point keys), and each map's keyframe order.
 
     Valid while the keyframe's references are unchanged (removing or fusing a point rewrites them, and a
     merge moves the keyframe to another map); references still pending (the point not yet in the map)
     are looked up again on every use, as their point may have arrived since."""
 
     def __init__(self) -> None:
-        self._masks: dict[KfKey, tuple[int, int, NDArray[np.bool_]]] = {}
+        self._masks: dict[KfKey, _Refs] = {}
+        self._arrival: dict[int, tuple[int, KfKey | None, dict[KfKey, int]]] = {}
+        self._agents: dict[str, int] = {}
 
-    def get(self, m: Any, kf: Any, pk: list[PointKey | None]) -> NDArray[np.bool_]:
+    def _entry(self, m: Any, kf: Any, pk: list[PointKey | None] | None = None) -> _Refs:
         stamp = hash((kf.point_ids.tobytes(), tuple(sorted(kf.point_agents.items()))))
         hit = self._masks.get(kf.key)
-        if hit is not None and hit[0] == id(m) and hit[1] == stamp:
-            has = hit[2]
-            for i in np.flatnonzero(~has & (kf.point_ids >= 0)).tolist():
-                if pk[i] in m.points:
-                    has[i] = True
-            return has
-        has = _has_point(pk, m.points)
-        self._masks[kf.key] = (id(m), stamp, has)
-        return has
+        if hit is not None and hit.map_id == id(m) and hit.stamp == stamp:
+            has = hit.has
+            arrived = [
+                i for i in np.flatnonzero(~has & (kf.point_ids >= 0)).tolist() if hit.pk[i] in m.points
+            ]
+            if arrived:
+                has[arrived] = True
+                hit.idx = None
+            return hit
+        pk = _point_keys(kf) if pk is None else pk
+        e = _Refs(id(m), stamp, pk, _has_point(pk, m.points))
+        self._masks[kf.key] = e
+        return e
+
+    def get(self, m: Any, kf: Any, pk: list[PointKey | None]) -> NDArray[np.bool_]:
+        return self._entry(m, kf, pk).has
+
+    def refs(self, m: Any, kf: Any) -> tuple[NDArray[np.intp], list[PointKey], NDArray[np.int64]]:
+        """The keypoints of ``kf`` referencing a point of ``m``, those points' keys, and the keys as one
+        integer each (agent and id; equal keys, equal codes) for array work on a slice's points."""
+        e = self._entry(m, kf)
+        if e.idx is None:
+            e.idx = np.flatnonzero(e.has)
+            e.keys = [e.pk[i] for i in e.idx.tolist()]  # type: ignore[misc]
+            agents = self._agents
+            e.codes = np.fromiter(
+                ((agents.setdefault(a, len(agents)) << _ID_BITS) | p for a, p in e.keys),
+                np.int64,
+                len(e.keys),
+            )
+        return e.idx, e.keys, e.codes
+
+    def arrival(self, m: Any) -> dict[KfKey, int]:
+        """Each keyframe of ``m`` -> its rank in the order the map added them (rebuilt when it changed:
+        a keyframe added, or removed, or one re-added at the end)."""
+        kfs = m.keyframes
+        last = next(reversed(kfs), None)
+        hit = self._arrival.get(id(m))
+        if hit is not None and hit[0] == len(kfs) and hit[1] == last:
+            return hit[2]
+        order = {k: i for i, k in enumerate(kfs)}
+        self._arrival[id(m)] = (len(kfs), last, order)
+        return order
 
     def forget(self, key: KfKey) -> None:
         self._masks.pop(key, None)
+
+
+_ID_BITS = 40  # point ids stay below 2**40; the agent's number goes above
+
+
+class _Refs:
+    __slots__ = ("map_id", "stamp", "pk", "has", "idx", "keys", "codes")
+
+    def __init__(self, map_id: int, stamp: int, pk: list[PointKey | None], has: NDArray[np.bool_]) -> None:
+        self.map_id, self.stamp, self.pk, self.has = map_id, stamp, pk, has
+        self.idx: NDArray[np.intp] | None = None
+        self.keys: list[PointKey] = []
+        self.codes = np.zeros(0, np.int64)
 
 
 class KeyframeViews:

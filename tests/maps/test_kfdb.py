@@ -99,6 +99,29 @@ def test_filters_remove_and_reassign() -> None:
     assert db.keys_of_map(1) == []
 
 
+def test_scores_stay_exact_while_keyframes_come_and_go() -> None:
+    """Postings are merged into the sorted index in batches: a keyframe removed before or after its batch
+    is merged, and its slot reused, leaves every score the direct L1 score (only sharers score > 0)."""
+    rng = np.random.default_rng(4)
+    db = KeyframeDatabase()
+    bows: dict[tuple[str, int], BowVector] = {}
+    for i in range(120):
+        k = (f"agent{i % 3}", i)
+        bows[k] = _random_bow(rng, 150, 3000)
+        db.add(k, i % 3, bows[k])
+        if i % 5 == 2:  # sometimes a keyframe just added, sometimes an old one
+            gone = list(bows)[int(rng.integers(len(bows)))]
+            db.remove(gone)
+            del bows[gone]
+        if i % 9 == 0:
+            q = _random_bow(rng, 150, 3000)
+            got = dict(db.query(q, len(bows)))
+            want = {k: l1_score(q, b) for k, b in bows.items()}
+            assert set(got) == {k for k, v in want.items() if v > 0}
+            for k, v in got.items():
+                assert v == pytest.approx(want[k], rel=1e-5)
+
+
 @pytest.fixture(scope="module")
 def place_db() -> tuple[KeyframeDatabase, list[list[BowVector]]]:
     """Map 0 = a "trajectory" of 3 nearby views of each place; queries are fresh views of each place."""
