@@ -223,6 +223,11 @@ class Backend(Pipeline):
             if skipped:
                 msg = f"backlog: {len(skipped)} keyframes not queried (their agent just queried their place)"
                 self.server.events.add("placerec", msg, data={"skipped": [list(k) for k in skipped]})
+                # a skipped keyframe is still indexed, or no later query could retrieve it as a candidate
+                # (the place-recognition thread runs this before the next query's look-up)
+                await loop.run_in_executor(
+                    self._pr_exec, detect.index_many, recognizer, stack, [(0, k) for k in skipped]
+                )
             done: asyncio.Future[None] = loop.create_future()
             task = asyncio.create_task(self._query(key, prev, done), name=f"hive-query-{key}")
             prev = done

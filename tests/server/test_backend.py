@@ -207,6 +207,23 @@ def test_disjoint_agents_stay_in_two_maps(srv: Server) -> None:
     assert srv.call(lambda: srv.hive.events.counts.get("merge", 0)) == 0
 
 
+def test_keyframes_skipped_in_a_backlog_are_still_indexed(tmp_path: Path) -> None:
+    """A backlog skips keyframes whose place their agent just queried; they must still be retrievable."""
+    rng = np.random.default_rng(3)
+    pts, desc = make_world(rng, 2000, (-20, 30))
+    msgs, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 30), UGV_FROM_WORLD)
+    s = Server(tmp_path / "data", preset("monocular", scheduler=SchedulerOptions(backlog=2)))
+    try:
+        with stream(s, "ugv1", "ugv", msgs):
+            s.wait_idle()
+        skipped = s.call(lambda: s.backend.queue.skipped)
+        indexed = s.call(lambda: sum(1 for i in range(30) if ("ugv1", i) in s.backend.recognizer.kfdb))
+    finally:
+        s.stop()
+    assert skipped > 0, "the stream did not build a backlog: the test checks nothing"
+    assert indexed == 30, (indexed, skipped)
+
+
 def test_gnss_stage_moves_merged_map_into_enu(srv: Server) -> None:
     rng = np.random.default_rng(4)
     pts, desc = make_world(rng, 2500, (-20, 30))
