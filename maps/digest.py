@@ -39,6 +39,8 @@ def map_digest(m: Map) -> str:
             _arr(h, getattr(kf, name))
         for name in ("gnss_enu", "gnss_cov", "up_cam"):
             _arr(h, getattr(kf, name))
+        if kf.odom_sigma is not None:  # (absent from older maps' digests)
+            _arr(h, kf.odom_sigma)
     for k in sorted(m.points):
         p = m.points[k]
         h.update(json.dumps([list(k), sorted((list(o), i) for o, i in p.observations.items())]).encode())

@@ -61,7 +61,8 @@ class Keyframe:
     Arrays: ``world_from_cam`` f64 (4, 4); ``keypoints`` f32 (N, 2) distorted pixels; ``octaves`` u8 (N,);
     ``descriptors`` u8 (N, 32); ``point_ids`` i64 (N,) (-1 = no point); ``gnss_enu`` f64 (3,) or None;
     ``gnss_cov`` f64 (3, 3) or None; ``up_cam`` f64 (3,) or None (the agent's IMU up direction in the
-    camera frame).
+    camera frame); ``odom_sigma`` f64 (2,) [m, deg] or None (the error weak or lost tracking added to the
+    pose relative to the agent's previous keyframe, ``protocol.Keyframe.odom_sigma``).
 
     Point references: keypoint ``i`` references point ``(agent, point_ids[i])`` where ``agent`` is
     ``point_agents.get(i, agent_id)`` (``point_agents`` only lists keypoints that reference another agent's
@@ -86,6 +87,7 @@ class Keyframe:
         "gnss_enu",
         "gnss_cov",
         "up_cam",
+        "odom_sigma",
         "parent",
     )
 
@@ -105,6 +107,7 @@ class Keyframe:
         *,
         point_keys: Sequence[PointKey | None] | None = None,
         up_cam: ArrayLike | None = None,
+        odom_sigma: ArrayLike | None = None,
     ) -> None:
         self.agent_id = str(agent_id)
         self.id = int(id)
@@ -152,6 +155,9 @@ class Keyframe:
         self.gnss_cov: F64 | None = None if gnss_cov is None else np.array(gnss_cov, np.float64).reshape(3, 3)
         # up direction (unit, against gravity) in the camera frame as the agent's IMU measured it
         self.up_cam: F64 | None = None if up_cam is None else np.array(up_cam, np.float64).reshape(3)
+        self.odom_sigma: F64 | None = (
+            None if odom_sigma is None else np.array(odom_sigma, np.float64).reshape(2)
+        )
         self.parent: KfKey | None = None
 
     @property

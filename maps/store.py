@@ -44,7 +44,7 @@ from hivemap.maps.store_schema import _KF_COLS, _KF_UPSERT, _PT_UPSERT, _SCHEMA,
 
 logger = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 2  # 2: map_keyframes.up_cam
+SCHEMA_VERSION = 3  # 2: map_keyframes.up_cam, 3: map_keyframes.odom_sigma
 
 
 class StoreError(RuntimeError):
@@ -94,6 +94,7 @@ def _kf_row(map_id: int, kf: Keyframe, seq: int) -> tuple[Any, ...]:
         None if kf.gnss_enu is None else pack_array(kf.gnss_enu),
         None if kf.gnss_cov is None else pack_array(kf.gnss_cov),
         None if kf.up_cam is None else pack_array(kf.up_cam),
+        None if kf.odom_sigma is None else pack_array(kf.odom_sigma),
         None if parent is None else parent[0],
         None if parent is None else parent[1],
     )
@@ -176,11 +177,18 @@ class MapStore:
                     f"{self.path}: map store schema version {version!r} is not supported by this hivemap "
                     f"(it reads version {SCHEMA_VERSION}); use a newer hivemap or another data directory"
                 )
-            if version < 2:  # 1 -> 2: keyframes carry the agent's IMU up direction (NULL for old rows)
+            if version < SCHEMA_VERSION:
+                # 1 -> 2: keyframes carry the agent's IMU up direction, 2 -> 3: the error weak tracking
+                # added (NULL for old rows)
+                cols = {r[1] for r in self.conn.execute("PRAGMA table_info(map_keyframes)").fetchall()}
                 with self._tx():
-                    self.conn.execute("ALTER TABLE map_keyframes ADD COLUMN up_cam BLOB")
+                    for col in ("up_cam", "odom_sigma"):
+                        if col not in cols:
+                            self.conn.execute(f"ALTER TABLE map_keyframes ADD COLUMN {col} BLOB")
                     self.conn.execute("UPDATE map_schema SET version = ?", (SCHEMA_VERSION,))
-                logger.info("%s: map store schema migrated from version %d to %d", self.path, version, 2)
+                logger.info(
+                    "%s: map store schema migrated from version %d to %d", self.path, version, SCHEMA_VERSION
+                )
             self.conn.executescript(_SCHEMA)
             return
         if tables & set(_TABLES):
@@ -491,7 +499,8 @@ class MapStore:
         for row in c.execute(
             f"SELECT {_KF_COLS} FROM map_keyframes WHERE map_id = ? ORDER BY seq", (mid,)
         ).fetchall():
-            (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pagents, genu, gcov, up, pa, pi) = row
+            (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pag, genu, gcov, up, odom) = row[:16]
+            pa, pi = row[16:]
             camera = cameras.get(cam)
             if camera is None:
                 camera = cameras[cam] = PinholeCamera.from_dict(json.loads(cam))
@@ -508,9 +517,10 @@ class MapStore:
                 None if genu is None else unpack_array(genu),
                 None if gcov is None else unpack_array(gcov),
                 up_cam=None if up is None else unpack_array(up),
+                odom_sigma=None if odom is None else unpack_array(odom),
             )
-            if pagents:
-                kf.point_agents = {int(i): a for i, a in json.loads(pagents).items()}
+            if pag:
+                kf.point_agents = {int(i): a for i, a in json.loads(pag).items()}
             m.add_keyframe(kf)
             parents[kf.key] = None if pa is None else (pa, int(pi))
         row = c.execute("SELECT agents, orphans FROM map_maps WHERE map_id = ?", (mid,)).fetchone()

@@ -332,6 +332,11 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         sigma = _arr(sigma, "body.prev_session_sigma", "<f8", (2,))
         if not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
             raise FieldError("sigmas must be finite and positive", "body.prev_session_sigma")
+    odom = b.get("odom_sigma")
+    if odom is not None:
+        odom = _arr(odom, "body.odom_sigma", "<f8", (2,))
+        if not (np.all(np.isfinite(odom)) and np.all(odom >= 0)):
+            raise FieldError("sigmas must be finite and >= 0", "body.odom_sigma")
     return Keyframe(
         kf_id=_int(b["kf_id"], "body.kf_id", 0),
         timestamp=_float(b["timestamp"], "body.timestamp"),
@@ -346,6 +351,7 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         up_cam=up,
         prev_session_from_world=guess,
         prev_session_sigma=sigma,
+        odom_sigma=odom,
     )
 
 

@@ -58,7 +58,10 @@ class Keyframe:
     Optional on the first keyframe of a session after a tracking loss (``session`` >= 1):
     ``prev_session_from_world`` f64 (4,4), the agent's guess of this session's frame in the previous
     session's, from the IMU propagation that bridged the loss, and ``prev_session_sigma`` f64 (2,) its
-    1-sigma uncertainty [position m, attitude deg], so the server can merge the session back."""
+    1-sigma uncertainty [position m, attitude deg], so the server can merge the session back.
+    Optional ``odom_sigma`` f64 (2,) [position m, attitude deg]: the 1-sigma error of this keyframe's pose
+    relative to the previous keyframe of its session that weak or lost tracking between them added; absent
+    when both tracked well, so the server's pose graph can let a loop correct a jump there."""
 
     TYPE: ClassVar[str] = "keyframe"
     kf_id: int
@@ -74,6 +77,7 @@ class Keyframe:
     up_cam: NDArray[np.float64] | None = None
     prev_session_from_world: NDArray[np.float64] | None = None
     prev_session_sigma: NDArray[np.float64] | None = None
+    odom_sigma: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ def keyframe_from_msg(
         gnss_enu=None if msg.gnss_enu is None else np.array(msg.gnss_enu, dtype=np.float64),
         gnss_cov=None if msg.gnss_cov is None else np.array(msg.gnss_cov, dtype=np.float64),
         up_cam=None if msg.up_cam is None else np.array(msg.up_cam, dtype=np.float64),
+        odom_sigma=None if msg.odom_sigma is None else np.array(msg.odom_sigma, dtype=np.float64),
     )
 
 

@@ -72,5 +72,6 @@ def emit_keyframe(fe: Frontend, kf: KeyframeData) -> None:
             new_point_descriptors=fe._pts.desc[newp].copy(),
             prev_session_from_world=kf.prev_session_from_world,
             prev_session_sigma=kf.prev_session_sigma,
+            odom_sigma=kf.odom_sigma,
         )
     )

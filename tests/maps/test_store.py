@@ -176,8 +176,8 @@ def test_writes_join_the_callers_transaction(tmp_path: Path) -> None:
 
 
 def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
-    """A store written before keyframes carried ``up_cam`` (schema 1) opens, keeps every map, and
-    stores up directions from then on."""
+    """A store written before keyframes carried ``up_cam`` (schema 1) or ``odom_sigma`` (2) opens, keeps
+    every map, and stores both from then on."""
     path = tmp_path / "v1.sqlite"
     stack = build_stack(11, 40, 2000)
     store = MapStore(path)
@@ -185,11 +185,12 @@ def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
     store.close()
     con = sqlite3.connect(path)  # make it a version-1 file: no up_cam column
     con.execute("ALTER TABLE map_keyframes DROP COLUMN up_cam")
+    con.execute("ALTER TABLE map_keyframes DROP COLUMN odom_sigma")
     con.execute("UPDATE map_schema SET version = 1")
     con.commit()
     con.close()
     store = MapStore(path)
-    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == 2
+    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == 3
     loaded = store.load_stack()
     for m in stack.maps.values():
         for kf in m.keyframes.values():
@@ -197,10 +198,12 @@ def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
     assert_stacks_equal(stack, loaded)
     kf = next(iter(loaded.maps[0].keyframes.values()))
     kf.up_cam = np.array([0.0, 0.6, 0.8])
+    kf.odom_sigma = np.array([0.9, 3.0])
     store.put_keyframe(0, kf)
     store.close()
     again = MapStore(path).load_stack()
     assert np.array_equal(again.maps[0].keyframes[kf.key].up_cam, [0.0, 0.6, 0.8])
+    assert np.array_equal(again.maps[0].keyframes[kf.key].odom_sigma, [0.9, 3.0])
 
 
 def test_refuses_newer_or_unknown_schema(tmp_path: Path) -> None:

@@ -91,6 +91,7 @@ def keyframes(draw: Any) -> Keyframe:
         up_cam=None if up is None else up / np.linalg.norm(up),
         prev_session_from_world=draw(poses()) if guess else None,
         prev_session_sigma=draw(arr(np.float64, (2,), st.floats(1e-3, 100))) if guess else None,
+        odom_sigma=draw(st.one_of(st.none(), arr(np.float64, (2,), st.floats(0, 100)))),
     )
 
 
@@ -205,6 +206,9 @@ def _tamper(frame: bytes, **changes: Any) -> bytes:
         (lambda m: replace(m, up_cam=np.array([0.0, 0.0, 2.0])), FieldError, "body.up_cam"),
         (lambda m: replace(m, up_cam=np.array([np.nan, 0.0, 1.0])), FieldError, "body.up_cam"),
         (lambda m: replace(m, up_cam=np.zeros(2)), FieldError, "body.up_cam"),
+        (lambda m: replace(m, odom_sigma=np.array([-1.0, 1.0])), FieldError, "body.odom_sigma"),
+        (lambda m: replace(m, odom_sigma=np.array([np.inf, 1.0])), FieldError, "body.odom_sigma"),
+        (lambda m: replace(m, odom_sigma=np.ones(3)), FieldError, "body.odom_sigma"),
         (
             lambda m: replace(m, session=1, prev_session_from_world=np.eye(4)),
             FieldError,
