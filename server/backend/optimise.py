@@ -152,11 +152,16 @@ def across_weak_tracking(
 
 def odometry_sigmas(chain: F64 | None, o: OptimiseOptions) -> tuple[float, float, float]:
     """(sigma_rot rad, sigma_trans m, extra yaw sigma rad) of an essential edge whose ends are
-    ``chain`` (:meth:`Chains.between`) apart; edges across agents (fused points) keep the options'."""
+    ``chain`` (:meth:`Chains.between`) apart: across weak tracking the drift over the path travelled or
+    the options' sigmas, whichever is larger, plus the weak sigma; otherwise (and across agents, by their
+    fused points) the options'."""
     base_r, base_t = o.pose_graph_sigma_rot, o.pose_graph_sigma_trans
     if chain is None:
         return base_r, base_t, 0.0
     path, turn, weak_m, weak_deg = (float(x) for x in chain)
+    if weak_m <= 0 and weak_deg <= 0:
+        # tracked well: the ends' shared points set their relative pose, which the drift does not bend
+        return base_r, base_t, 0.0
     weak_r = float(np.radians(weak_deg))
     sr = float(np.hypot(max(base_r, o.pose_graph_drift_rot * turn), weak_r))
     st = float(np.hypot(max(base_t, o.pose_graph_drift_trans * path), weak_m))
