@@ -122,6 +122,8 @@ def pose_graph_problem(
             if k in index and index[k] not in fixed:
                 initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
+    if not any(m.keyframes[k].odom_sigma is not None for k in snap.keys):
+        return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose)
     chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
     graph_edges = across_weak_tracking(graph_edges, snap.keys, chains, m)
     sigmas = [odometry_sigmas(chains.between(snap.keys[i], snap.keys[j]), o) for i, j in graph_edges]
@@ -135,13 +137,16 @@ def across_weak_tracking(
     """Where an agent's tracking was weak or lost before a keyframe (``odom_sigma``), one edge crosses
     that stretch: from its previous keyframe to it. The covisibility and spanning-tree edges across it go:
     their relative poses all carry the same tracking error, and as independent edges they would hold it
-    as many times as there are of them, so no loop could correct it."""
+    as many times as there are of them, so no loop could correct it. Loop edges stay (measured)."""
     index = {k: i for i, k in enumerate(keys)}
+    loops = {frozenset((index[a], index[b])) for a, b in m.loop_edges() if a in index and b in index}
     weak = [k for k in keys if m.keyframes[k].odom_sigma is not None and chains.previous(k) is not None]
     if not weak:
         return graph_edges
 
     def crosses(i: int, j: int) -> bool:
+        if frozenset((i, j)) in loops:
+            return False
         d = chains.between(keys[i], keys[j])
         return d is not None and bool(np.any(d[2:] > 0))
 
