@@ -412,6 +412,7 @@ class _Stream:
                     session, core.up_in_cam(ev.session, ev.kf_id), ev.prev_session_from_world,
                     None if ev.prev_session_sigma is None else np.asarray(ev.prev_session_sigma, np.float64),
                     ev.u_right,
+                    None if ev.odom_sigma is None else np.asarray(ev.odom_sigma, np.float64),
                 )
             )  # fmt: skip
         elif isinstance(ev, PoseUpdateEvent):

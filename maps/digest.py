@@ -42,6 +42,8 @@ def map_digest(m: Map) -> str:
         if kf.u_right is not None:  # a mono keyframe's digest is what it was before stereo existed
             _arr(h, kf.u_right)
             h.update(np.float64(kf.stereo_baseline).tobytes())
+        if kf.odom_sigma is not None:  # (absent from older maps' digests)
+            _arr(h, kf.odom_sigma)
     for k in sorted(m.points):
         p = m.points[k]
         h.update(json.dumps([list(k), sorted((list(o), i) for o, i in p.observations.items())]).encode())

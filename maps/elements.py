@@ -64,6 +64,8 @@ class Keyframe:
     camera frame); ``u_right`` f32 (N,) or None with ``stereo_baseline`` (m): per keypoint its stereo
     match's u in the virtual rectified right camera (the camera's undistorted pinhole intrinsics, the
     baseline along x), NaN where none (``hivemap.protocol.Keyframe``); None for a monocular keyframe.
+    camera frame); ``odom_sigma`` f64 (2,) [m, deg] or None (the error weak or lost tracking added to the
+    pose relative to the agent's previous keyframe, ``protocol.Keyframe.odom_sigma``).
 
     Point references: keypoint ``i`` references point ``(agent, point_ids[i])`` where ``agent`` is
     ``point_agents.get(i, agent_id)`` (``point_agents`` only lists keypoints that reference another agent's
@@ -90,6 +92,7 @@ class Keyframe:
         "up_cam",
         "u_right",
         "stereo_baseline",
+        "odom_sigma",
         "parent",
     )
 
@@ -111,6 +114,7 @@ class Keyframe:
         up_cam: ArrayLike | None = None,
         u_right: ArrayLike | None = None,
         stereo_baseline: float | None = None,
+        odom_sigma: ArrayLike | None = None,
     ) -> None:
         self.agent_id = str(agent_id)
         self.id = int(id)
@@ -167,6 +171,9 @@ class Keyframe:
             if not stereo_baseline > 0:
                 raise ValueError(f"stereo_baseline must be positive, got {stereo_baseline}")
             self.stereo_baseline = float(stereo_baseline)
+        self.odom_sigma: F64 | None = (
+            None if odom_sigma is None else np.array(odom_sigma, np.float64).reshape(2)
+        )
         self.parent: KfKey | None = None
 
     @property

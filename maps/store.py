@@ -44,7 +44,7 @@ from hivemap.maps.store_schema import _KF_COLS, _KF_UPSERT, _PT_UPSERT, _SCHEMA,
 
 logger = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 3  # 2: map_keyframes.up_cam; 3: map_keyframes.u_right, stereo_baseline
+SCHEMA_VERSION = 4  # 2: map_keyframes.up_cam; 3: u_right, stereo_baseline; 4: odom_sigma
 
 
 class StoreError(RuntimeError):
@@ -96,6 +96,7 @@ def _kf_row(map_id: int, kf: Keyframe, seq: int) -> tuple[Any, ...]:
         None if kf.up_cam is None else pack_array(kf.up_cam),
         None if kf.u_right is None else pack_array(kf.u_right),
         kf.stereo_baseline,
+        None if kf.odom_sigma is None else pack_array(kf.odom_sigma),
         None if parent is None else parent[0],
         None if parent is None else parent[1],
     )
@@ -179,12 +180,19 @@ class MapStore:
                     f"(it reads version {SCHEMA_VERSION}); use a newer hivemap or another data directory"
                 )
             if version < SCHEMA_VERSION:
+                # each step adds NULL columns (old rows: no up direction, mono, tracked well); a column is
+                # added by its absence, not by the version, as a development store may hold a later one only
+                cols = {r[1] for r in self.conn.execute("PRAGMA table_info(map_keyframes)").fetchall()}
+                added = (
+                    ("up_cam", "BLOB"),  # 1 -> 2: keyframes carry the agent's IMU up direction
+                    ("u_right", "BLOB"),  # 2 -> 3: and their stereo observations
+                    ("stereo_baseline", "REAL"),
+                    ("odom_sigma", "BLOB"),  # 3 -> 4: and the error weak or lost tracking added
+                )
                 with self._tx():
-                    if version < 2:  # keyframes carry the agent's IMU up direction (NULL for old rows)
-                        self.conn.execute("ALTER TABLE map_keyframes ADD COLUMN up_cam BLOB")
-                    if version < 3:  # and their stereo observations (NULL: mono, as every old row)
-                        self.conn.execute("ALTER TABLE map_keyframes ADD COLUMN u_right BLOB")
-                        self.conn.execute("ALTER TABLE map_keyframes ADD COLUMN stereo_baseline REAL")
+                    for col, kind in added:
+                        if col not in cols:
+                            self.conn.execute(f"ALTER TABLE map_keyframes ADD COLUMN {col} {kind}")
                     self.conn.execute("UPDATE map_schema SET version = ?", (SCHEMA_VERSION,))
                 logger.info(
                     "%s: map store schema migrated from version %d to %d", self.path, version, SCHEMA_VERSION
@@ -499,7 +507,7 @@ class MapStore:
         for row in c.execute(
             f"SELECT {_KF_COLS} FROM map_keyframes WHERE map_id = ? ORDER BY seq", (mid,)
         ).fetchall():
-            (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pagents, genu, gcov, up, ur, base, pa,
+            (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pag, genu, gcov, up, ur, base, odom, pa,
              pi) = row  # fmt: skip
             camera = cameras.get(cam)
             if camera is None:
@@ -519,9 +527,10 @@ class MapStore:
                 up_cam=None if up is None else unpack_array(up),
                 u_right=None if ur is None else unpack_array(ur),
                 stereo_baseline=base,
+                odom_sigma=None if odom is None else unpack_array(odom),
             )
-            if pagents:
-                kf.point_agents = {int(i): a for i, a in json.loads(pagents).items()}
+            if pag:
+                kf.point_agents = {int(i): a for i, a in json.loads(pag).items()}
             m.add_keyframe(kf)
             parents[kf.key] = None if pa is None else (pa, int(pi))
         row = c.execute("SELECT agents, orphans FROM map_maps WHERE map_id = ?", (mid,)).fetchone()

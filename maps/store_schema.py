@@ -38,6 +38,7 @@ CREATE TABLE IF NOT EXISTS map_keyframes (
     up_cam BLOB,
     u_right BLOB,                         -- float32 per keypoint, NaN = mono; NULL for a mono keyframe
     stereo_baseline REAL,
+    odom_sigma BLOB,
     parent_agent TEXT,
     parent_id INTEGER,
     PRIMARY KEY (map_id, agent, id)
@@ -73,16 +74,17 @@ CREATE INDEX IF NOT EXISTS map_merges_map ON map_merges (map_id);
 
 _KF_COLS = (
     "map_id, agent, id, seq, timestamp, world_from_cam, camera, keypoints, octaves, descriptors, "
-    "point_ids, point_agents, gnss_enu, gnss_cov, up_cam, u_right, stereo_baseline, parent_agent, parent_id"
+    "point_ids, point_agents, gnss_enu, gnss_cov, up_cam, u_right, stereo_baseline, odom_sigma, "
+    "parent_agent, parent_id"
 )
 _KF_UPSERT = (
-    f"INSERT INTO map_keyframes ({_KF_COLS}) VALUES ({', '.join('?' * 19)}) "
+    f"INSERT INTO map_keyframes ({_KF_COLS}) VALUES ({', '.join('?' * 20)}) "
     "ON CONFLICT (map_id, agent, id) DO UPDATE SET timestamp = excluded.timestamp, "
     "world_from_cam = excluded.world_from_cam, camera = excluded.camera, keypoints = excluded.keypoints, "
     "octaves = excluded.octaves, descriptors = excluded.descriptors, point_ids = excluded.point_ids, "
     "point_agents = excluded.point_agents, gnss_enu = excluded.gnss_enu, gnss_cov = excluded.gnss_cov, "
     "up_cam = excluded.up_cam, u_right = excluded.u_right, stereo_baseline = excluded.stereo_baseline, "
-    "parent_agent = excluded.parent_agent, parent_id = excluded.parent_id"
+    "odom_sigma = excluded.odom_sigma, parent_agent = excluded.parent_agent, parent_id = excluded.parent_id"
 )
 _PT_UPSERT = (
     "INSERT INTO map_points (map_id, agent, id, seq, xyz, descriptor) VALUES (?, ?, ?, ?, ?, ?) "

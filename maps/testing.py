@@ -64,6 +64,8 @@ def random_keyframes_and_points(
             kp = kfs[-1].keypoints
             kfs[-1].u_right = np.where(np.arange(n_kp) % 2 == 0, kp[:, 0] - 7.5, np.nan).astype(np.float32)
             kfs[-1].stereo_baseline = 0.11
+        if k % 5 == 3:  # a keyframe after weak tracking (no draws either)
+            kfs[-1].odom_sigma = np.array([0.05 * k, 1.5])
     return kfs, pts
 
 

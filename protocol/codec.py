@@ -73,7 +73,7 @@ def _default(obj: Any) -> Any:
 
 
 def encode(msg: Message, seq: int) -> bytes:
-    """Encode one message as a protocol v1 frame."""
+    """Encode one message as a frame of the current protocol version."""
     body = {f.name: getattr(msg, f.name) for f in fields(msg)}
     frame = {"v": PROTOCOL_VERSION, "type": msg.TYPE, "seq": int(seq), "body": body}
     return msgpack.packb(frame, default=_default, use_bin_type=True)
@@ -347,6 +347,11 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         sigma = _arr(sigma, "body.prev_session_sigma", "<f8", (2,))
         if not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
             raise FieldError("sigmas must be finite and positive", "body.prev_session_sigma")
+    odom = b.get("odom_sigma")
+    if odom is not None:
+        odom = _arr(odom, "body.odom_sigma", "<f8", (2,))
+        if not (np.all(np.isfinite(odom)) and np.all(odom >= 0)):
+            raise FieldError("sigmas must be finite and >= 0", "body.odom_sigma")
     return Keyframe(
         kf_id=_int(b["kf_id"], "body.kf_id", 0),
         timestamp=_float(b["timestamp"], "body.timestamp"),
@@ -362,6 +367,7 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         prev_session_from_world=guess,
         prev_session_sigma=sigma,
         u_right=ur,
+        odom_sigma=odom,
     )
 
 
@@ -456,8 +462,8 @@ _VALIDATORS: dict[str, Callable[[dict[str, Any], Limits], Message]] = {
     "bye": _v_bye,
 }
 _FIELDS = {name: {f.name for f in fields(cls)} for name, cls in MESSAGE_TYPES.items()}
-# fields a v1 frame cannot have (its reader takes their defaults: a v1 keyframe is all mono)
-_V2_FIELDS = {"hello": {"stereo_baseline"}, "keyframe": {"u_right"}}
+# fields a v1 frame cannot have (its reader takes their defaults: a v1 keyframe is all mono, tracked well)
+_V2_FIELDS = {"hello": {"stereo_baseline"}, "keyframe": {"u_right", "odom_sigma"}}
 _REQUIRED = {
     name: {f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING}
     for name, cls in MESSAGE_TYPES.items()

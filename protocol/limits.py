@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-# 2: keyframes carry ``u_right``, hellos ``stereo_baseline``. A v1 frame still reads (all keypoints mono).
+# 2: keyframes carry ``u_right`` and ``odom_sigma``, hellos ``stereo_baseline``. A v1 frame still reads
+# (all keypoints mono, every keyframe tracked well).
 PROTOCOL_VERSION = 2
 SUPPORTED_VERSIONS = (1, 2)
 

@@ -64,7 +64,10 @@ class Keyframe:
     1-sigma uncertainty [position m, attitude deg], so the server can merge the session back.
     Optional ``u_right`` f32 (N,) (protocol v2): per keypoint, its stereo match's u in the virtual
     rectified right camera (cam0's undistorted pinhole intrinsics, ``Hello.stereo_baseline`` along x),
-    NaN where the keypoint has no stereo match; what lets the server's global BA hold metric scale."""
+    NaN where the keypoint has no stereo match; what lets the server's global BA hold metric scale.
+    Optional ``odom_sigma`` f64 (2,) [position m, attitude deg]: the 1-sigma error of this keyframe's pose
+    relative to the previous keyframe of its session that weak or lost tracking between them added; absent
+    when both tracked well, so the server's pose graph can let a loop correct a jump there."""
 
     TYPE: ClassVar[str] = "keyframe"
     kf_id: int
@@ -81,6 +84,7 @@ class Keyframe:
     prev_session_from_world: NDArray[np.float64] | None = None
     prev_session_sigma: NDArray[np.float64] | None = None
     u_right: NDArray[np.float32] | None = None
+    odom_sigma: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,7 @@ def keyframe_from_msg(
         up_cam=None if msg.up_cam is None else np.array(msg.up_cam, dtype=np.float64),
         u_right=None if msg.u_right is None or stereo_baseline is None else msg.u_right,
         stereo_baseline=stereo_baseline,
+        odom_sigma=None if msg.odom_sigma is None else np.array(msg.odom_sigma, dtype=np.float64),
     )
 
 

@@ -73,5 +73,6 @@ def emit_keyframe(fe: Frontend, kf: KeyframeData) -> None:
             prev_session_from_world=kf.prev_session_from_world,
             prev_session_sigma=kf.prev_session_sigma,
             u_right=f.meas[:, 2].astype(np.float32),
+            odom_sigma=kf.odom_sigma,
         )
     )

@@ -54,6 +54,8 @@ class KeyframeEvent:
     New points: those its keypoints reference that were not emitted before.
     ``prev_session_from_world`` / ``prev_session_sigma`` [m, deg]: on the first keyframe of a session
     the IMU bridged from the previous one, the guess of this session's frame in that one's.
+    ``odom_sigma`` [m, deg]: the error of this keyframe's pose relative to the previous one that weak or
+    lost tracking between them added (None: both tracked well).
     """
 
     session: int
@@ -76,6 +78,7 @@ class KeyframeEvent:
     prev_session_sigma: tuple[float, float] | None = None
     # per keypoint its stereo match's u in the virtual rectified right camera (undistorted), NaN if none
     u_right: NDArray[np.float32] | None = None
+    odom_sigma: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)

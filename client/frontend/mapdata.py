@@ -64,6 +64,8 @@ class KeyframeData:
     # first keyframe of a session after a loss: this session's frame in the previous one's + [m, deg]
     prev_session_from_world: F64 | None = None
     prev_session_sigma: tuple[float, float] | None = None
+    # [m, deg]: error weak or lost tracking since the previous keyframe added (None: tracked well)
+    odom_sigma: tuple[float, float] | None = None
     bow: Any = None  # bag-of-words vector, computed when relocalisation first needs it
     # inertial state (with an IMU): preintegration from the previous keyframe, world velocity of the
     # body and the biases [gyro, accel], refined by the visual-inertial local BA

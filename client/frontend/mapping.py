@@ -62,6 +62,8 @@ def create_keyframe(fe: Frontend, frame: Frame, gnss_epoch: bool, first: bool = 
     )
     fe._kfs[kid] = kf
     fe.stats.keyframes += 1
+    odom = fe.take_odom_sigma()
+    kf.odom_sigma = odom if prev is not None else None
     if fe.kf_imu is not None and fe.imu is not None:
         bias = fe.imu.bias_vector()
         pre = fe.kf_imu.take(bias)

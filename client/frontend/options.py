@@ -57,6 +57,13 @@ class FrontendOptions:
     imu_hold_s: float = 3.0  # with an IMU: IMU-only propagation this long before a new session
     # tracking quality: OK from this many inliers, WEAK from ``min_tracked``
     good_min_inliers: int = 50
+    # what weak or lost tracking adds to the next keyframe's pose error relative to the previous keyframe
+    # (``Keyframe.odom_sigma``), in quadrature per frame: a weak frame's pose passed only the IMU gate;
+    # a lost stretch adds the IMU propagation's sigmas when tracking resumes, this per frame without one
+    odom_weak_sigma_m: float = 0.3
+    odom_weak_sigma_deg: float = 1.0
+    odom_lost_sigma_m: float = 0.5
+    odom_lost_sigma_deg: float = 2.0
     # imu
     gravity_init_s: float = 1.0
     # visual-inertial tracking: the IMU's pose prediction as a prior in the frame-to-map refinement,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 
 import cv2
@@ -98,6 +99,7 @@ class Frontend:
         self._vis_info = np.eye(6)  # information of the last visual pose solved
         self._lost_since: float | None = None
         self._bridged = False  # the IMU bridged the loss that started the current session
+        self._odom_var = np.zeros(2)  # [m^2, deg^2] weak or lost tracking added since the last keyframe
 
     # ------------------------------------------------------------------ public API
     @property
@@ -193,6 +195,7 @@ class Frontend:
             self.stats.weak_frames += 1
         t2 = time.perf_counter()
         if ok:
+            self._add_odom_error(state, self._lost_count)
             self._lost_count = 0
             self._lost_since = None
             imu.visual_update(self, frame, pim, state)
@@ -221,6 +224,28 @@ class Frontend:
         if state == TrackingState.INITIALIZING:
             frame.T_cw = T_pred
         return self._result(frame, n_tracked, new_kf, state)
+
+    def _add_odom_error(self, state: TrackingState, n_lost: int) -> None:
+        """A tracked frame: what the stretch before it adds to the next keyframe's relative pose error.
+        After lost frames (or a relocalisation) that is the IMU propagation's error, which the visual
+        pose now replaces; a weak frame's pose passed the IMU gate with few inliers."""
+        o = self.options
+        if n_lost or state == TrackingState.RELOCALIZED:
+            if self._filter is not None:
+                m, deg = self._filter.sigmas()
+            else:
+                n = math.sqrt(max(n_lost, 1))
+                m, deg = n * o.odom_lost_sigma_m, n * o.odom_lost_sigma_deg
+            self._odom_var += (m * m, deg * deg)
+        if state == TrackingState.WEAK:
+            self._odom_var += (o.odom_weak_sigma_m**2, o.odom_weak_sigma_deg**2)
+
+    def take_odom_sigma(self) -> tuple[float, float] | None:
+        """The error weak or lost tracking added since the last keyframe [m, deg] (None: none), reset."""
+        var, self._odom_var = self._odom_var, np.zeros(2)
+        if not np.any(var > 0):
+            return None
+        return float(math.sqrt(var[0])), float(math.sqrt(var[1]))
 
     # ------------------------------------------------------------------ frames
     def _make_frame(self, t: float, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> Frame:
@@ -316,6 +341,7 @@ class Frontend:
         self._local_pids = np.zeros(0, np.int64)
         self._kf_last_id = -1
         self._ref_tracked = 0
+        self._odom_var = np.zeros(2)
         if self.kf_imu is not None:
             self.kf_imu.reset()
 

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3, rotation_angle_deg
+from hivemap.maps.odometry import correction_slack
 from hivemap.server.backend.fit import fit_pairs
 from hivemap.server.backend.options import AcceptOptions
 from hivemap.server.placerec import Detection, correction_of
@@ -190,12 +191,15 @@ def loop_refusal(
         # Metric (stereo-inertial) maps drift by decimetres, not metres: a loop that would move the
         # query farther or turn it more is a false match (it bends the map until the GNSS stage rejects
         # every fix).
+        # (unless weak or lost tracking between the two keyframes may have put the error there: the
+        # limits grow by that, and the robust pose graph judges the loop)
         move, turn = correction_of(det.target_from_source, m.keyframes[det.query_key].world_from_cam)
-        if move > o.loop_max_correction_m or turn > o.loop_max_correction_deg:
+        slack = correction_slack(m, det.query_key, det.candidate_key)
+        lim_m, lim_deg = o.loop_max_correction_m + slack[0], o.loop_max_correction_deg + slack[1]
+        if move > lim_m or turn > lim_deg:
             return (
                 f"loop {det.query_key} -> {det.candidate_key} refused: it would move the query "
-                f"{move:.2f} m / {turn:.1f} deg (limits {o.loop_max_correction_m} m, "
-                f"{o.loop_max_correction_deg} deg)",
+                f"{move:.2f} m / {turn:.1f} deg (limits {lim_m:.2f} m, {lim_deg:.1f} deg)",
                 {"refused": True, "move_m": move, "turn_deg": turn, "n_inliers": det.n_inliers},
             )
     tilt = gravity_disagreement_deg(measured, *ups)

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
+from hivemap.maps.odometry import Chains
 from hivemap.server.backend.options import OptimiseOptions
 from hivemap.server.optim import PoseGraphOptions, PoseGraphResult
 
@@ -74,6 +75,9 @@ class PoseGraphProblem:
     # for each of ``new_edges``, its index in the ``edges`` the problem was built from
     new_edge_source: list[int] = field(default_factory=list)
     loose: list[int] = field(default_factory=list)  # one keyframe per side held apart (a loose prior)
+    # per graph edge (sigma_rot rad, sigma_trans m, extra yaw sigma rad); None: the options' sigmas
+    graph_sigmas: list[tuple[float, float, float]] | None = None
+    move_slack_m: float = 0.0  # how much farther than the options' limit weak tracking lets a keyframe move
 
 
 def pose_graph_problem(
@@ -118,7 +122,55 @@ def pose_graph_problem(
             if k in index and index[k] not in fixed:
                 initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
-    return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose)
+    if not any(m.keyframes[k].odom_sigma is not None for k in snap.keys):
+        return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose)
+    chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
+    graph_edges = across_weak_tracking(graph_edges, snap.keys, chains, m)
+    sigmas = [odometry_sigmas(chains.between(snap.keys[i], snap.keys[j]), o) for i, j in graph_edges]
+    slack = max((3.0 * float(chains.weak_total(a)[0]) for a in {k[0] for k in snap.keys}), default=0.0)
+    return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, sigmas, slack)
+
+
+def across_weak_tracking(
+    graph_edges: list[tuple[int, int]], keys: list[KfKey], chains: Chains, m: Any
+) -> list[tuple[int, int]]:
+    """Where an agent's tracking was weak or lost before a keyframe (``odom_sigma``), one edge crosses
+    that stretch: from its previous keyframe to it. The covisibility and spanning-tree edges across it go:
+    their relative poses all carry the same tracking error, and as independent edges they would hold it
+    as many times as there are of them, so no loop could correct it. Loop edges stay (measured)."""
+    index = {k: i for i, k in enumerate(keys)}
+    loops = {frozenset((index[a], index[b])) for a, b in m.loop_edges() if a in index and b in index}
+    weak = [k for k in keys if m.keyframes[k].odom_sigma is not None and chains.previous(k) is not None]
+    if not weak:
+        return graph_edges
+
+    def crosses(i: int, j: int) -> bool:
+        if frozenset((i, j)) in loops:
+            return False
+        d = chains.between(keys[i], keys[j])
+        return d is not None and bool(np.any(d[2:] > 0))
+
+    kept = [(i, j) for i, j in graph_edges if not crosses(i, j)]
+    odo = {tuple(sorted((index[p], index[k]))) for k in weak if (p := chains.previous(k)) is not None}
+    return kept + sorted((int(a), int(b)) for a, b in odo)
+
+
+def odometry_sigmas(chain: F64 | None, o: OptimiseOptions) -> tuple[float, float, float]:
+    """(sigma_rot rad, sigma_trans m, extra yaw sigma rad) of an essential edge whose ends are
+    ``chain`` (:meth:`Chains.between`) apart: across weak tracking the drift over the path travelled or
+    the options' sigmas, whichever is larger, plus the weak sigma; otherwise (and across agents, by their
+    fused points) the options'."""
+    base_r, base_t = o.pose_graph_sigma_rot, o.pose_graph_sigma_trans
+    if chain is None:
+        return base_r, base_t, 0.0
+    path, turn, weak_m, weak_deg = (float(x) for x in chain)
+    if weak_m <= 0 and weak_deg <= 0:
+        # tracked well: the ends' shared points set their relative pose, which the drift does not bend
+        return base_r, base_t, 0.0
+    weak_r = float(np.radians(weak_deg))
+    sr = float(np.hypot(max(base_r, o.pose_graph_drift_rot * turn), weak_r))
+    st = float(np.hypot(max(base_t, o.pose_graph_drift_trans * path), weak_m))
+    return sr, st, weak_r
 
 
 def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey, Sim3], float]:
@@ -139,6 +191,7 @@ def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseO
         sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
         sigma_yaw=o.pose_graph_sigma_yaw if o.pose_graph_sigma_yaw > 0 else None, ups=p.ups,
         options=PoseGraphOptions(gnc=o.gnc, gnc_inlier_probability=o.gnc_inlier_probability), loose=p.loose,
+        graph_sigmas=p.graph_sigmas,
     )  # fmt: skip
     n = len(p.graph_edges)
     return PoseGraphResult(res.poses, res.inlier[n:], res.chi2[n:])
@@ -157,12 +210,14 @@ def pose_graph(
     ups: F64 | None = None,
     options: PoseGraphOptions | None = None,
     loose: Sequence[int] = (),
+    graph_sigmas: Sequence[tuple[float, float, float]] | None = None,
 ) -> PoseGraphResult:
     """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
     with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust (Huber,
     or judged by GNC with ``options.gnc``; the result's ``inlier`` has one flag per edge, graph's first).
     ``sigma_yaw`` with ``ups`` ((N, 3) up directions in the keyframes' camera frames, NaN rows where there
     is none): the graph's edges hold the rotation about the far keyframe's up with this sigma instead.
+    ``graph_sigmas``: per graph edge (sigma_rot, sigma_trans, extra yaw sigma), instead of ``sigmas``.
 
     ``metric``: the map has metric scale (stereo agents), so the graph is SE(3) (gtsam Pose3). A Sim(3)
     graph let scale creep in at each of the dozens of loop closures of a factory run until poses
@@ -175,17 +230,18 @@ def pose_graph(
             return None
         return (float(ups[j][0]), float(ups[j][1]), float(ups[j][2]))
 
+    per_edge = graph_sigmas if graph_sigmas is not None else [(sigmas[0], sigmas[1], 0.0)] * len(graph_edges)
     edges = [
         PoseGraphEdge(
             i,
             j,
             relative_sim3(poses[i], poses[j]),
-            sigma_rot=sigmas[0],
-            sigma_trans=sigmas[1],
-            sigma_yaw=sigma_yaw,
+            sigma_rot=sr,
+            sigma_trans=st,
+            sigma_yaw=None if sigma_yaw is None else float(np.hypot(sigma_yaw, sy)),
             up_j=up(j),
         )  # fmt: skip
-        for i, j in graph_edges
+        for (i, j), (sr, st, sy) in zip(graph_edges, per_edge, strict=True)
     ]
     edges += [PoseGraphEdge(i, j, s, sr, st, robust=True) for i, j, s, sr, st in new_edges]
     opts = options or PoseGraphOptions()

@@ -95,6 +95,11 @@ class OptimiseOptions:
     pose_graph_sigma_rot: float = 0.01  # rad, essential edges
     pose_graph_sigma_trans: float = 0.05  # m, essential edges
     pose_graph_sigma_yaw: float = 0.0  # rad about the keyframe's up direction; 0: sigma_rot (isotropic)
+    # The odometry edge across a stretch of weak or lost tracking is as sure as the odometry there: the
+    # sigmas above or the drift over the path travelled (m per m, rad per rad), whichever is larger, plus,
+    # in quadrature, the error the front-end reported (``Keyframe.odom_sigma``)
+    pose_graph_drift_trans: float = 0.02
+    pose_graph_drift_rot: float = 0.02
     # Loop and merge edges are judged by graduated non-convexity (truncated least squares) at every pose
     # graph, all of a map's kept edges together: one the rest contradicts gets no weight and is reported
     # rejected (False: Huber, which still pulls).

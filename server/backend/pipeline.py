@@ -338,9 +338,10 @@ class Pipeline:
         if judged and not await robust.apply_verdict(self, cur, judged, problem, res):
             return False
         corr, moved = optimise.pose_graph_corrections(snap, res.poses)
-        if moved > o.pose_graph_max_move_m:
+        limit = o.pose_graph_max_move_m + problem.move_slack_m  # weak tracking may have jumped farther
+        if moved > limit:
             self.server.events.add("pose_graph", f"map {map_id}: pose graph refused (a keyframe would move "
-                                   f"{moved:.1f} m > {o.pose_graph_max_move_m} m)", map_id=map_id,
+                                   f"{moved:.1f} m > {limit:.1f} m)", map_id=map_id,
                                    data={"refused": True, "max_move_m": moved})  # fmt: skip
             return False
         self._apply_corrections(cur, corr, {})

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3, rotation_angle_deg
 from hivemap.maps.kfdb import KeyframeDatabase
+from hivemap.maps.odometry import correction_slack
 from hivemap.maps.vocabulary import BowVector, FeatureVector, Vocabulary
 from hivemap.server.placerec.job import Candidate, QueryJob, slice_of
 from hivemap.server.placerec.match import _best_covisible
@@ -207,7 +208,9 @@ class PlaceRecognizer:
             by_map.setdefault(cmap, []).extend([ck, *window])
             a, b = query_key[0], ck[0]
             loose = any((a in s and b in t) or (a in t and b in s) for s, t in self.loose_pairs)
-            out.append(Candidate(ck, cmap, kind, score, fs, window, free_correction=loose))
+            slack = correction_slack(maps[query_map], query_key, ck) if kind == "loop" else (0.0, 0.0)
+            out.append(Candidate(ck, cmap, kind, score, fs, window, free_correction=loose,
+                                 correction_slack=slack))  # fmt: skip
         slices = [slice_of(maps[mid], mid, keys, self._has) for mid, keys in by_map.items() if mid in maps]
         features = {kf.key: self._fv(kf)[1] for s in slices for kf in s.keyframes}
         return QueryJob(o, th, query_key, query_map, out, slices, features, best)

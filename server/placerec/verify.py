@@ -59,7 +59,8 @@ def run_job(job: QueryJob) -> list[CandidateReport]:
             out.append(rep)
             continue
         rep = verify(job.options, fv_of, maps, job.query_map, job.query_key, c.map_id, c.key,
-                     c.fix_scale, job.thresholds, c.kind, views, c.free_correction)  # fmt: skip
+                     c.fix_scale, job.thresholds, c.kind, views, c.free_correction,
+                     c.correction_slack)  # fmt: skip
         rep.bow_score = c.bow_score
         out.append(rep)
         if rep.accepted:
@@ -81,13 +82,14 @@ def verify(
     kind: str,
     views: KeyframeViews | None = None,
     free_correction: bool = False,
+    correction_slack: tuple[float, float] = (0.0, 0.0),
 ) -> CandidateReport:
     t0, c0 = time.perf_counter(), time.thread_time()
     rep = CandidateReport(query_key, cand_key, cand_map, kind)
     views = views if views is not None else KeyframeViews()
     try:
         _verify_inner(o, fv_of, maps, query_map, query_key, cand_map, cand_key, fix_scale, th, rep, views,
-                      free_correction)  # fmt: skip
+                      free_correction, correction_slack)  # fmt: skip
     except KeyError as e:
         # a point or keyframe the verification reads was fused away by the event loop meanwhile (about
         # ten per factory run): skipped, as a merged-away map is
@@ -116,6 +118,7 @@ def _verify_inner(
     rep: CandidateReport,
     views: KeyframeViews,
     free_correction: bool = False,
+    correction_slack: tuple[float, float] = (0.0, 0.0),
 ) -> None:
     mq, mc = maps.get(query_map), maps.get(cand_map)
     if mq is None or mc is None:
@@ -193,7 +196,11 @@ def _verify_inner(
             rep.reason = "metric_scale_inconsistent"
             return
     sim_ransac = sim
-    if rep.kind == "loop" and not free_correction and _implausible_correction(o, sim, q.world_from_cam, rep):
+    if (
+        rep.kind == "loop"
+        and not free_correction
+        and _implausible_correction(o, sim, q.world_from_cam, rep, correction_slack)
+    ):
         return
 
     # 3. guided search both ways, refine, guided search again, refine again
@@ -237,19 +244,27 @@ def _verify_inner(
     if rep.n_inliers < th.min_projected:
         rep.reason = "few_projected_inliers"
         return
-    if rep.kind == "loop" and not free_correction and _implausible_correction(o, sim, q.world_from_cam, rep):
+    if (
+        rep.kind == "loop"
+        and not free_correction
+        and _implausible_correction(o, sim, q.world_from_cam, rep, correction_slack)
+    ):
         return
     rep.accepted = True
     rep.reason = "accepted"
     rep.query_xyz = np.array([mq.points[k].xyz for k in rep.query_points], dtype=np.float64)
 
 
-def _implausible_correction(o: PlaceRecOptions, sim: Sim3, world_from_cam: Any, rep: CandidateReport) -> bool:
-    """True (and ``rep.reason`` set) when a loop's ``sim`` moves the query keyframe beyond the limits."""
+def _implausible_correction(
+    o: PlaceRecOptions, sim: Sim3, world_from_cam: Any, rep: CandidateReport, slack: tuple[float, float]
+) -> bool:
+    """True (and ``rep.reason`` set) when a loop's ``sim`` moves the query keyframe beyond the limits,
+    each widened by ``slack`` [m, deg] (:func:`hivemap.maps.odometry.correction_slack`)."""
     if o.loop_max_correction_m <= 0 and o.loop_max_correction_deg <= 0:
         return False
     move, turn = correction_of(sim, world_from_cam)
-    if (0 < o.loop_max_correction_m < move) or (0 < o.loop_max_correction_deg < turn):
+    lim_m, lim_deg = o.loop_max_correction_m + slack[0], o.loop_max_correction_deg + slack[1]
+    if (o.loop_max_correction_m > 0 and lim_m < move) or (o.loop_max_correction_deg > 0 and lim_deg < turn):
         rep.reason = "implausible_correction"
         return True
     return False

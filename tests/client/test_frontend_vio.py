@@ -71,6 +71,16 @@ def test_two_second_blackout_is_held_by_the_imu_and_relocalised_in_the_same_sess
     assert all(r.session == 0 for r in res) and fe.session == 0
     assert err[40:].max() < 0.1, err[40:].max()  # measured 0.04 m
     assert fe.stats.lost_frames == 20 and fe.stats.relocalizations == 1
+    # the keyframes report it: the first after the blackout carries the propagation's error, whose
+    # sigma covers what the IMU alone drifted; the ones tracked well carry none
+    events = fe.poll_events()
+    fe.flush()
+    kfs = [e for e in events + fe.poll_events() if isinstance(e, KeyframeEvent)]
+    t_back = float(seq.times[40])
+    after = [e for e in kfs if e.timestamp >= t_back]
+    assert after and after[0].odom_sigma is not None, [(e.timestamp, e.odom_sigma) for e in kfs]
+    assert all(e.odom_sigma is None for e in kfs if e.timestamp < t_back or e is not after[0])
+    assert 3.0 * after[0].odom_sigma[0] > err[20:40].max(), (after[0].odom_sigma, err[20:40].max())
     # the control: without the IMU the constant-velocity model leaves the surging path (measured 1.1 m)
     _, err_vo = _run(Frontend(seq.rig, imu_params=None), BLACK, imu=False)
     assert err_vo[20:40].max() > 0.5

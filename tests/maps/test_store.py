@@ -176,32 +176,35 @@ def test_writes_join_the_callers_transaction(tmp_path: Path) -> None:
 
 
 def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
-    """A store written before keyframes carried ``up_cam`` (schema 1) opens, keeps every map, and
-    stores up directions from then on."""
+    """A store written before keyframes carried ``up_cam`` (schema 1), stereo observations (2) or
+    ``odom_sigma`` (3) opens, keeps every map, and stores them from then on."""
     path = tmp_path / "v1.sqlite"
     stack = build_stack(11, 40, 2000)
     store = MapStore(path)
     store.save_stack(stack)
     store.close()
     con = sqlite3.connect(path)  # make it a version-1 file: no up_cam column
-    for col in ("up_cam", "u_right", "stereo_baseline"):
+    for col in ("up_cam", "u_right", "stereo_baseline", "odom_sigma"):
         con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
     con.execute("UPDATE map_schema SET version = 1")
     con.commit()
     con.close()
     store = MapStore(path)
-    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == 3
+    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == 4
     loaded = store.load_stack()
     for m in stack.maps.values():
         for kf in m.keyframes.values():
-            kf.up_cam = kf.u_right = kf.stereo_baseline = None  # what a version-1 file held
+            kf.up_cam = kf.u_right = kf.stereo_baseline = kf.odom_sigma = None  # what a version-1 file held
     assert_stacks_equal(stack, loaded)
     kf = next(iter(loaded.maps[0].keyframes.values()))
     kf.up_cam = np.array([0.0, 0.6, 0.8])
+    kf.odom_sigma = np.array([0.9, 3.0])
     store.put_keyframe(0, kf)
     store.close()
     again = MapStore(path).load_stack()
     assert np.array_equal(again.maps[0].keyframes[kf.key].up_cam, [0.0, 0.6, 0.8])
+    assert np.array_equal(again.maps[0].keyframes[kf.key].odom_sigma, [0.9, 3.0])
+    assert again.maps[0].keyframes[kf.key].u_right is None
 
 
 def test_version_2_file_is_migrated_and_its_keyframes_load_as_mono(tmp_path: Path) -> None:
@@ -214,7 +217,7 @@ def test_version_2_file_is_migrated_and_its_keyframes_load_as_mono(tmp_path: Pat
     store.save_stack(stack)
     store.close()
     con = sqlite3.connect(path)
-    for col in ("u_right", "stereo_baseline"):
+    for col in ("u_right", "stereo_baseline", "odom_sigma"):
         con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
     con.execute("UPDATE map_schema SET version = 2")
     con.commit()
@@ -223,7 +226,7 @@ def test_version_2_file_is_migrated_and_its_keyframes_load_as_mono(tmp_path: Pat
     loaded = store.load_stack()
     for m in stack.maps.values():
         for kf in m.keyframes.values():
-            kf.u_right = kf.stereo_baseline = None
+            kf.u_right = kf.stereo_baseline = kf.odom_sigma = None
     assert_stacks_equal(stack, loaded)
     kf = next(iter(loaded.maps[0].keyframes.values()))
     kf.u_right = np.full(kf.n_keypoints, 100.5, np.float32)
@@ -233,6 +236,42 @@ def test_version_2_file_is_migrated_and_its_keyframes_load_as_mono(tmp_path: Pat
     again = MapStore(path).load_stack().maps[0].keyframes[kf.key]
     assert again.stereo_baseline == 0.12 and again.u_right is not None
     assert again.u_right.dtype == np.float32 and (again.u_right == 100.5).all()
+
+
+@pytest.mark.parametrize("dropped", [("odom_sigma",), ("u_right", "stereo_baseline")])
+def test_version_3_file_is_migrated_and_keeps_its_keyframes(tmp_path: Path, dropped: tuple[str, ...]) -> None:
+    """A schema-3 store opens whichever optional keyframe field it lacked (stereo observations, or the
+    weak-tracking ``odom_sigma`` of a store written before both were in one schema), keeps every other
+    field, and stores both from then on."""
+    path = tmp_path / "v3.sqlite"
+    stack = build_stack(13, 40, 2000)
+    kfs = [kf for m in stack.maps.values() for kf in m.keyframes.values()]
+    assert any(kf.odom_sigma is not None for kf in kfs) and any(kf.u_right is not None for kf in kfs)
+    store = MapStore(path)
+    store.save_stack(stack)
+    store.close()
+    con = sqlite3.connect(path)
+    for col in dropped:
+        con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
+    con.execute("UPDATE map_schema SET version = 3")
+    con.commit()
+    con.close()
+    store = MapStore(path)
+    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == 4
+    loaded = store.load_stack()
+    for kf in kfs:
+        for col in dropped:
+            setattr(kf, col, None)
+    assert_stacks_equal(stack, loaded)
+    kf = next(iter(loaded.maps[0].keyframes.values()))
+    kf.u_right = np.full(kf.n_keypoints, 50.25, np.float32)
+    kf.stereo_baseline = 0.12
+    kf.odom_sigma = np.array([0.4, 2.0])
+    store.put_keyframe(0, kf)
+    store.close()
+    again = MapStore(path).load_stack().maps[0].keyframes[kf.key]
+    assert again.u_right is not None and (again.u_right == 50.25).all() and again.stereo_baseline == 0.12
+    assert again.odom_sigma is not None and np.array_equal(again.odom_sigma, [0.4, 2.0])
 
 
 def test_refuses_newer_or_unknown_schema(tmp_path: Path) -> None:

@@ -95,6 +95,7 @@ def keyframes(draw: Any) -> Keyframe:
         prev_session_from_world=draw(poses()) if guess else None,
         prev_session_sigma=draw(arr(np.float64, (2,), st.floats(1e-3, 100))) if guess else None,
         u_right=draw(arr(np.float32, (n,), ur)) if stereo else None,
+        odom_sigma=draw(st.one_of(st.none(), arr(np.float64, (2,), st.floats(0, 100)))),
     )
 
 
@@ -214,6 +215,9 @@ def _tamper(frame: bytes, **changes: Any) -> bytes:
         (lambda m: replace(m, u_right=np.zeros(100, np.float64)), FieldError, "body.u_right"),
         (lambda m: replace(m, u_right=np.full(100, np.inf, np.float32)), FieldError, "body.u_right"),
         (lambda m: replace(m, u_right=np.zeros((100, 1), np.float32)), FieldError, "body.u_right"),
+        (lambda m: replace(m, odom_sigma=np.array([-1.0, 1.0])), FieldError, "body.odom_sigma"),
+        (lambda m: replace(m, odom_sigma=np.array([np.inf, 1.0])), FieldError, "body.odom_sigma"),
+        (lambda m: replace(m, odom_sigma=np.ones(3)), FieldError, "body.odom_sigma"),
         (
             lambda m: replace(m, session=1, prev_session_from_world=np.eye(4)),
             FieldError,
@@ -360,16 +364,22 @@ def test_hello_needs_a_mission_id_and_welcome_carries_whether_it_is_known() -> N
 
 
 def test_a_v1_keyframe_still_reads_as_all_mono() -> None:
-    """An older agent's v1 frames (no ``u_right``, no ``stereo_baseline``) decode with those unset; a v1
-    frame carrying a v2 field is refused, naming it."""
+    """An older agent's v1 frames (no ``u_right``, ``odom_sigma``, ``stereo_baseline``) decode with those
+    unset; a v1 frame carrying a v2 field is refused, naming it."""
     kf = _kf()
-    _, got = decode(_tamper(encode(kf, 4), v=1, body_u_right=None))
-    assert isinstance(got, Keyframe) and got.u_right is None
+    _, got = decode(_tamper(encode(kf, 4), v=1, body_u_right=None, body_odom_sigma=None))
+    assert isinstance(got, Keyframe) and got.u_right is None and got.odom_sigma is None
     assert_same(kf, got)
     stereo = replace(kf, u_right=np.where(np.arange(100) % 2 == 0, 300.0, np.nan).astype(np.float32))
     with pytest.raises(FieldError) as e:
-        decode(_tamper(encode(stereo, 4), v=1))
+        decode(_tamper(encode(stereo, 4), v=1, body_odom_sigma=None))
     assert e.value.field == "body.u_right"
+    weak = replace(kf, odom_sigma=np.array([0.5, 2.0]))
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(encode(weak, 4), v=1, body_u_right=None))
+    assert e.value.field == "body.odom_sigma"
+    _, both = decode(encode(replace(stereo, odom_sigma=np.array([0.5, 2.0])), 4))
+    assert isinstance(both, Keyframe) and both.u_right is not None and both.odom_sigma is not None
     hello = Hello("uav1", "uav", _CAMERA, "t", mission="m1", stereo_baseline=0.11)
     with pytest.raises(FieldError) as e:
         decode(_tamper(encode(hello, 1), v=1))

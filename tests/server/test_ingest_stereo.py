@@ -20,7 +20,7 @@ def _v1(frame: bytes) -> bytes:
     """The frame as a v1 agent writes it: version 1, no v2 fields."""
     obj = msgpack.unpackb(frame, raw=False)
     obj["v"] = 1
-    for k in ("u_right", "stereo_baseline"):
+    for k in ("u_right", "odom_sigma", "stereo_baseline"):
         obj["body"].pop(k, None)
     return msgpack.packb(obj, use_bin_type=True)
 

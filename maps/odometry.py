@@ -1,0 +1,96 @@
+"""How sure each agent's odometry is between two of its keyframes: the error that weak or lost tracking
+added (``Keyframe.odom_sigma``, per keyframe relative to the agent's previous one) summed in quadrature
+along the agent's keyframes in time, and the path travelled, so the pose graph's odometry edges and the
+loop gates can let a loop correct a tracking jump."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.maps.geometry import rotation_angle_deg
+
+KfKey = tuple[str, int]
+F64 = NDArray[np.float64]
+
+
+class Chains:
+    """Per agent (each session is an agent key), its keyframes in time with cumulative path length (m),
+    rotation (rad) and weak-tracking variances [m^2, deg^2] up to each; ``poses``: world_from_cam per key
+    (default: the map's)."""
+
+    def __init__(self, m: Any, keys: Iterable[KfKey] | None = None, poses: dict[KfKey, F64] | None = None):
+        by_agent: dict[str, list[KfKey]] = {}
+        for k in m.keyframes if keys is None else keys:
+            by_agent.setdefault(k[0], []).append(k)
+        self.pos: dict[KfKey, tuple[str, int]] = {}
+        self.order: dict[str, list[KfKey]] = by_agent
+        self.cum: dict[str, F64] = {}  # (n, 4): path m, rotation rad, var m^2, var deg^2
+        for agent, ks in by_agent.items():
+            ks.sort(key=lambda k: (m.keyframes[k].timestamp, k[1]))
+            cum = np.zeros((len(ks), 4))
+            for i in range(1, len(ks)):
+                kf = m.keyframes[ks[i]]
+                a = poses[ks[i - 1]] if poses is not None else m.keyframes[ks[i - 1]].world_from_cam
+                b = poses[ks[i]] if poses is not None else kf.world_from_cam
+                step = np.zeros(4)
+                step[0] = float(np.linalg.norm(b[:3, 3] - a[:3, 3]))
+                step[1] = np.radians(rotation_angle_deg(a[:3, :3].T @ b[:3, :3]))
+                if kf.odom_sigma is not None:
+                    step[2:] = np.asarray(kf.odom_sigma, dtype=np.float64) ** 2
+                cum[i] = cum[i - 1] + step
+            for i, k in enumerate(ks):
+                self.pos[k] = (agent, i)
+            self.cum[agent] = cum
+
+    def between(self, a: KfKey, b: KfKey) -> F64 | None:
+        """[path m, rotation rad, weak sigma m, weak sigma deg] between two keyframes of one agent, or
+        None when they are of different agents (or unknown)."""
+        pa, pb = self.pos.get(a), self.pos.get(b)
+        if pa is None or pb is None or pa[0] != pb[0]:
+            return None
+        c = self.cum[pa[0]]
+        d = np.abs(c[pb[1]] - c[pa[1]])
+        d[2:] = np.sqrt(d[2:])
+        return d
+
+    def previous(self, k: KfKey) -> KfKey | None:
+        """The agent's keyframe before ``k`` in time (None for its first, or an unknown key)."""
+        p = self.pos.get(k)
+        return None if p is None or p[1] == 0 else self.order[p[0]][p[1] - 1]
+
+    def weak_total(self, agent: str) -> F64:
+        """[m, deg]: the weak-tracking sigma over all of an agent's keyframes (zero if none)."""
+        c = self.cum.get(agent)
+        return np.zeros(2) if c is None or not len(c) else np.sqrt(c[-1, 2:])
+
+
+def weak_sigma_between(m: Any, a: KfKey, b: KfKey) -> F64:
+    """[m, deg]: what weak or lost tracking may have put between keyframes ``a`` and ``b`` of ``m``: along
+    the chain for one agent, each agent's whole chain for two (the map joins them elsewhere)."""
+    ta, tb = m.keyframes[a].timestamp, m.keyframes[b].timestamp
+    lo, hi = ((ta, a[1]), (tb, b[1])) if (ta, a[1]) <= (tb, b[1]) else ((tb, b[1]), (ta, a[1]))
+    var = np.zeros(2)
+    for k, kf in m.keyframes.items():
+        if kf.odom_sigma is None or k[0] not in (a[0], b[0]):
+            continue
+        if a[0] != b[0] or lo < (kf.timestamp, k[1]) <= hi:
+            var += np.asarray(kf.odom_sigma, dtype=np.float64) ** 2
+    return np.sqrt(var)
+
+
+# sqrt of the 99% chi-square quantile of 3 dof: a correction within this many weak sigmas is plausible
+SLACK_SIGMAS = 3.37
+
+
+def correction_slack(m: Any, query: KfKey, candidate: KfKey) -> tuple[float, float]:
+    """[m, deg] a loop's fixed correction limits grow by: :data:`SLACK_SIGMAS` times what weak or lost
+    tracking may have put between the two keyframes (zero when both agents tracked well), so a loop that
+    would correct a tracking jump reaches the robust pose graph, which judges it."""
+    if query not in m.keyframes or candidate not in m.keyframes:
+        return 0.0, 0.0
+    w = weak_sigma_between(m, query, candidate)
+    return SLACK_SIGMAS * float(w[0]), SLACK_SIGMAS * float(w[1])
