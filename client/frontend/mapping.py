@@ -309,7 +309,7 @@ def inertial_window(fe: Frontend, all_k: list[int], is_fixed: NDArray[np.bool_])
         pk = fe._kfs[prev]
         usable = [k.v_w is not None and (k.vi_refined or not is_fixed[kidx[k.id]]) for k in (pk, kf)]
         if all(usable):
-            edges.append(InertialEdge(kidx[prev], n, kf.preint))
+            edges.append(InertialEdge(kidx[prev], n, kf.preint, anchor=bool(is_fixed[kidx[prev]])))
     prior = np.array([o.vi_ba_gyro_bias_sigma**-2] * 3 + [o.vi_ba_acc_bias_sigma**-2] * 3)
     return InertialWindow(v, b, edges, fe.cam_from_body, fe.kf_imu.gyro_walk2, fe.kf_imu.acc_walk2, prior)
 

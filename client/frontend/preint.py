@@ -19,6 +19,8 @@ from hivemap.maps.geometry import so3_exp, so3_log
 F64 = NDArray[np.float64]
 
 GRAVITY = np.array([0.0, 0.0, -9.81])  # the VIO frame is gravity-aligned (z up) before these are used
+ANCHOR_INFO_SCALE = 1e-2  # ORB-SLAM3's down-weighting of the edge into the held keyframe
+ANCHOR_HUBER_CHI2 = 16.92  # ORB-SLAM3's Huber threshold (9 DoF) of that edge
 
 
 def skew(x: F64) -> F64:
@@ -135,11 +137,17 @@ class KeyframeImu:
 
 @dataclass
 class InertialEdge:
-    """Preintegration ``pre`` between problem cameras ``i`` (earlier) and ``j``."""
+    """Preintegration ``pre`` between problem cameras ``i`` (earlier) and ``j``.
+
+    ``anchor``: ``i`` is held (the keyframe before the window). As in ORB-SLAM3's local inertial BA,
+    that edge's information is scaled down and Huber-weighted: the held velocity and biases carry the
+    previous window's error, which a full-weight edge would pass on into this window (and so on along
+    the trajectory) instead of letting the vision correct it."""
 
     i: int
     j: int
     pre: Preintegrated
+    anchor: bool = False
 
 
 @dataclass
@@ -184,7 +192,7 @@ class InertialWindow:
     def _info(self, e: InertialEdge) -> F64:
         info = np.zeros((15, 15))
         cov = e.pre.cov + 1e-12 * np.eye(9)
-        info[:9, :9] = np.linalg.inv(cov)
+        info[:9, :9] = np.linalg.inv(cov) * (ANCHOR_INFO_SCALE if e.anchor else 1.0)
         dt = max(e.pre.dt, 1e-3)
         info[9:12, 9:12] = np.eye(3) / (self.gyro_walk2 * dt)
         info[12:15, 12:15] = np.eye(3) / (self.acc_walk2 * dt)
@@ -194,7 +202,11 @@ class InertialWindow:
         c = 0.0
         for e in self.edges:
             r, _, _ = self._edge(poses, v, b, e)
-            c += float(r @ self._info(e) @ r)
+            info = self._info(e)
+            chi2 = float(r[:9] @ info[:9, :9] @ r[:9])
+            if e.anchor and chi2 > ANCHOR_HUBER_CHI2:
+                chi2 = 2.0 * np.sqrt(ANCHOR_HUBER_CHI2 * chi2) - ANCHOR_HUBER_CHI2
+            c += chi2 + float(r[9:] @ info[9:, 9:] @ r[9:])
         db = b - self.b0
         c += float((db * db * self.bias_prior_info).sum())
         return c
@@ -241,6 +253,10 @@ class InertialWindow:
             J[9:15, 9:15] = -np.eye(6)
             J[9:15, 24:30] = np.eye(6)
             info = self._info(e)
+            if e.anchor:
+                chi2 = float(r[:9] @ info[:9, :9] @ r[:9])
+                if chi2 > ANCHOR_HUBER_CHI2:
+                    info[:9, :9] *= np.sqrt(ANCHOR_HUBER_CHI2 / chi2)  # IRLS weight of the Huber loss
             for side, cam in ((0, e.i), (15, e.j)):
                 J[:, side : side + 6] = J[:, side : side + 6] @ self._pose_to_body(poses[cam])
             blocks = [(free_index[e.i], 0), (free_index[e.j], 15)]
