@@ -20,6 +20,19 @@ import msgpack
 import numpy as np
 
 from hivemap.protocol.errors import FieldError, FrameTooLarge, ProtocolError, UnknownTypeError, VersionError
+from hivemap.protocol.fields import (
+    as_array,
+    as_bool,
+    as_camera,
+    as_float,
+    as_int,
+    as_opt_str,
+    as_str,
+    check_rigid,
+    check_same_rows,
+    check_similarity,
+    is_spd3,
+)
 from hivemap.protocol.limits import PROTOCOL_VERSION, SUPPORTED_VERSIONS, Limits
 from hivemap.protocol.messages import (
     MESSAGE_TYPES,
@@ -46,9 +59,7 @@ _DTYPES: dict[int, np.dtype[Any]] = {
 }
 _CODES = {dt: code for code, dt in _DTYPES.items()}
 _MAX_NDIM = 3
-_POSE_TOL = 1e-6
 DEFAULT_LIMITS = Limits()
-_BOTTOM = np.array([0.0, 0.0, 0.0, 1.0])
 
 
 def _pack_array(a: np.ndarray) -> msgpack.ExtType:
@@ -102,171 +113,25 @@ def _ext_hook(code: int, data: bytes) -> Any:
     return np.frombuffer(data, dtype=dt, offset=head, count=count).reshape(shape)
 
 
-# --- field validators ---------------------------------------------------------------------------
-
-
-def _int(v: Any, path: str, lo: int = -(2**63), hi: int = 2**63 - 1) -> int:
-    if not isinstance(v, int) or isinstance(v, bool):
-        raise FieldError(f"expected an integer, got {type(v).__name__}", path)
-    if not lo <= v <= hi:
-        raise FieldError(f"{v} outside [{lo}, {hi}]", path)
-    return v
-
-
-def _bool(v: Any, path: str) -> bool:
-    if not isinstance(v, bool):
-        raise FieldError(f"expected true or false, got {type(v).__name__}", path)
-    return v
-
-
-def _float(v: Any, path: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise FieldError(f"expected a number, got {type(v).__name__}", path)
-    if not math.isfinite(v):
-        raise FieldError("not finite", path)
-    return float(v)
-
-
-def _str(v: Any, path: str, max_len: int, allow_empty: bool = True) -> str:
-    if not isinstance(v, str):
-        raise FieldError(f"expected a string, got {type(v).__name__}", path)
-    if len(v) > max_len:
-        raise FieldError(f"longer than {max_len} characters", path)
-    if not allow_empty and not v:
-        raise FieldError("must not be empty", path)
-    return v
-
-
-def _opt_str(v: Any, path: str, max_len: int) -> str | None:
-    return None if v is None else _str(v, path, max_len)
-
-
-def _arr(
-    v: Any, path: str, dtype: str, shape: tuple[int | None, ...], max_rows: int | None = None
-) -> np.ndarray:
-    """Check an array: dtype, ndim, fixed dims (None = any), first dim <= max_rows, finite floats."""
-    if not isinstance(v, np.ndarray):
-        raise FieldError(f"expected an array, got {type(v).__name__}", path)
-    if v.dtype != np.dtype(dtype):
-        raise FieldError(f"dtype {v.dtype}, expected {np.dtype(dtype)}", path)
-    if v.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, v.shape, strict=True)):
-        want = "x".join("N" if s is None else str(s) for s in shape)
-        raise FieldError(f"shape {v.shape}, expected ({want})", path)
-    if max_rows is not None and v.ndim and v.shape[0] > max_rows:
-        raise FieldError(f"{v.shape[0]} rows exceed the limit of {max_rows}", path)
-    if v.dtype.kind == "f" and not np.isfinite(v).all():
-        raise FieldError("contains NaN or inf", path)
-    return v
-
-
-def _rotation_error(R: list[list[float]]) -> tuple[float, float]:
-    """max |R^T R - I| and det(R) of a 3x3 matrix given as nested lists (cheaper than numpy at 3x3)."""
-    err = 0.0
-    for i in range(3):
-        for j in range(i, 3):
-            d = R[0][i] * R[0][j] + R[1][i] * R[1][j] + R[2][i] * R[2][j] - (1.0 if i == j else 0.0)
-            err = max(err, abs(d))
-    det = (
-        R[0][0] * (R[1][1] * R[2][2] - R[1][2] * R[2][1])
-        - R[0][1] * (R[1][0] * R[2][2] - R[1][2] * R[2][0])
-        + R[0][2] * (R[1][0] * R[2][1] - R[1][1] * R[2][0])
-    )
-    return err, det
-
-
-def _rigid(m: np.ndarray, path: str) -> None:
-    """(..., 4, 4) SE(3): last row [0, 0, 0, 1], rotation orthonormal to 1e-6 with det +1."""
-    if m.ndim == 2:
-        rows = m.tolist()
-        if rows[3] != [0.0, 0.0, 0.0, 1.0]:
-            raise FieldError("last row of a pose must be [0, 0, 0, 1]", path)
-        err, det = _rotation_error([r[:3] for r in rows[:3]])
-        if err > _POSE_TOL or det <= 0:
-            raise FieldError("rotation block is not a proper orthonormal rotation", path)
-        return
-    bottom = m[..., 3, :]
-    if not (bottom == _BOTTOM).all():
-        raise FieldError("last row of a pose must be [0, 0, 0, 1]", path)
-    R = m[..., :3, :3]
-    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max() if R.size else 0.0
-    if err > _POSE_TOL or (R.size and (np.linalg.det(R) <= 0).any()):
-        raise FieldError("rotation block is not a proper orthonormal rotation", path)
-
-
-def _similarity(m: np.ndarray, path: str) -> None:
-    if not (m[3] == _BOTTOM).all():
-        raise FieldError("last row of a Sim(3) matrix must be [0, 0, 0, 1]", path)
-    det = float(np.linalg.det(m[:3, :3]))
-    if not det > 0:
-        raise FieldError("Sim(3) scale must be positive", path)
-    R = m[:3, :3] / np.cbrt(det)
-    if np.abs(R.T @ R - np.eye(3)).max() > _POSE_TOL:
-        raise FieldError("Sim(3) rotation block is not a scaled rotation", path)
-
-
-def _spd3(c: list[list[float]]) -> bool:
-    """Symmetric (to 1e-12 relative) and positive definite (Sylvester: leading minors > 0)."""
-    scale = max(abs(x) for row in c for x in row)
-    if any(abs(c[i][j] - c[j][i]) > 1e-12 * scale for i in range(3) for j in range(i + 1, 3)):
-        return False
-    m2 = c[0][0] * c[1][1] - c[0][1] * c[1][0]
-    m3 = (
-        c[0][0] * (c[1][1] * c[2][2] - c[1][2] * c[2][1])
-        - c[0][1] * (c[1][0] * c[2][2] - c[1][2] * c[2][0])
-        + c[0][2] * (c[1][0] * c[2][1] - c[1][1] * c[2][0])
-    )
-    return c[0][0] > 0 and m2 > 0 and m3 > 0
-
-
-def _same_rows(path_a: str, a: np.ndarray, path_b: str, b: np.ndarray) -> None:
-    if a.shape[0] != b.shape[0]:
-        raise FieldError(f"{b.shape[0]} rows but {path_a} has {a.shape[0]}", path_b)
-
-
-_CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "dist"}
-
-
-def _camera(v: Any, path: str) -> dict[str, object]:
-    if not isinstance(v, dict):
-        raise FieldError(f"expected a map, got {type(v).__name__}", path)
-    keys = set(v)
-    if keys != _CAMERA_KEYS:
-        missing, extra = _CAMERA_KEYS - keys, keys - _CAMERA_KEYS
-        raise FieldError(f"missing {sorted(missing)}, unknown {sorted(map(str, extra))}", path)
-    out: dict[str, object] = {
-        "width": _int(v["width"], f"{path}.width", 1, 16384),
-        "height": _int(v["height"], f"{path}.height", 1, 16384),
-    }
-    for k in ("fx", "fy", "cx", "cy"):
-        out[k] = _float(v[k], f"{path}.{k}")
-    if float(out["fx"]) <= 0 or float(out["fy"]) <= 0:  # type: ignore[arg-type]
-        raise FieldError("focal lengths must be positive", f"{path}.fx")
-    dist = v["dist"]
-    if not isinstance(dist, list) or len(dist) != 4:
-        raise FieldError("expected 4 coefficients (k1, k2, p1, p2)", f"{path}.dist")
-    out["dist"] = [_float(d, f"{path}.dist[{i}]") for i, d in enumerate(dist)]
-    return out
-
-
 def _session(b: dict[str, Any]) -> int:
-    return _int(b.get("session", 0), "body.session", 0, 2**31)
+    return as_int(b.get("session", 0), "body.session", 0, 2**31)
 
 
 def _v_hello(b: dict[str, Any], lim: Limits) -> Hello:
-    kind = _str(b["kind"], "body.kind", 8)
+    kind = as_str(b["kind"], "body.kind", 8)
     if kind not in ("uav", "ugv"):
         raise FieldError(f"kind must be 'uav' or 'ugv', got {kind!r}", "body.kind")
     return Hello(
-        agent_id=_str(b["agent_id"], "body.agent_id", lim.max_agent_id_len, allow_empty=False),
+        agent_id=as_str(b["agent_id"], "body.agent_id", lim.max_agent_id_len, allow_empty=False),
         kind=kind,
-        camera=_camera(b["camera"], "body.camera"),
-        token=_str(b["token"], "body.token", lim.max_token_len),
-        resume_from=_int(b.get("resume_from", 0), "body.resume_from", 0, lim.max_seq),
+        camera=as_camera(b["camera"], "body.camera"),
+        token=as_str(b["token"], "body.token", lim.max_token_len),
+        resume_from=as_int(b.get("resume_from", 0), "body.resume_from", 0, lim.max_seq),
         session=_session(b),
         cam_from_antenna=(
             None
             if b.get("cam_from_antenna") is None
-            else _arr(b["cam_from_antenna"], "body.cam_from_antenna", "<f8", (3,))
+            else as_array(b["cam_from_antenna"], "body.cam_from_antenna", "<f8", (3,))
         ),
         mission=_mission(b.get("mission")),
         stereo_baseline=_baseline(b.get("stereo_baseline"), lim),
@@ -276,7 +141,7 @@ def _v_hello(b: dict[str, Any], lim: Limits) -> Hello:
 def _baseline(v: Any, lim: Limits) -> float | None:
     if v is None:
         return None
-    b = _float(v, "body.stereo_baseline")
+    b = as_float(v, "body.stereo_baseline")
     if not 0 < b <= lim.max_baseline_m:
         raise FieldError(
             f"stereo baseline must be in (0, {lim.max_baseline_m}] m, got {b}", "body.stereo_baseline"
@@ -286,7 +151,7 @@ def _baseline(v: Any, lim: Limits) -> float | None:
 
 def _mission(v: Any) -> str:
     """A mission id: 1-64 characters of letters, digits, '-' and '_' (a UUID in hex or canonical form)."""
-    s = _str(v, "body.mission", 64, allow_empty=False) if v is not None else ""
+    s = as_str(v, "body.mission", 64, allow_empty=False) if v is not None else ""
     if not s:
         raise FieldError("hello needs a mission id (a UUID created with the agent's outbox)", "body.mission")
     if not all(c.isascii() and (c.isalnum() or c in "-_") for c in s):
@@ -296,23 +161,23 @@ def _mission(v: Any) -> str:
 
 def _v_welcome(b: dict[str, Any], lim: Limits) -> Welcome:
     return Welcome(
-        last_seq=_int(b["last_seq"], "body.last_seq", 0, lim.max_seq),
-        server_version=_str(b["server_version"], "body.server_version", lim.max_string_len),
-        mission_known=_bool(b.get("mission_known", True), "body.mission_known"),
+        last_seq=as_int(b["last_seq"], "body.last_seq", 0, lim.max_seq),
+        server_version=as_str(b["server_version"], "body.server_version", lim.max_string_len),
+        mission_known=as_bool(b.get("mission_known", True), "body.mission_known"),
     )
 
 
 def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
-    kp = _arr(b["keypoints"], "body.keypoints", "<f4", (None, 2), lim.max_keypoints)
-    octv = _arr(b["octaves"], "body.octaves", "u1", (None,), lim.max_keypoints)
-    desc = _arr(b["descriptors"], "body.descriptors", "u1", (None, 32), lim.max_keypoints)
-    pids = _arr(b["point_ids"], "body.point_ids", "<i8", (None,), lim.max_keypoints)
+    kp = as_array(b["keypoints"], "body.keypoints", "<f4", (None, 2), lim.max_keypoints)
+    octv = as_array(b["octaves"], "body.octaves", "u1", (None,), lim.max_keypoints)
+    desc = as_array(b["descriptors"], "body.descriptors", "u1", (None, 32), lim.max_keypoints)
+    pids = as_array(b["point_ids"], "body.point_ids", "<i8", (None,), lim.max_keypoints)
     for name, a in (("octaves", octv), ("descriptors", desc), ("point_ids", pids)):
-        _same_rows("body.keypoints", kp, f"body.{name}", a)
+        check_same_rows("body.keypoints", kp, f"body.{name}", a)
     if pids.size and pids.min() < -1:
         raise FieldError("point ids must be >= 0, or -1 for none", "body.point_ids")
-    pose = _arr(b["world_from_cam"], "body.world_from_cam", "<f8", (4, 4))
-    _rigid(pose, "body.world_from_cam")
+    pose = as_array(b["world_from_cam"], "body.world_from_cam", "<f8", (4, 4))
+    check_rigid(pose, "body.world_from_cam")
     ur = b.get("u_right")
     if ur is not None:
         ur = _u_right(ur, kp)
@@ -323,13 +188,13 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
             "gnss_enu and gnss_cov go together", "body.gnss_cov" if cov is None else "body.gnss_enu"
         )
     if enu is not None:
-        enu = _arr(enu, "body.gnss_enu", "<f8", (3,))
-        cov = _arr(cov, "body.gnss_cov", "<f8", (3, 3))
-        if not _spd3(cov.tolist()):
+        enu = as_array(enu, "body.gnss_enu", "<f8", (3,))
+        cov = as_array(cov, "body.gnss_cov", "<f8", (3, 3))
+        if not is_spd3(cov.tolist()):
             raise FieldError("covariance must be symmetric positive definite", "body.gnss_cov")
     up = b.get("up_cam")
     if up is not None:
-        up = _arr(up, "body.up_cam", "<f8", (3,))
+        up = as_array(up, "body.up_cam", "<f8", (3,))
         norm = float(np.linalg.norm(up)) if np.all(np.isfinite(up)) else math.nan
         if not 0.99 <= norm <= 1.01:
             raise FieldError(f"up direction must be a unit vector, its norm is {norm:.3g}", "body.up_cam")
@@ -342,19 +207,19 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
             raise FieldError(
                 "a guess in the previous session needs session >= 1", "body.prev_session_from_world"
             )
-        guess = _arr(guess, "body.prev_session_from_world", "<f8", (4, 4))
-        _rigid(guess, "body.prev_session_from_world")
-        sigma = _arr(sigma, "body.prev_session_sigma", "<f8", (2,))
+        guess = as_array(guess, "body.prev_session_from_world", "<f8", (4, 4))
+        check_rigid(guess, "body.prev_session_from_world")
+        sigma = as_array(sigma, "body.prev_session_sigma", "<f8", (2,))
         if not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
             raise FieldError("sigmas must be finite and positive", "body.prev_session_sigma")
     odom = b.get("odom_sigma")
     if odom is not None:
-        odom = _arr(odom, "body.odom_sigma", "<f8", (2,))
+        odom = as_array(odom, "body.odom_sigma", "<f8", (2,))
         if not (np.all(np.isfinite(odom)) and np.all(odom >= 0)):
             raise FieldError("sigmas must be finite and >= 0", "body.odom_sigma")
     return Keyframe(
-        kf_id=_int(b["kf_id"], "body.kf_id", 0),
-        timestamp=_float(b["timestamp"], "body.timestamp"),
+        kf_id=as_int(b["kf_id"], "body.kf_id", 0),
+        timestamp=as_float(b["timestamp"], "body.timestamp"),
         world_from_cam=pose,
         keypoints=kp,
         octaves=octv,
@@ -376,31 +241,31 @@ def _u_right(v: Any, kp: np.ndarray) -> np.ndarray:
     if not isinstance(v, np.ndarray) or v.dtype != np.dtype("<f4") or v.ndim != 1:
         what = type(v).__name__ if not isinstance(v, np.ndarray) else f"{v.dtype} {v.shape}"
         raise FieldError(f"expected an f32 array of one value per keypoint, got {what}", "body.u_right")
-    _same_rows("body.keypoints", kp, "body.u_right", v)
+    check_same_rows("body.keypoints", kp, "body.u_right", v)
     if np.isinf(v).any():
         raise FieldError("contains inf (NaN marks a keypoint without a stereo match)", "body.u_right")
     return v
 
 
 def _v_map_points(b: dict[str, Any], lim: Limits) -> MapPoints:
-    ids = _arr(b["ids"], "body.ids", "<i8", (None,), lim.max_points_per_msg)
-    xyz = _arr(b["xyz"], "body.xyz", "<f8", (None, 3), lim.max_points_per_msg)
-    desc = _arr(b["descriptors"], "body.descriptors", "u1", (None, 32), lim.max_points_per_msg)
-    _same_rows("body.ids", ids, "body.xyz", xyz)
-    _same_rows("body.ids", ids, "body.descriptors", desc)
+    ids = as_array(b["ids"], "body.ids", "<i8", (None,), lim.max_points_per_msg)
+    xyz = as_array(b["xyz"], "body.xyz", "<f8", (None, 3), lim.max_points_per_msg)
+    desc = as_array(b["descriptors"], "body.descriptors", "u1", (None, 32), lim.max_points_per_msg)
+    check_same_rows("body.ids", ids, "body.xyz", xyz)
+    check_same_rows("body.ids", ids, "body.descriptors", desc)
     if ids.size and ids.min() < 0:
         raise FieldError("point ids must be >= 0", "body.ids")
     return MapPoints(ids=ids, xyz=xyz, descriptors=desc, session=_session(b))
 
 
 def _v_pose_updates(b: dict[str, Any], lim: Limits) -> PoseUpdates:
-    kf_ids = _arr(b["kf_ids"], "body.kf_ids", "<i8", (None,), lim.max_poses_per_msg)
-    poses = _arr(b["world_from_cam"], "body.world_from_cam", "<f8", (None, 4, 4), lim.max_poses_per_msg)
-    _same_rows("body.kf_ids", kf_ids, "body.world_from_cam", poses)
-    _rigid(poses, "body.world_from_cam")
-    pids = _arr(b["point_ids"], "body.point_ids", "<i8", (None,), lim.max_points_per_msg)
-    xyz = _arr(b["xyz"], "body.xyz", "<f8", (None, 3), lim.max_points_per_msg)
-    _same_rows("body.point_ids", pids, "body.xyz", xyz)
+    kf_ids = as_array(b["kf_ids"], "body.kf_ids", "<i8", (None,), lim.max_poses_per_msg)
+    poses = as_array(b["world_from_cam"], "body.world_from_cam", "<f8", (None, 4, 4), lim.max_poses_per_msg)
+    check_same_rows("body.kf_ids", kf_ids, "body.world_from_cam", poses)
+    check_rigid(poses, "body.world_from_cam")
+    pids = as_array(b["point_ids"], "body.point_ids", "<i8", (None,), lim.max_points_per_msg)
+    xyz = as_array(b["xyz"], "body.xyz", "<f8", (None, 3), lim.max_points_per_msg)
+    check_same_rows("body.point_ids", pids, "body.xyz", xyz)
     if (kf_ids.size and kf_ids.min() < 0) or (pids.size and pids.min() < 0):
         raise FieldError(
             "ids must be >= 0", "body.kf_ids" if kf_ids.size and kf_ids.min() < 0 else "body.point_ids"
@@ -409,18 +274,18 @@ def _v_pose_updates(b: dict[str, Any], lim: Limits) -> PoseUpdates:
 
 
 def _v_ack(b: dict[str, Any], lim: Limits) -> Ack:
-    return Ack(seq=_int(b["seq"], "body.seq", 0, lim.max_seq))
+    return Ack(seq=as_int(b["seq"], "body.seq", 0, lim.max_seq))
 
 
 def _v_correction(b: dict[str, Any], lim: Limits) -> Correction:
-    g = _arr(b["global_from_local"], "body.global_from_local", "<f8", (4, 4))
-    _similarity(g, "body.global_from_local")
-    kf_ids = _arr(b["kf_ids"], "body.kf_ids", "<i8", (None,), lim.max_poses_per_msg)
-    poses = _arr(b["world_from_cam"], "body.world_from_cam", "<f8", (None, 4, 4), lim.max_poses_per_msg)
-    _same_rows("body.kf_ids", kf_ids, "body.world_from_cam", poses)
-    _rigid(poses, "body.world_from_cam")
+    g = as_array(b["global_from_local"], "body.global_from_local", "<f8", (4, 4))
+    check_similarity(g, "body.global_from_local")
+    kf_ids = as_array(b["kf_ids"], "body.kf_ids", "<i8", (None,), lim.max_poses_per_msg)
+    poses = as_array(b["world_from_cam"], "body.world_from_cam", "<f8", (None, 4, 4), lim.max_poses_per_msg)
+    check_same_rows("body.kf_ids", kf_ids, "body.world_from_cam", poses)
+    check_rigid(poses, "body.world_from_cam")
     return Correction(
-        map_id=_int(b["map_id"], "body.map_id", 0),
+        map_id=as_int(b["map_id"], "body.map_id", 0),
         global_from_local=g,
         kf_ids=kf_ids,
         world_from_cam=poses,
@@ -430,7 +295,7 @@ def _v_correction(b: dict[str, Any], lim: Limits) -> Correction:
 
 
 def _global_frame(v: Any) -> str:
-    frame = _str(v, "body.global_frame", 8)
+    frame = as_str(v, "body.global_frame", 8)
     if frame not in ("map", "enu"):
         raise FieldError(f"global_frame must be 'map' or 'enu', got {frame!r}", "body.global_frame")
     return frame
@@ -439,15 +304,15 @@ def _global_frame(v: Any) -> str:
 def _v_error(b: dict[str, Any], lim: Limits) -> Error:
     seq = b.get("seq")
     return Error(
-        code=_str(b["code"], "body.code", 64),
-        message=_str(b["message"], "body.message", lim.max_string_len),
-        field=_opt_str(b.get("field"), "body.field", 256),
-        seq=None if seq is None else _int(seq, "body.seq", 0, lim.max_seq),
+        code=as_str(b["code"], "body.code", 64),
+        message=as_str(b["message"], "body.message", lim.max_string_len),
+        field=as_opt_str(b.get("field"), "body.field", 256),
+        seq=None if seq is None else as_int(seq, "body.seq", 0, lim.max_seq),
     )
 
 
 def _v_bye(b: dict[str, Any], lim: Limits) -> Bye:
-    return Bye(reason=_str(b.get("reason", ""), "body.reason", lim.max_string_len))
+    return Bye(reason=as_str(b.get("reason", ""), "body.reason", lim.max_string_len))
 
 
 _VALIDATORS: dict[str, Callable[[dict[str, Any], Limits], Message]] = {
@@ -502,7 +367,7 @@ def decode(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, Message]
     mtype = obj["type"]
     if not isinstance(mtype, str) or mtype not in _VALIDATORS:
         raise UnknownTypeError(f"unknown message type {mtype!r}", "type")
-    seq = _int(obj["seq"], "seq", 0, limits.max_seq)
+    seq = as_int(obj["seq"], "seq", 0, limits.max_seq)
     body = obj["body"]
     if not isinstance(body, dict):
         raise FieldError(f"expected a map, got {type(body).__name__}", "body")
