@@ -34,6 +34,7 @@ from hivemap.protocol.messages import (
     MapPoints,
     Message,
     PoseUpdates,
+    Rendezvous,
     Welcome,
 )
 
@@ -53,6 +54,7 @@ __all__ = [
     "Message",
     "PoseUpdates",
     "ProtocolError",
+    "Rendezvous",
     "UnknownTypeError",
     "VersionError",
     "Welcome",

@@ -1,6 +1,6 @@
-"""msgpack codec for protocol v2 (reads v1) with validation on decode.
+"""msgpack codec for protocol v3 (reads v1 and v2) with validation on decode.
 
-A frame is one msgpack map ``{"v": 2, "type": str, "seq": int, "body": {...}}``. numpy arrays travel
+A frame is one msgpack map ``{"v": 3, "type": str, "seq": int, "body": {...}}``. numpy arrays travel
 as msgpack ext type 1: ``dtype code (1 byte) | ndim (1 byte) | shape (ndim x uint32 LE) | raw bytes``,
 so encoding is a memcpy and decoding is ``np.frombuffer`` (read-only, no copy). Every decoded frame is
 validated: version, type, field names, types, dtypes, shapes, sizes against :class:`Limits`,
@@ -45,6 +45,7 @@ from hivemap.protocol.messages import (
     MapPoints,
     Message,
     PoseUpdates,
+    Rendezvous,
     Welcome,
 )
 
@@ -273,6 +274,41 @@ def _v_pose_updates(b: dict[str, Any], lim: Limits) -> PoseUpdates:
     return PoseUpdates(kf_ids=kf_ids, world_from_cam=poses, point_ids=pids, xyz=xyz, session=_session(b))
 
 
+def _v_rendezvous(b: dict[str, Any], lim: Limits) -> Rendezvous:
+    ids = as_array(b["marker_ids"], "body.marker_ids", "<i8", (None,), lim.max_markers)
+    if ids.size == 0:
+        raise FieldError("at least one marker id", "body.marker_ids")
+    if ids.min() < 0:
+        raise FieldError("ids must be >= 0", "body.marker_ids")
+    ref = as_array(b["ref_from_cam"], "body.ref_from_cam", "<f8", (4, 4))
+    check_rigid(ref, "body.ref_from_cam")
+    rel = as_array(b["cam_from_observed"], "body.cam_from_observed", "<f8", (4, 4))
+    check_rigid(rel, "body.cam_from_observed")
+    cov = as_array(b["covariance"], "body.covariance", "<f8", (6, 6))
+    if np.abs(cov - cov.T).max() > 1e-9 * max(float(np.abs(cov).max()), 1e-300):
+        raise FieldError("covariance must be symmetric", "body.covariance")
+    try:
+        np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        raise FieldError("covariance must be positive definite", "body.covariance") from None
+    rms = as_float(b["reproj_rms_px"], "body.reproj_rms_px")
+    if rms < 0:
+        raise FieldError("must be >= 0", "body.reproj_rms_px")
+    return Rendezvous(
+        timestamp=as_float(b["timestamp"], "body.timestamp"),
+        observed_agent=as_str(
+            b["observed_agent"], "body.observed_agent", lim.max_agent_id_len, allow_empty=False
+        ),
+        marker_ids=ids,
+        ref_kf_id=as_int(b["ref_kf_id"], "body.ref_kf_id", 0),
+        ref_from_cam=ref,
+        cam_from_observed=rel,
+        covariance=cov,
+        reproj_rms_px=rms,
+        session=_session(b),
+    )
+
+
 def _v_ack(b: dict[str, Any], lim: Limits) -> Ack:
     return Ack(seq=as_int(b["seq"], "body.seq", 0, lim.max_seq))
 
@@ -321,6 +357,7 @@ _VALIDATORS: dict[str, Callable[[dict[str, Any], Limits], Message]] = {
     "keyframe": _v_keyframe,
     "map_points": _v_map_points,
     "pose_updates": _v_pose_updates,
+    "rendezvous": _v_rendezvous,
     "ack": _v_ack,
     "correction": _v_correction,
     "error": _v_error,
@@ -329,6 +366,8 @@ _VALIDATORS: dict[str, Callable[[dict[str, Any], Limits], Message]] = {
 _FIELDS = {name: {f.name for f in fields(cls)} for name, cls in MESSAGE_TYPES.items()}
 # fields a v1 frame cannot have (its reader takes their defaults: a v1 keyframe is all mono, tracked well)
 _V2_FIELDS = {"hello": {"stereo_baseline"}, "keyframe": {"u_right", "odom_sigma"}}
+# message types a frame of an older version cannot carry
+_SINCE = {"rendezvous": 3}
 _REQUIRED = {
     name: {f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING}
     for name, cls in MESSAGE_TYPES.items()
@@ -367,6 +406,10 @@ def decode(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, Message]
     mtype = obj["type"]
     if not isinstance(mtype, str) or mtype not in _VALIDATORS:
         raise UnknownTypeError(f"unknown message type {mtype!r}", "type")
+    if version < _SINCE.get(mtype, 1):
+        raise UnknownTypeError(
+            f"message type {mtype!r} needs protocol v{_SINCE[mtype]}, frame is v{version}", "type"
+        )
     seq = as_int(obj["seq"], "seq", 0, limits.max_seq)
     body = obj["body"]
     if not isinstance(body, dict):

@@ -16,7 +16,17 @@ import msgpack
 import numpy as np
 
 from hivemap.protocol.codec import encode
-from hivemap.protocol.messages import Ack, Bye, Correction, Hello, Keyframe, MapPoints, Message, PoseUpdates
+from hivemap.protocol.messages import (
+    Ack,
+    Bye,
+    Correction,
+    Hello,
+    Keyframe,
+    MapPoints,
+    Message,
+    PoseUpdates,
+    Rendezvous,
+)
 
 
 def sample_messages(rng: np.random.Generator, n_features: int = 200) -> list[Message]:
@@ -62,6 +72,16 @@ def sample_messages(rng: np.random.Generator, n_features: int = 200) -> list[Mes
             np.stack([pose] * 3),
             np.arange(5, dtype=np.int64),
             rng.normal(size=(5, 3)),
+        ),
+        Rendezvous(
+            timestamp=12.5,
+            observed_agent="ugv",
+            marker_ids=np.array([3, 4, 7], dtype=np.int64),
+            ref_kf_id=4,
+            ref_from_cam=pose,
+            cam_from_observed=pose,
+            covariance=np.diag([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 4e-3]),
+            reproj_rms_px=0.4,
         ),
         Correction(0, np.eye(4), np.arange(2, dtype=np.int64), np.stack([pose] * 2)),
         Ack(7),

@@ -6,8 +6,9 @@ from dataclasses import dataclass
 
 # 2: keyframes carry ``u_right`` and ``odom_sigma``, hellos ``stereo_baseline``. A v1 frame still reads
 # (all keypoints mono, every keyframe tracked well).
-PROTOCOL_VERSION = 2
-SUPPORTED_VERSIONS = (1, 2)
+# 3: the ``rendezvous`` message (an agent saw another agent's marker carrier). v1 and v2 frames still read.
+PROTOCOL_VERSION = 3
+SUPPORTED_VERSIONS = (1, 2, 3)
 
 
 @dataclass(frozen=True)
@@ -23,3 +24,4 @@ class Limits:
     max_string_len: int = 1024
     max_seq: int = 2**62
     max_baseline_m: float = 100.0
+    max_markers: int = 256

@@ -1,4 +1,4 @@
-"""Protocol v2 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
+"""Protocol v3 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
 
 Arrays are numpy arrays with fixed dtypes; shapes are given per field. Poses are 4x4 float64
 ``world_from_cam`` in the sender's frame (the agent's VIO frame for agent -> server messages, the
@@ -112,6 +112,32 @@ class PoseUpdates:
 
 
 @dataclass(frozen=True)
+class Rendezvous:
+    """Agent -> server (protocol v3): the sender (the observer) saw a marker carrier of another agent.
+
+    ``timestamp``: the observer's image time (s, the team's shared clock). ``observed_agent``: the agent id
+    that carries the markers (resolved by the observer from the marker ids and the team's carrier layout);
+    ``marker_ids`` i64 (M,) the markers that went into the pose. ``ref_kf_id``: a keyframe of the
+    observer's ``session`` (already sent or about to be), and ``ref_from_cam`` f64 (4,4): the observer's
+    cam0 at ``timestamp`` in that keyframe's cam0 frame (its own tracking). ``cam_from_observed`` f64
+    (4,4): the observed agent's cam0 in the observer's cam0 at ``timestamp``, from one PnP over all
+    visible corners of the carrier. ``covariance`` f64 (6,6): of ``cam_from_observed`` in gtsam's Pose3
+    tangent convention, [rx, ry, rz (rad), tx, ty, tz (m)], perturbation on the right (in the observed
+    cam0 frame). ``reproj_rms_px``: the PnP's RMS reprojection error."""
+
+    TYPE: ClassVar[str] = "rendezvous"
+    timestamp: float
+    observed_agent: str
+    marker_ids: NDArray[np.int64]
+    ref_kf_id: int
+    ref_from_cam: NDArray[np.float64]
+    cam_from_observed: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    reproj_rms_px: float
+    session: int = 0
+
+
+@dataclass(frozen=True)
 class Ack:
     """Server -> agent: the message ``seq`` is durably stored."""
 
@@ -152,7 +178,8 @@ class Bye:
     reason: str = ""
 
 
-Message = Hello | Welcome | Keyframe | MapPoints | PoseUpdates | Ack | Correction | Error | Bye
+Message = Hello | Welcome | Keyframe | MapPoints | PoseUpdates | Rendezvous | Ack | Correction | Error | Bye
 MESSAGE_TYPES: dict[str, type] = {
-    cls.TYPE: cls for cls in (Hello, Welcome, Keyframe, MapPoints, PoseUpdates, Ack, Correction, Error, Bye)
+    cls.TYPE: cls
+    for cls in (Hello, Welcome, Keyframe, MapPoints, PoseUpdates, Rendezvous, Ack, Correction, Error, Bye)
 }

@@ -27,6 +27,7 @@ from hivemap.protocol import (
     MapPoints,
     PoseUpdates,
     ProtocolError,
+    Rendezvous,
     UnknownTypeError,
     VersionError,
     Welcome,
@@ -263,7 +264,7 @@ def test_limits_are_enforced() -> None:
 def test_envelope_errors() -> None:
     frame = encode(Ack(5), 9)
     with pytest.raises(VersionError):
-        decode(_tamper(frame, v=3))
+        decode(_tamper(frame, v=4))
     with pytest.raises(UnknownTypeError):
         decode(_tamper(frame, type="teleport"))
     with pytest.raises(FieldError) as e:
@@ -407,3 +408,49 @@ def test_bad_stereo_baseline_is_named(baseline: float) -> None:
 _CAMERA: dict[str, object] = {
     "width": 640, "height": 480, "fx": 400.0, "fy": 400.0, "cx": 320.0, "cy": 240.0, "dist": [0.0] * 4,
 }  # fmt: skip
+
+
+def _rendezvous(**changes: Any) -> Rendezvous:
+    pose = se3(so3_exp(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, 3.0]))
+    msg = Rendezvous(
+        timestamp=3.25,
+        observed_agent="ugv",
+        marker_ids=np.array([1, 2, 5], dtype=np.int64),
+        ref_kf_id=7,
+        ref_from_cam=pose,
+        cam_from_observed=pose,
+        covariance=np.diag([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 4e-3]),
+        reproj_rms_px=0.3,
+        session=1,
+    )
+    return replace(msg, **changes)
+
+
+def test_rendezvous_round_trips_in_v3_and_is_refused_in_older_frames() -> None:
+    msg = _rendezvous()
+    seq, out = decode(encode(msg, 4))
+    assert seq == 4
+    assert_same(msg, out)
+    with pytest.raises(UnknownTypeError) as e:
+        decode(_tamper(encode(msg, 4), v=2))
+    assert "v3" in str(e.value)
+
+
+@pytest.mark.parametrize(
+    ("changes", "field"),
+    [
+        ({"marker_ids": np.zeros(0, dtype=np.int64)}, "body.marker_ids"),
+        ({"marker_ids": np.array([-1], dtype=np.int64)}, "body.marker_ids"),
+        ({"observed_agent": ""}, "body.observed_agent"),
+        ({"ref_kf_id": -3}, "body.ref_kf_id"),
+        ({"cam_from_observed": np.diag([1.0, 1.0, -1.0, 1.0])}, "body.cam_from_observed"),
+        ({"covariance": np.diag([1.0, 1.0, 1.0, 1.0, 1.0, -1.0])}, "body.covariance"),
+        ({"covariance": np.eye(6) + np.eye(6, k=1) * 0.1}, "body.covariance"),
+        ({"reproj_rms_px": -0.5}, "body.reproj_rms_px"),
+        ({"timestamp": float("nan")}, "body.timestamp"),
+    ],
+)
+def test_bad_rendezvous_fields_are_named(changes: dict[str, Any], field: str) -> None:
+    with pytest.raises(FieldError) as e:
+        decode(encode(_rendezvous(**changes), 1))
+    assert e.value.field == field
