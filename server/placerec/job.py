@@ -44,8 +44,8 @@ class Candidate:
     bow_score: float
     fix_scale: bool
     window: list[KfKey]  # the candidate's best covisible keyframes (without itself), best first
-    free_correction: bool = False  # a loop across a loose edge: no correction limit (see loose_pairs)
     # [m, deg] the correction limit grows by: what weak tracking between query and candidate may have added
+    # (infinite across a loose edge, see ``loose_pairs``)
     correction_slack: tuple[float, float] = (0.0, 0.0)
 
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
@@ -208,9 +209,12 @@ class PlaceRecognizer:
             by_map.setdefault(cmap, []).extend([ck, *window])
             a, b = query_key[0], ck[0]
             loose = any((a in s and b in t) or (a in t and b in s) for s, t in self.loose_pairs)
-            slack = correction_slack(maps[query_map], query_key, ck) if kind == "loop" else (0.0, 0.0)
-            out.append(Candidate(ck, cmap, kind, score, fs, window, free_correction=loose,
-                                 correction_slack=slack))  # fmt: skip
+            # across a loose edge (a merge on trial) the graph, not a limit, judges how far a loop may move
+            if kind != "loop":
+                slack = (0.0, 0.0)
+            else:
+                slack = (math.inf, math.inf) if loose else correction_slack(maps[query_map], query_key, ck)
+            out.append(Candidate(ck, cmap, kind, score, fs, window, correction_slack=slack))
         slices = [slice_of(maps[mid], mid, keys, self._has) for mid, keys in by_map.items() if mid in maps]
         features = {kf.key: self._fv(kf)[1] for s in slices for kf in s.keyframes}
         return QueryJob(o, th, query_key, query_map, out, slices, features, best)

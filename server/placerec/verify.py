@@ -59,7 +59,7 @@ def run_job(job: QueryJob) -> list[CandidateReport]:
             out.append(rep)
             continue
         rep = verify(job.options, fv_of, maps, job.query_map, job.query_key, c.map_id, c.key,
-                     c.fix_scale, job.thresholds, c.kind, views, c.free_correction,
+                     c.fix_scale, job.thresholds, c.kind, views,
                      c.correction_slack)  # fmt: skip
         rep.bow_score = c.bow_score
         out.append(rep)
@@ -81,7 +81,6 @@ def verify(
     th: Thresholds,
     kind: str,
     views: KeyframeViews | None = None,
-    free_correction: bool = False,
     correction_slack: tuple[float, float] = (0.0, 0.0),
 ) -> CandidateReport:
     t0, c0 = time.perf_counter(), time.thread_time()
@@ -89,7 +88,7 @@ def verify(
     views = views if views is not None else KeyframeViews()
     try:
         _verify_inner(o, fv_of, maps, query_map, query_key, cand_map, cand_key, fix_scale, th, rep, views,
-                      free_correction, correction_slack)  # fmt: skip
+                      correction_slack)  # fmt: skip
     except KeyError as e:
         # a point or keyframe the verification reads was fused away by the event loop meanwhile (about
         # ten per factory run): skipped, as a merged-away map is
@@ -117,7 +116,6 @@ def _verify_inner(
     th: Thresholds,
     rep: CandidateReport,
     views: KeyframeViews,
-    free_correction: bool = False,
     correction_slack: tuple[float, float] = (0.0, 0.0),
 ) -> None:
     mq, mc = maps.get(query_map), maps.get(cand_map)
@@ -196,11 +194,7 @@ def _verify_inner(
             rep.reason = "metric_scale_inconsistent"
             return
     sim_ransac = sim
-    if (
-        rep.kind == "loop"
-        and not free_correction
-        and _implausible_correction(o, sim, q.world_from_cam, rep, correction_slack)
-    ):
+    if rep.kind == "loop" and _implausible_correction(o, sim, q.world_from_cam, rep, correction_slack):
         return
 
     # 3. guided search both ways, refine, guided search again, refine again
@@ -244,11 +238,7 @@ def _verify_inner(
     if rep.n_inliers < th.min_projected:
         rep.reason = "few_projected_inliers"
         return
-    if (
-        rep.kind == "loop"
-        and not free_correction
-        and _implausible_correction(o, sim, q.world_from_cam, rep, correction_slack)
-    ):
+    if rep.kind == "loop" and _implausible_correction(o, sim, q.world_from_cam, rep, correction_slack):
         return
     rep.accepted = True
     rep.reason = "accepted"
