@@ -119,17 +119,22 @@ class AgentConnection:
             self._task.cancel()
 
     async def _send_loop(self) -> None:
-        while True:
-            item = await self._outbox.get()
-            if isinstance(item, _Close):
-                await self.ws.close(item.code, item.reason)
-                return
-            self._out_seq += 1
-            frame = encode(item, self._out_seq)
-            await self.ws.send_bytes(frame)
-            agent = self.agent
-            if agent is not None and not self.replaced:
-                agent.bandwidth.sent(len(frame))
+        try:
+            while True:
+                item = await self._outbox.get()
+                if isinstance(item, _Close):
+                    await self.ws.close(item.code, item.reason)
+                    return
+                self._out_seq += 1
+                frame = encode(item, self._out_seq)
+                await self.ws.send_bytes(frame)
+                agent = self.agent
+                if agent is not None and not self.replaced:
+                    agent.bandwidth.sent(len(frame))
+        except (WebSocketDisconnect, RuntimeError, OSError) as e:
+            # the agent went away mid-send (uvicorn: ClientDisconnected, an OSError; starlette: a
+            # RuntimeError after close); on reconnect the welcome's last_seq replaces the lost acks
+            logger.debug("send to %s ended: %s", self.agent_id, type(e).__name__)
 
     def _reply_error(self, code: str, message: str, field: str | None, seq: int | None) -> None:
         self.send(ErrorMsg(code=code, message=message[:1000], field=field, seq=seq))

@@ -1,8 +1,9 @@
-"""10,000 random and mutated frames: the decoder only ever raises ProtocolError, fast, in bounded memory."""
+"""10,000 random and mutated frames: the decoder only ever raises ProtocolError, in bounded memory.
+
+A hang is caught by the test's timeout; how fast decoding is belongs to the benchmarks, not here."""
 
 from __future__ import annotations
 
-import time
 import tracemalloc
 
 import pytest
@@ -18,7 +19,6 @@ def test_decoder_survives_10k_hostile_frames() -> None:
     assert len(frames) == 10_000
     rejected = 0
     tracemalloc.start()
-    t0 = time.perf_counter()
     try:
         for f in frames:
             try:
@@ -29,10 +29,8 @@ def test_decoder_survives_10k_hostile_frames() -> None:
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
-    elapsed = time.perf_counter() - t0
     # Most frames are invalid; a few bit flips land in array data and stay valid.
     assert rejected > 9000, rejected
     # Never allocates more than the frame limit, however large the lengths a frame declares
     # (arrays are views on the frame; lists/maps are capped at 64 entries).
     assert peak < limits.max_frame_bytes, peak
-    assert elapsed < 30, elapsed  # no hang: ~2 s on the 2-core dev machine
