@@ -200,6 +200,14 @@ def experiment_command(
             "compare back-end options on the same worlds.",
         ),
     ] = None,
+    markers: Annotated[
+        str,
+        typer.Option(
+            "--markers",
+            help="'on': agents detect the marker carriers their datasets describe (issue 25); 'off':"
+            " the same images, no detection. Run each into its own --out to compare.",
+        ),
+    ] = "on",
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment
@@ -212,6 +220,8 @@ def experiment_command(
         starts = StartPoseOptions(start_poses, start_sigma_m, start_sigma_deg, seed)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--start-poses") from exc
+    if markers not in ("on", "off"):
+        raise typer.BadParameter(f"expected 'on' or 'off', got {markers!r}", param_hint="--markers")
     opts = ExperimentOptions(
         scenarios=split(scenarios),
         modes=split(modes),
@@ -226,6 +236,7 @@ def experiment_command(
         report_only=report_only,
         report_dir=report_dir,
         server_toml=server_config.read_text() if server_config is not None else "",
+        markers=markers == "on",
     )
     try:
         report = run_experiment(opts)

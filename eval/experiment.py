@@ -41,7 +41,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hivemap.eval.rendezvous import merge_timeline
 from hivemap.eval.startposes import StartPoseOptions, start_poses, start_poses_toml
+from hivemap.maps.markers import LAYOUT_FILE
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +87,8 @@ class ExperimentOptions:
     # world seeds: each scenario runs once per seed (None in the list: the preset's own seed); None: once
     seeds: Sequence[int | None] | None = None
     server_toml: str = ""  # appended to every run's server config (back-end options under comparison)
+    # issue 25: agents detect the marker carriers their datasets describe (off: same images, no detection)
+    markers: bool = True
 
     def worlds(self) -> list[tuple[str, str, int | None]]:
         """(results key, scenario, world seed) of every world to run: ``factory01-s7`` for seed 7."""
@@ -238,6 +242,8 @@ def _agent_cmd(ds: Path, out: Path, gnss: str, opts: ExperimentOptions) -> list[
     cmd += ["--seed", str(opts.seed), "--no-progress"]
     if opts.max_frames is not None:
         cmd += ["--max-frames", str(opts.max_frames)]
+    if not opts.markers:
+        cmd += ["--no-markers"]
     return cmd
 
 
@@ -370,6 +376,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
         events = httpx.get(url + "/events", params=ev_query, timeout=30).json()["events"]
         maps = httpx.get(url + "/maps", timeout=30).json()["maps"]
         gt_cam = {aid: groundtruth_trajectory(scen / aid, sensor="cam0") for aid, _ in agents}
+        t_first = min(float(g.timestamps[0]) for g in gt_cam.values())
         for aid, _kind in agents:
             res = results[aid]
             out = work / aid
@@ -403,9 +410,12 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
                 mode_dir / "server", [(aid, results[aid].run.get("map_id")) for aid, _ in agents]
             ),
             "start_poses": start_table,
-            "all_merged_s": all_merged_at(
-                events, len(agents), min(float(g.timestamps[0]) for g in gt_cam.values())
-            ),
+            "all_merged_s": all_merged_at(events, len(agents), t_first),
+            "merge_timeline": merge_timeline(events, t_first),
+            "markers": {
+                "condition": "on" if opts.markers else "off",
+                "layouts": sorted(a for a, _ in agents if (scen / a / LAYOUT_FILE).exists()),
+            },
             "events": events,
             "maps": maps,
             "server_start_wall": t_server,

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from hivemap.eval.globalmap import globalmap_section
+from hivemap.eval.rendezvous import rendezvous_section
 from hivemap.eval.seeds import seeds_section
 
 log = logging.getLogger(__name__)
@@ -492,6 +493,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str], report_dir: 
     md += seeds_section(table8)
     md += team_section(out, results)
     md += globalmap_section(results)
+    md += rendezvous_section(results)
     md += table67(results)
     # ---------------------------------------------------------------- plots
     md += ["## Trajectories (top view, estimate SE(3)-aligned vs ground truth; * merge, o loop)", ""]
