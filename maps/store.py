@@ -44,7 +44,8 @@ from hivemap.maps.store_schema import _KF_COLS, _KF_UPSERT, _PT_UPSERT, _SCHEMA,
 
 logger = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 4  # 2: map_keyframes.up_cam; 3: u_right, stereo_baseline; 4: odom_sigma
+# 2: map_keyframes.up_cam; 3: u_right, stereo_baseline; 4: odom_sigma; 5: map_rendezvous
+SCHEMA_VERSION = 5
 
 
 class StoreError(RuntimeError):
@@ -188,7 +189,7 @@ class MapStore:
                     ("u_right", "BLOB"),  # 2 -> 3: and their stereo observations
                     ("stereo_baseline", "REAL"),
                     ("odom_sigma", "BLOB"),  # 3 -> 4: and the error weak or lost tracking added
-                )
+                )  # 4 -> 5: the table map_rendezvous, created below with the others
                 with self._tx():
                     for col, kind in added:
                         if col not in cols:
@@ -253,6 +254,22 @@ class MapStore:
     def get_meta(self, key: str, default: Any = None) -> Any:
         row = self.conn.execute("SELECT value FROM map_meta WHERE key = ?", (str(key),)).fetchone()
         return default if row is None else json.loads(row[0])
+
+    # ------------------------------------------------------------------ rendezvous observations
+    def put_rendezvous(self, rid: int, record: dict[str, Any]) -> None:
+        """Store (or update) rendezvous observation ``rid``: ``record`` is JSON (its matrices as lists;
+        Python's JSON floats round-trip exactly)."""
+        with self._tx():
+            self.conn.execute(
+                "INSERT INTO map_rendezvous (id, record) VALUES (?, ?) "
+                "ON CONFLICT (id) DO UPDATE SET record = excluded.record",
+                (int(rid), json.dumps(record)),
+            )
+
+    def load_rendezvous(self) -> dict[int, dict[str, Any]]:
+        """Every stored rendezvous observation by id, in id order."""
+        rows = self.conn.execute("SELECT id, record FROM map_rendezvous ORDER BY id")
+        return {int(i): json.loads(r) for i, r in rows}
 
     # ------------------------------------------------------------------ incremental writes
     def _ensure_map(self, map_id: int, agents: Iterable[str] = ()) -> None:

@@ -70,6 +70,10 @@ CREATE TABLE IF NOT EXISTS map_merges (
     record TEXT NOT NULL                  -- json
 );
 CREATE INDEX IF NOT EXISTS map_merges_map ON map_merges (map_id);
+CREATE TABLE IF NOT EXISTS map_rendezvous (
+    id INTEGER PRIMARY KEY,               -- the server's number of the observation
+    record TEXT NOT NULL                  -- json: the message, its observer and its state
+);
 """
 
 _KF_COLS = (

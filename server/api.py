@@ -97,6 +97,22 @@ async def map_detail(server: Server, map_id: MapId) -> schemas.MapDetail:
     return views.map_detail(server, map_id)
 
 
+@router.get("/maps/{map_id}/rendezvous", responses=NOT_FOUND, tags=["maps"])
+async def map_rendezvous(server: Server, map_id: MapId) -> dict[str, Any]:
+    """The rendezvous observations of the map's agents (either end): state (held, pending, judging, kept,
+    rejected) and why, the edge's residual in the map now (m, deg), and both agents' poses at its
+    keyframes (the viewer draws a line between them)."""
+    return views.map_rendezvous(server, map_id)
+
+
+@router.get("/rendezvous", tags=["server"])
+async def rendezvous(
+    server: Server, state: Annotated[str | None, Query(max_length=16, description="only this state")] = None
+) -> dict[str, Any]:
+    """Every rendezvous observation the server holds, with its state."""
+    return views.rendezvous_list(server, state)
+
+
 @router.get(
     "/maps/{map_id}/keyframes", response_model=schemas.KeyframeList, responses=NOT_FOUND, tags=["maps"]
 )

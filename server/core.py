@@ -61,6 +61,7 @@ from hivemap.server.ingest import Ingest, _with_last_seq
 from hivemap.server.metrics import Histogram
 from hivemap.server.persist import GraphSnapshot, ServerStore
 from hivemap.server.quotas import Quotas
+from hivemap.server.rendezvous import RendezvousObs
 from hivemap.server.settings import ServerSettings
 from hivemap.server.writer import StoreWriter
 
@@ -80,6 +81,10 @@ class HiveServer(Ingest):
         self.stack = MapStack()
         self.agents: dict[str, AgentState] = {}
         self.keyframe_observers: list[KeyframeObserver] = []
+        self.rendezvous: dict[int, RendezvousObs] = {}  # every rendezvous observation by id
+        self.fresh_rendezvous: list[int] = []  # applied, not yet handed to the observers
+        #: async callables ``(rendezvous id) -> None`` awaited after a rendezvous observation is applied
+        self.rendezvous_observers: list[Callable[[int], Awaitable[None]]] = []
         self.ack_latency = Histogram((0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 5.0))
         self.started_at = time.time()
         self.rejected_frames = 0
@@ -255,6 +260,7 @@ class HiveServer(Ingest):
             pam.pending[kf_id] = PendingKeyframe(msg, missing)
             for pid in missing:
                 pam.waiting.setdefault(pid, set()).add(kf_id)
+        self.rendezvous = {rid: RendezvousObs.from_record(rec) for rid, rec in loaded.rendezvous.items()}
         logger.info("restored %d agents, %d maps", len(self.agents), len(self.stack.maps))
 
     # -- agents -------------------------------------------------------------------------------------
@@ -419,6 +425,13 @@ class HiveServer(Ingest):
                     await observer(map_id, key)
                 except Exception:
                     logger.exception("keyframe observer failed")
+        fresh, self.fresh_rendezvous = self.fresh_rendezvous, []
+        for rid in fresh:
+            for rv_observer in list(self.rendezvous_observers):
+                try:
+                    await rv_observer(rid)
+                except Exception:
+                    logger.exception("rendezvous observer failed")
 
     def _check_seq_step(self, agent: AgentState, ms: MissionState, seq: int) -> None:
         """A seq may grow by at most ``max_seq_step``: one frame with seq 2**62 would otherwise make the

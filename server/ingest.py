@@ -13,10 +13,11 @@ import numpy as np
 
 from hivemap.maps import MapStack
 from hivemap.maps.camera import PinholeCamera
-from hivemap.protocol import Keyframe, MapPoints, Message, PoseUpdates
+from hivemap.protocol import Keyframe, MapPoints, Message, PoseUpdates, Rendezvous
 from hivemap.server.agents import AgentMap, AgentState, PendingKeyframe, Rejected
 from hivemap.server.convert import fold_agent_id, keyframe_from_msg, points_from_msg
 from hivemap.server.persist import GraphSnapshot, ServerStore
+from hivemap.server.rendezvous import MAX_HELD, RendezvousObs
 
 if TYPE_CHECKING:
     from hivemap.server.settings import ServerSettings
@@ -48,6 +49,8 @@ class Ingest:
     stack: MapStack
     settings: ServerSettings
     agents: dict[str, AgentState]
+    rendezvous: dict[int, RendezvousObs]
+    fresh_rendezvous: list[int]
 
     if TYPE_CHECKING:
 
@@ -65,6 +68,8 @@ class Ingest:
             return self._apply_points(agent, mission, msg)
         if isinstance(msg, PoseUpdates):
             return self._apply_pose_updates(agent, mission, msg), []
+        if isinstance(msg, Rendezvous):
+            return self._apply_rendezvous(agent, mission, msg), []
         raise Rejected("unexpected", f"'{type(msg).__name__}' is not a message an agent sends", "type")
 
     def _session_map(
@@ -281,3 +286,27 @@ class Ingest:
                 store.put_pending(folded, pmsg)
 
         return op
+
+    def _apply_rendezvous(
+        self, agent: AgentState, mission: str, msg: Rendezvous
+    ) -> Callable[[ServerStore], None] | None:
+        """Keep the observation (held: its reference keyframe or the observed agent may not have arrived
+        yet, an unknown observed agent may still appear); the back-end resolves it
+        (``fresh_rendezvous``)."""
+        am = self._session_map(agent, mission, msg.session, create=False)
+        if msg.observed_agent == agent.agent_id:
+            raise Rejected("bad_field", "an agent cannot observe its own carrier", "body.observed_agent")
+        held = sum(1 for r in self.rendezvous.values() if r.state == "held")
+        if held >= MAX_HELD:
+            why = f"{held} rendezvous observations already held"
+            raise Rejected("overloaded", why, "body.observed_agent")
+        rid = max(self.rendezvous, default=0) + 1
+        obs = RendezvousObs.from_msg(rid, am.folded, msg)
+        if msg.ref_kf_id not in am.arrived_kfs:
+            obs.reason = f"reference keyframe {msg.ref_kf_id} of {am.folded} not arrived yet"
+        elif msg.observed_agent not in self.agents:
+            obs.reason = f"observed agent '{msg.observed_agent}' not known yet"
+        self.rendezvous[rid] = obs
+        self.fresh_rendezvous.append(rid)
+        rec = obs.record()
+        return lambda store: store.maps.put_rendezvous(rid, rec)

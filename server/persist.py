@@ -59,6 +59,7 @@ class Loaded:
     missions: list[tuple[str, str, int]] = field(default_factory=list)  # (agent id, mission, last seq)
     agent_maps: dict[str, dict[str, Any]] = field(default_factory=dict)
     pending: list[tuple[str, int, Keyframe]] = field(default_factory=list)
+    rendezvous: dict[int, dict[str, Any]] = field(default_factory=dict)  # id -> RendezvousObs record
 
 
 class GraphSnapshot:
@@ -204,4 +205,5 @@ class ServerStore:
             _, msg = decode(bytes(frame))
             if isinstance(msg, Keyframe):
                 out.pending.append((folded, int(kf_id), msg))
+        out.rendezvous = self.maps.load_rendezvous()
         return out

@@ -473,3 +473,38 @@ def metrics(server: HiveServer) -> str:
         "hivemap_ack_latency_seconds", "From a frame's arrival to its ack being queued.", server.ack_latency
     )
     return w.render()
+
+
+def _rendezvous_row(server: HiveServer, obs: Any) -> dict[str, Any]:
+    from hivemap.server.backend.rendezvous import edge_from, residual
+
+    rec = obs.record()
+    row = {k: rec[k] for k in ("id", "observer", "observed_agent", "timestamp", "marker_ids", "ref_kf_id",
+                               "reproj_rms_px", "state", "reason", "chi2", "map_id")}  # fmt: skip
+    res = residual(server, obs)
+    row["residual_m"], row["residual_deg"] = (None, None) if res is None else res
+    row["candidate"] = row["query"] = row["observer_position"] = row["observed_position"] = None
+    if obs.edge is not None:
+        e = edge_from(obs.edge)
+        row["candidate"], row["query"] = list(e.candidate), list(e.query)
+        m = server.stack.map_of_agent(e.candidate[0])
+        if m is not None and e.candidate in m.keyframes:
+            W = m.keyframes[e.candidate].world_from_cam @ obs.ref_from_cam
+            row["observer_position"] = W[:3, 3].tolist()
+            if e.query in m.keyframes:  # the observed agent as the observation places it
+                row["observed_position"] = (W @ obs.cam_from_observed)[:3, 3].tolist()
+    return row
+
+
+def map_rendezvous(server: HiveServer, map_id: int) -> dict[str, Any]:
+    m = get_map(server, map_id)
+    agents = {a.partition("#")[0] for a in m.agents}
+    rows = [_rendezvous_row(server, obs) for _, obs in sorted(getattr(server, "rendezvous", {}).items())
+            if obs.observer in m.agents or obs.observed_agent in agents]  # fmt: skip
+    return {"map_id": map_id, "rendezvous": rows}
+
+
+def rendezvous_list(server: HiveServer, state: str | None) -> dict[str, Any]:
+    rows = [_rendezvous_row(server, obs) for _, obs in sorted(getattr(server, "rendezvous", {}).items())
+            if state is None or obs.state == state]  # fmt: skip
+    return {"rendezvous": rows}

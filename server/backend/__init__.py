@@ -34,6 +34,8 @@ def install(server: Any, options: BackendOptions | None = None) -> Backend:
     backend = Backend(server, options)
     server.backend = backend
     server.keyframe_observers.append(backend.on_keyframe)
+    if hasattr(server, "rendezvous_observers"):
+        server.rendezvous_observers.append(backend.on_rendezvous)
     server.startup_hooks.append(backend.start)
     server.shutdown_hooks.append(backend.stop)
     if hasattr(server, "mission_end_observers"):

@@ -48,7 +48,7 @@ class Evidence:
     marked ``rejected`` with its ``reject_reason`` while the robust pose graph rejects the edge."""
 
     edge: NewEdge
-    kind: str  # "loop" or "merge"
+    kind: str  # "loop", "merge" or "rendezvous" (an observation of one agent by another)
     record: dict[str, Any]
     merge: MergeHypothesis | None = None
     rejected: bool = False
@@ -105,8 +105,9 @@ class EvidenceBook:
         record: dict[str, Any],
         fuse: list[tuple[Any, Any]],
         dependent: MergeHypothesis | None = None,
+        kind: str = "loop",
     ) -> Evidence:
-        ev = Evidence(edge, "loop", record, fuse=fuse, dependent=dependent)
+        ev = Evidence(edge, kind, record, fuse=fuse, dependent=dependent)
         if dependent is not None:
             record["merge_evidence"] = dependent.id
             dependent.record["dependent_loops"] = dependent.record.get("dependent_loops", 0) + 1
@@ -200,7 +201,9 @@ class EvidenceBook:
                 v.contradicted.append(hyp)
                 continue
             for ev in judged:
-                if ev.kind == "loop" and not ev.rejected and hyp.across(ev.edge.candidate, ev.edge.query):
+                # a rendezvous is an independent measurement between the sides as a loop is
+                independent = ev.kind in ("loop", "rendezvous")
+                if independent and not ev.rejected and hyp.across(ev.edge.candidate, ev.edge.query):
                     hyp.confirmations.add(ev.edge.query)
             hyp.record["confirmations"] = len(hyp.confirmations)
             # a session guess is no visual match that a look-alike place could have made: one loop kept

@@ -142,6 +142,27 @@ _PLACEREC = PlaceRecOptions(consistency_required=1)
 
 
 @dataclass(frozen=True)
+class RendezvousOptions:
+    """Rendezvous observations (:mod:`.rendezvous`): when they merge two maps, how their edges are
+    weighted."""
+
+    # a merge needs this many observations whose implied map-to-map transforms agree (chi-square gate on
+    # each one's residual under their least-squares transform), spread over this many seconds
+    min_observations: int = 3
+    min_span_s: float = 1.0
+    gate_chi2: float = 16.81  # 6 dof, 99 %
+    # the observed agent's pose at the observation's time: interpolated between its keyframes; past its
+    # last keyframe extrapolated at the last keyframes' velocity only this far, else held
+    extrapolate_max_s: float = 0.3
+    # the interpolation's uncertainty: this share of the bracketing keyframes' relative motion (at the
+    # middle of the interval; extrapolation: of the motion beyond the last keyframe)
+    interp_share: float = 0.2
+    # floors of an edge's sigmas (a PnP covariance can be optimistic)
+    sigma_rot_floor_deg: float = 0.3
+    sigma_trans_floor_m: float = 0.02
+
+
+@dataclass(frozen=True)
 class BackendOptions:
     """Every back-end option; ``preset`` names the preset the values started from."""
 
@@ -157,6 +178,7 @@ class BackendOptions:
     optimise: OptimiseOptions = OptimiseOptions()
     gnss: GnssOptions = GnssOptions()
     corrections: CorrectionOptions = CorrectionOptions()
+    rendezvous: RendezvousOptions = RendezvousOptions()
 
 
 PRESETS: dict[str, BackendOptions] = {
@@ -271,6 +293,7 @@ __all__ = [
     "GnssStageOptions",
     "OptimiseOptions",
     "PlaceRecOptions",
+    "RendezvousOptions",
     "SchedulerOptions",
     "Thresholds",
     "from_table",

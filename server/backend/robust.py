@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.merge import split_map
 from hivemap.maps.store import map_rows
-from hivemap.server.backend import evidence_store
+from hivemap.server.backend import evidence_store, rendezvous
 from hivemap.server.backend.evidence import Evidence, MergeHypothesis
 from hivemap.server.backend.fit import umeyama
 from hivemap.server.backend.gnss import antenna_fixes
@@ -60,15 +60,17 @@ async def apply_verdict(bk: Any, m: Any, judged: list[Evidence], problem: Any, r
         publish_first(events, ev)
     for ev in v.rejected:
         m.remove_loop_edge(ev.edge.candidate, ev.edge.query)
-        if ev not in first:
+        if ev not in first and ev.kind != rendezvous.KIND:  # (rendezvous: their own events, below)
             what = f"{ev.kind} {ev.edge.query} -> {ev.edge.candidate} in map {m.id}"
             events.add(f"{ev.kind}_rejected", f"{what} rejected after the fact: {ev.record['reject_reason']}",
                        map_id=m.id, data=dict(ev.record))  # fmt: skip
     for ev in v.readmitted:
-        if ev.edge.candidate in m.keyframes and ev.edge.query in m.keyframes:
+        # (a rendezvous edge is no covisibility: it has no loop edge in the map)
+        if ev.kind != rendezvous.KIND and ev.edge.candidate in m.keyframes and ev.edge.query in m.keyframes:
             m.add_loop_edge(ev.edge.candidate, ev.edge.query)
         events.add(f"{ev.kind}_readmitted", f"{ev.kind} {ev.edge.query} -> {ev.edge.candidate} in map {m.id} "
                    f"kept again by the robust pose graph", map_id=m.id, data=dict(ev.record))  # fmt: skip
+    rendezvous.judged(bk, judged)
     for hyp in v.confirmed:
         events.add("merge_confirmed", f"merge {hyp.source} -> {hyp.target} confirmed by "
                    f"{len(hyp.confirmations)} loops between its sides", map_id=m.id,
@@ -117,6 +119,7 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
         rows = [am.row() for am in moved]
         dropped = bk.evidence.split(map_id, new.id, hyp)
         hyp.record.update(undone=True, undo_reason=reason, on_trial=False, split_into=new.id)
+        rendezvous.undone(bk, hyp, reason)
         book = evidence_store.to_json(bk.evidence)
         snapshots = (map_rows(kept), map_rows(new))  # the maps go on changing during the write
 

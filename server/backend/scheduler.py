@@ -31,7 +31,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
-from hivemap.server.backend import accept, detect, evidence_store, executor, fit, sessionguess, surgery
+from hivemap.server.backend import (
+    accept,
+    detect,
+    evidence_store,
+    executor,
+    fit,
+    rendezvous,
+    sessionguess,
+    surgery,
+)
 from hivemap.server.backend.optimise import NewEdge
 from hivemap.server.backend.pipeline import Pipeline
 from hivemap.server.convert import split_folded
@@ -67,6 +76,7 @@ class Backend(Pipeline):
                           f"{self._verifier.workers} worker(s)")  # fmt: skip
         await self._load_evidence(server)
         self._refresh_loose()
+        await self._rendezvous_after_restart()
         # keyframes reloaded from the store are indexed by the worker first (no detection on them); the
         # server is ready meanwhile
         keys = [(m.id, k) for m in server.stack.maps.values() for k in m.keyframes]
@@ -111,8 +121,27 @@ class Backend(Pipeline):
         """Nothing queued and nothing in flight (tests and benches wait for this)."""
         return not self.queue and self._busy == 0 and not self._tasks and not self._inflight
 
-    # -- observer -----------------------------------------------------------------------------------
+    # -- observers ----------------------------------------------------------------------------------
+    async def on_rendezvous(self, rid: int) -> None:
+        await rendezvous.process(self, [rid])
+
+    async def _rendezvous_after_restart(self) -> None:
+        """Held observations may resolve now; pending ones may merge with the reloaded maps."""
+        obs = self.server.rendezvous
+        await rendezvous.process(self, sorted(r for r, o in obs.items() if o.state == "held"))
+        pairs = set()
+        for o in obs.values():
+            if o.state == "pending" and o.edge is not None:
+                ends = [rendezvous._map_id(self.server, rendezvous.edge_from(o.edge)[i]) for i in (0, 1)]
+                if None not in ends and ends[0] != ends[1]:
+                    pairs.add((min(ends), max(ends)))  # type: ignore[type-var]
+        for a, b in sorted(pairs):
+            await rendezvous.try_merge(self, a, b)
+
     async def on_keyframe(self, map_id: int, key: KfKey) -> None:
+        held = rendezvous.held_for(self.server, key[0])
+        if held:
+            await rendezvous.process(self, held)
         if self._prior.wants(key[0]):
             self._record_start(map_id, key)
         am = self.server._agent_map_by_folded(key[0])

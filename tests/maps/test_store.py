@@ -16,7 +16,7 @@ import pytest
 
 from hivemap.maps import Keyframe, MapPoint, MapStack, map_differences
 from hivemap.maps.geometry import Sim3, so3_exp
-from hivemap.maps.store import MapStore, SchemaError, StoreError, pack_array, unpack_array
+from hivemap.maps.store import SCHEMA_VERSION, MapStore, SchemaError, StoreError, pack_array, unpack_array
 from hivemap.maps.testing import DEFAULT_CAMERA, random_keyframes_and_points, random_map
 
 
@@ -190,7 +190,7 @@ def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
     con.commit()
     con.close()
     store = MapStore(path)
-    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == 4
+    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == SCHEMA_VERSION
     loaded = store.load_stack()
     for m in stack.maps.values():
         for kf in m.keyframes.values():
@@ -257,7 +257,7 @@ def test_version_3_file_is_migrated_and_keeps_its_keyframes(tmp_path: Path, drop
     con.commit()
     con.close()
     store = MapStore(path)
-    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == 4
+    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == SCHEMA_VERSION
     loaded = store.load_stack()
     for kf in kfs:
         for col in dropped:
@@ -404,3 +404,29 @@ def test_a_map_saved_from_its_rows_is_the_map_at_that_instant(tmp_path: Path) ->
     store.close()
     assert map_differences(at_snapshot, loaded.maps[0]) == []
     assert map_differences(m, loaded.maps[0]) != []
+
+
+def test_version_4_file_gains_the_rendezvous_table_and_keeps_its_maps(tmp_path: Path) -> None:
+    """A store written before rendezvous observations (no ``map_rendezvous``) opens, keeps its maps and
+    stores observations from then on, across a reopen."""
+    path = tmp_path / "v4.sqlite"
+    stack = build_stack(17, 20, 800)
+    store = MapStore(path)
+    store.save_stack(stack)
+    store.close()
+    con = sqlite3.connect(path)
+    con.execute("DROP TABLE map_rendezvous")
+    con.execute("UPDATE map_schema SET version = 4")
+    con.commit()
+    con.close()
+    store = MapStore(path)
+    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == SCHEMA_VERSION
+    assert_stacks_equal(stack, store.load_stack())
+    assert store.load_rendezvous() == {}
+    rec = {"observer": "uav1", "cam_from_observed": np.eye(4).tolist(), "timestamp": 0.1 + 0.2}
+    store.put_rendezvous(3, rec)
+    store.put_rendezvous(3, {**rec, "state": "kept"})
+    store.close()
+    store = MapStore(path)
+    assert store.load_rendezvous() == {3: {**rec, "state": "kept"}}
+    store.close()
