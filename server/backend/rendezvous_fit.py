@@ -39,9 +39,7 @@ class Bracket:
     alpha: float
 
 
-def bracket(
-    keyframes: Sequence[tuple[float, KfKey, F64]], t: float, o: RendezvousOptions
-) -> Bracket | str:
+def bracket(keyframes: Sequence[tuple[float, KfKey, F64]], t: float, o: RendezvousOptions) -> Bracket | str:
     """The keyframes around time ``t`` among one agent map's ``(timestamp, key, world_from_cam)``, sorted
     by time; a string says why there is none yet."""
     if len(keyframes) < 2:
@@ -61,7 +59,11 @@ def bracket(
 
 
 def edge_of(
-    ref_key: KfKey, ref_from_cam: F64, cam_from_observed: F64, covariance: F64, br: Bracket,
+    ref_key: KfKey,
+    ref_from_cam: F64,
+    cam_from_observed: F64,
+    covariance: F64,
+    br: Bracket,
     o: RendezvousOptions,
 ) -> NewEdge:
     """The observation as an edge from the observer's reference keyframe (candidate) to the observed
