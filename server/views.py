@@ -483,7 +483,9 @@ def _rendezvous_row(server: HiveServer, obs: Any) -> dict[str, Any]:
                                "reproj_rms_px", "state", "reason", "chi2", "map_id")}  # fmt: skip
     res = residual(server, obs)
     row["residual_m"], row["residual_deg"] = (None, None) if res is None else res
+    # the positions are in the frame of map ``position_map`` (the observer's)
     row["candidate"] = row["query"] = row["observer_position"] = row["observed_position"] = None
+    row["position_map"] = None
     if obs.edge is not None:
         e = edge_from(obs.edge)
         row["candidate"], row["query"] = list(e.candidate), list(e.query)
@@ -491,8 +493,8 @@ def _rendezvous_row(server: HiveServer, obs: Any) -> dict[str, Any]:
         if m is not None and e.candidate in m.keyframes:
             W = m.keyframes[e.candidate].world_from_cam @ obs.ref_from_cam
             row["observer_position"] = W[:3, 3].tolist()
-            if e.query in m.keyframes:  # the observed agent as the observation places it
-                row["observed_position"] = (W @ obs.cam_from_observed)[:3, 3].tolist()
+            row["observed_position"] = (W @ obs.cam_from_observed)[:3, 3].tolist()  # as the marker says
+            row["position_map"] = m.id
     return row
 
 

@@ -151,6 +151,11 @@ class RendezvousOptions:
     min_observations: int = 3
     min_span_s: float = 1.0
     gate_chi2: float = 16.81  # 6 dof, 99 %
+    # in that gate each observation's sigmas are at least these: the agents' own tracking drifts between
+    # observations seconds apart by more than a close-range PnP's centimetres, while a wrong marker id is
+    # off by the distance between two agents
+    agree_sigma_rot_deg: float = 1.0
+    agree_sigma_trans_m: float = 0.1
     # the observed agent's pose at the observation's time: interpolated between its keyframes; past its
     # last keyframe extrapolated at the last keyframes' velocity only this far, else held
     extrapolate_max_s: float = 0.3

@@ -170,7 +170,8 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
     ids = [pend[i][0].id for i in inl]
     rec: dict[str, Any] = {
         "target": target, "source": source, "by": BY, "time": time.time(), "merge_ms": merge_ms,
-        "query_t": first_obs.timestamp, "scale": 1.0, "n_fused": 0,
+        # data time of the observation that completed the agreeing set (eval: when the agents joined)
+        "query_t": max(pend[i][0].timestamp for i in inl), "scale": 1.0, "n_fused": 0,
         "target_from_source": sim.matrix().tolist(), "rendezvous": ids, "rendezvous_id": first_obs.id,
         "n_observations": len(inl), "query": list(e0.query), "candidate": list(e0.candidate),
         "candidate_from_query": e0.measured.matrix().tolist(),
@@ -203,6 +204,8 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
         book = evidence_store.to_json(bk.evidence)
         await server.persist(lambda store: store.maps.set_meta(evidence_store.META_KEY, book))
     T = sim.matrix()
+    server.events.add("merge_detail", f"merge {source} -> {target} by {len(inl)} rendezvous observations",
+                      map_id=target, data=rec)  # fmt: skip
     server.events.add(
         "rendezvous_merge",
         f"map {source} merged into map {target} by {len(inl)} agreeing rendezvous observations "

@@ -104,19 +104,23 @@ def implied(x: Oriented) -> F64:
     return c_from_q if x.candidate_in_target else se3_inverse(c_from_q)
 
 
-def whitened(T: F64, x: Oriented) -> F64:
-    """(6,) the observation's whitened residual under target_from_source ``T``."""
+def whitened(T: F64, x: Oriented, floors: tuple[float, float] = (0.0, 0.0)) -> F64:
+    """(6,) the observation's whitened residual under target_from_source ``T``, its sigmas at least
+    ``floors`` (rad, m)."""
     c_from_q = T if x.candidate_in_target else se3_inverse(T)
     predicted = se3_inverse(x.world_from_candidate) @ c_from_q @ x.world_from_query
     E = se3_inverse(x.edge.measured.matrix()) @ predicted
-    return np.concatenate([so3_log(E[:3, :3]) / x.edge.sigma_rot, E[:3, 3] / x.edge.sigma_trans])
+    sr, st = max(x.edge.sigma_rot, floors[0]), max(x.edge.sigma_trans, floors[1])
+    return np.concatenate([so3_log(E[:3, :3]) / sr, E[:3, 3] / st])
 
 
-def chi2(T: F64, x: Oriented) -> float:
-    return float(np.sum(whitened(T, x) ** 2))
+def chi2(T: F64, x: Oriented, floors: tuple[float, float] = (0.0, 0.0)) -> float:
+    return float(np.sum(whitened(T, x, floors) ** 2))
 
 
-def least_squares(T0: F64, obs: Sequence[Oriented], iterations: int = 10) -> F64:
+def least_squares(
+    T0: F64, obs: Sequence[Oriented], floors: tuple[float, float] = (0.0, 0.0), iterations: int = 10
+) -> F64:
     """target_from_source minimising the observations' whitened residuals (Gauss-Newton, left
     perturbation, numerical Jacobian: a handful of observations, six unknowns)."""
     T = T0.copy()
@@ -125,13 +129,13 @@ def least_squares(T0: F64, obs: Sequence[Oriented], iterations: int = 10) -> F64
         return se3(so3_exp(d[:3]), d[3:]) @ T
 
     for _ in range(iterations):
-        r0 = np.concatenate([whitened(T, x) for x in obs])
+        r0 = np.concatenate([whitened(T, x, floors) for x in obs])
         J = np.zeros((len(r0), 6))
         h = 1e-6
         for j in range(6):
             d = np.zeros(6)
             d[j] = h
-            J[:, j] = (np.concatenate([whitened(moved(d), x) for x in obs]) - r0) / h
+            J[:, j] = (np.concatenate([whitened(moved(d), x, floors) for x in obs]) - r0) / h
         step = np.linalg.lstsq(J, -r0, rcond=None)[0]
         T = moved(step)
         if float(np.linalg.norm(step)) < 1e-10:
@@ -151,19 +155,20 @@ def consensus(obs: Sequence[Oriented], o: RendezvousOptions) -> Consensus | None
     chi-square gate, if it has ``min_observations`` spread over ``min_span_s``; else None. Each
     observation seeds one hypothesis (its own implied transform), so one wrong observation, however far
     off, cannot pull the others' transform: it only fails the gate."""
+    f = (math.radians(o.agree_sigma_rot_deg), o.agree_sigma_trans_m)
     best: Consensus | None = None
     for seed in obs:
         T = implied(seed)
-        inl = [i for i, x in enumerate(obs) if chi2(T, x) < o.gate_chi2]
+        inl = [i for i, x in enumerate(obs) if chi2(T, x, f) < o.gate_chi2]
         for _ in range(3):
             if len(inl) < 2:
                 break
-            T = least_squares(T, [obs[i] for i in inl])
-            again = [i for i, x in enumerate(obs) if chi2(T, x) < o.gate_chi2]
+            T = least_squares(T, [obs[i] for i in inl], f)
+            again = [i for i, x in enumerate(obs) if chi2(T, x, f) < o.gate_chi2]
             if again == inl:
                 break
             inl = again
-        c2 = [chi2(T, x) for x in obs]
+        c2 = [chi2(T, x, f) for x in obs]
         score = (len(inl), -sum(c2[i] for i in inl))
         if best is None or score > (len(best.inliers), -sum(best.chi2[i] for i in best.inliers)):
             best = Consensus(T, inl, c2)

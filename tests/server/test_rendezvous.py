@@ -122,7 +122,7 @@ def test_rendezvous_merge_the_maps_by_the_true_transform_and_survive_a_restart(t
         print(f"rendezvous merge: {err_m * 100:.1f} cm, {err_deg:.2f} deg from the truth")
         listing = rest(srv, f"/maps/{maps[0]['id']}/rendezvous")["rendezvous"]
         assert [r["state"] for r in listing] == ["kept"] * 4, listing
-        assert all(r["residual_m"] < 0.05 and r["observed_position"] is not None for r in listing), listing
+        assert all(r["residual_m"] < 0.05 and r["position_map"] == maps[0]["id"] for r in listing), listing
         agent.close()
     finally:
         srv.stop()

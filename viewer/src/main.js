@@ -13,6 +13,8 @@ export const PALETTE = [0x1f77b4, 0xff7f0e, 0x2ca02c, 0xd62728, 0x9467bd, 0x8c56
 // drawn (see lodSteps)
 const PART_POINTS = 150000;
 const LOOP_COLOR = 0xff00ff;
+// rendezvous observations (one agent saw another's markers) by state: kept, rejected, not judged yet
+const RENDEZVOUS_COLORS = { kept: 0x00e676, rejected: 0xff1744, other: 0xffc400 };
 // events shown by default; the rest (candidates, BA and consistency details, info) with "all events"
 const DEFAULT_EVENTS = new Set(["merge", "loop", "correction", "gnss_stage", "session", "error", "refused",
   "connect", "disconnect", "mission", "start_anchor", "start_prior", "selfcheck_alarm", "loop_rejected",
@@ -214,13 +216,20 @@ async function refreshKeyframes() {
   if (counts === state.kfCounts) return;
   const byAgent = {};
   const loops = [];
+  const sightings = { kept: [], rejected: [], other: [] };
   for (const m of state.maps) {
-    let kfs, edges;
+    let kfs, edges, rv;
     try {
-      [kfs, edges] = await Promise.all([getJSON(`/maps/${m.id}/keyframes?limit=10000`), getJSON(`/maps/${m.id}/edges`)]);
+      [kfs, edges, rv] = await Promise.all([getJSON(`/maps/${m.id}/keyframes?limit=10000`), getJSON(`/maps/${m.id}/edges`),
+        getJSON(`/maps/${m.id}/rendezvous`)]);
     } catch { continue; }
     for (const k of kfs.keyframes) (byAgent[k.agent_id] ??= []).push(k.world_from_cam);
     loops.push(...edges.segments);
+    // a line from the observer to the observed agent where the observation places it (in this map's frame)
+    for (const r of rv.rendezvous) {
+      if (!r.observer_position || !r.observed_position || r.position_map !== m.id) continue;
+      (sightings[r.state] ?? sightings.other).push(...r.observer_position, ...r.observed_position);
+    }
   }
   frustumGroup.clear();
   let n = 0;
@@ -247,8 +256,15 @@ async function refreshKeyframes() {
     geom.setAttribute("position", new THREE.BufferAttribute(new Float32Array(pts), 3));
     edgeGroup.add(new THREE.LineSegments(geom, new THREE.LineBasicMaterial({ color: LOOP_COLOR })));
   }
+  for (const [st, pts] of Object.entries(sightings)) {
+    if (!pts.length) continue;
+    const geom = new THREE.BufferGeometry();
+    geom.setAttribute("position", new THREE.BufferAttribute(new Float32Array(pts), 3));
+    edgeGroup.add(new THREE.LineSegments(geom, new THREE.LineBasicMaterial({ color: RENDEZVOUS_COLORS[st] })));
+  }
   state.kfCounts = counts;
   requestRender();
+  document.body.dataset.rendezvous = String(Object.values(sightings).reduce((n, p) => n + p.length / 6, 0));
   document.body.dataset.frustums = String(n);
   document.body.dataset.loopEdges = String(loops.length);
   await refreshGroundTruth();
