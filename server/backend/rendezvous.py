@@ -13,6 +13,7 @@ loop-like edges, the disagreeing ones are refused.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import time
@@ -24,7 +25,7 @@ from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
 from hivemap.server.backend import evidence_store, surgery
 from hivemap.server.backend.evidence import Evidence, MergeHypothesis
 from hivemap.server.backend.optimise import NewEdge
-from hivemap.server.backend.rendezvous_fit import Oriented, bracket, consensus, edge_of
+from hivemap.server.backend.rendezvous_fit import Oriented, bracket, chi2, consensus, edge_of
 from hivemap.server.rendezvous import RendezvousObs
 
 logger = logging.getLogger(__name__)
@@ -245,14 +246,76 @@ def judged(bk: Any, evs: list[Evidence]) -> None:
                               data=obs.record())  # fmt: skip
 
 
+def outvoted(bk: Any, m: Any) -> tuple[MergeHypothesis, str] | None:
+    """A rendezvous merge on trial in map ``m`` that more of the observations between its sides contradict
+    than support: they agree on another transform (:func:`.rendezvous_fit.consensus`, as for a merge),
+    which its own observations fail. The robust pose graph alone keeps whichever side its start (the merge
+    itself) favours; a merge made by agreement is refuted by a larger agreement."""
+    o = bk.options.rendezvous
+    for hyp in bk.evidence.on_trial(m.id):
+        own = set(hyp.record.get("rendezvous") or []) if hyp.record.get("by") == BY else set()
+        if not own:
+            continue
+        xs: list[tuple[RendezvousObs, Oriented]] = []
+        for obs in bk.server.rendezvous.values():
+            if obs.edge is None or obs.state in ("held", "pending"):
+                continue
+            e = edge_from(obs.edge)
+            if e.candidate in m.keyframes and e.query in m.keyframes and hyp.across(e.candidate, e.query):
+                xs.append((obs, Oriented(e, m.keyframes[e.candidate].world_from_cam,
+                                         m.keyframes[e.query].world_from_cam,
+                                         e.candidate[0] in hyp.target_agents, obs.timestamp)))  # fmt: skip
+        res = consensus([x for _, x in xs], o)
+        if res is None:
+            continue
+        winners = {xs[i][0].id for i in res.inliers}
+        support = [obs.id for obs, x in xs if chi2(np.eye(4), x, _floors(o)) < o.gate_chi2]
+        if not winners & own and len(winners) > len(support):
+            return hyp, (f"{len(winners)} rendezvous observations between its sides agree on another "
+                         f"transform, {len(support)} on the merged map")  # fmt: skip
+    return None
+
+
+def _floors(o: Any) -> tuple[float, float]:
+    return math.radians(o.agree_sigma_rot_deg), o.agree_sigma_trans_m
+
+
 def undone(bk: Any, hyp: MergeHypothesis, reason: str) -> None:
-    """A rendezvous merge was undone: its observations are refused (the same ones would merge again)."""
-    ids = hyp.record.get("rendezvous") if hyp.record.get("by") == BY else None
-    for rid in ids or []:
-        obs = bk.server.rendezvous.get(rid)
-        if obs is not None:
+    """A merge was undone: the observations a rendezvous merge was made of are refused (they would make
+    it again); every other observation between its two sides is merge evidence again (pending), judged
+    once more when the split is done."""
+    ids = set(hyp.record.get("rendezvous") or []) if hyp.record.get("by") == BY else set()
+    again = False
+    for obs in bk.server.rendezvous.values():
+        if obs.id in ids:
             obs.state, obs.reason = "rejected", f"the merge they made was undone ({reason})"
-            _persist(bk.server, obs)
+        elif obs.edge is not None and obs.state != "held":
+            e = edge_from(obs.edge)
+            if not hyp.across(e.candidate, e.query):
+                continue
+            obs.state, obs.reason = "pending", f"merge {hyp.id} between its maps was undone: evidence again"
+            again = True
+        else:
+            continue
+        _persist(bk.server, obs)
+    if again:
+        task = asyncio.get_running_loop().create_task(retry_pending(bk))
+        bk._tasks.add(task)
+        task.add_done_callback(bk._tasks.discard)
+
+
+async def retry_pending(bk: Any) -> None:
+    """Try a merge for every map pair that pending observations join."""
+    server = bk.server
+    pairs = set()
+    for obs in server.rendezvous.values():
+        if obs.state == "pending" and obs.edge is not None:
+            e = edge_from(obs.edge)
+            a, b = _map_id(server, e.candidate), _map_id(server, e.query)
+            if a is not None and b is not None and a != b:
+                pairs.add((min(a, b), max(a, b)))
+    for a, b in sorted(pairs):
+        await try_merge(bk, a, b)
 
 
 def held_for(server: Any, folded: str) -> list[int]:

@@ -80,6 +80,10 @@ async def apply_verdict(bk: Any, m: Any, judged: list[Evidence], problem: Any, r
         own = next(ev for ev in judged if ev.merge is hyp)
         await undo_merge(bk, m.id, hyp, own.record.get("reject_reason", "its edge was rejected"))
         return False
+    out = rendezvous.outvoted(bk, m)
+    if out is not None:
+        await undo_merge(bk, m.id, *out)
+        return False
     return True
 
 

@@ -129,14 +129,7 @@ class Backend(Pipeline):
         """Held observations may resolve now; pending ones may merge with the reloaded maps."""
         obs = self.server.rendezvous
         await rendezvous.process(self, sorted(r for r, o in obs.items() if o.state == "held"))
-        pairs = set()
-        for o in obs.values():
-            if o.state == "pending" and o.edge is not None:
-                ends = [rendezvous._map_id(self.server, rendezvous.edge_from(o.edge)[i]) for i in (0, 1)]
-                if None not in ends and ends[0] != ends[1]:
-                    pairs.add((min(ends), max(ends)))  # type: ignore[type-var]
-        for a, b in sorted(pairs):
-            await rendezvous.try_merge(self, a, b)
+        await rendezvous.retry_pending(self)
 
     async def on_keyframe(self, map_id: int, key: KfKey) -> None:
         held = rendezvous.held_for(self.server, key[0])

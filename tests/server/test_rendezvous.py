@@ -57,15 +57,14 @@ def setup(seed: int = 3) -> tuple[list[Message], list[Message], np.ndarray, np.n
     )
 
 
-def observation(
-    uav_w: np.ndarray, seen_w: np.ndarray, t: float, rng: np.random.Generator, observed: str = "ugv1"
-) -> Rendezvous:
-    """The UAV at time ``t`` (reference keyframe floor(t)) sees the agent whose poses are ``seen_w``."""
+def observation(uav_w: np.ndarray, seen_w: np.ndarray, t: float, rng: np.random.Generator) -> Rendezvous:
+    """The UAV at time ``t`` (reference keyframe floor(t)) sees the agent whose poses are ``seen_w``, and
+    names the UGV."""
     k = int(np.floor(t))
     cam = at(uav_w, t)
     noise = se3(so3_exp(rng.normal(0, np.radians(0.1), 3)), rng.normal(0, 0.01, 3))
     return Rendezvous(
-        timestamp=float(t), observed_agent=observed, marker_ids=np.array([3, 4], dtype=np.int64), ref_kf_id=k,
+        timestamp=float(t), observed_agent="ugv1", marker_ids=np.array([3, 4], dtype=np.int64), ref_kf_id=k,
         ref_from_cam=se3_inverse(uav_w[k]) @ cam, cam_from_observed=se3_inverse(cam) @ at(seen_w, t) @ noise,
         covariance=np.diag([SIGMA_ROT**2] * 3 + [SIGMA_TRANS**2] * 3), reproj_rms_px=0.4,
     )  # fmt: skip
@@ -204,6 +203,42 @@ def test_observation_of_a_keyframe_not_arrived_yet_is_held_until_it_arrives(tmp_
         srv.wait_idle(120)
         assert rest(srv, "/rendezvous", state="held")["rendezvous"] == []
         assert len(rest(srv, "/maps")["maps"]) == 1
+        agent.close()
+    finally:
+        srv.stop()
+
+
+def test_a_wrong_rendezvous_merge_is_undone_and_the_maps_merge_right(tmp_path: Path) -> None:
+    """Three observations of the wrong agent that agree with each other (the same marker misread while
+    another agent drives the UGV's path 4 m ahead of it) merge the maps wrongly, on trial. Five right
+    ones follow: the robust pose graph rejects the merge's edge, the merge is undone, and the right ones
+    merge the maps by the true transform."""
+    uav, ugv, uav_w, ugv_w = setup()
+    # another agent on the UGV's path 4 m ahead of it: the wrong observations agree with each other
+    ahead = np.array([se3(np.eye(3), np.array([4.0, 0.0, 0.0])) @ T for T in ugv_w])
+    rng = np.random.default_rng(10)
+    srv = Server(tmp_path / "data", preset("default", scheduler=FAST))
+    try:
+        stream(srv, "ugv1", "ugv", ugv).close()
+        agent = stream(srv, "uav1", "uav", uav)
+        srv.wait_idle(120)
+        wrong = [observation(uav_w, ahead, t, rng) for t in (0.8, 1.9, 3.1)]
+        _, errors = agent.send_all(wrong, len(uav) + 1)
+        assert not errors, errors
+        srv.wait_idle(120)
+        assert len(rest(srv, "/maps")["maps"]) == 1, rest(srv, "/rendezvous")
+        right = [observation(uav_w, ugv_w, t, rng) for t in (4.2, 5.3, 6.4, 7.5, 8.3)]
+        _, errors = agent.send_all(right, len(uav) + 4)
+        assert not errors, errors
+        srv.wait_idle(120)
+        undone = events(srv, "merge_undone")
+        merges = events(srv, "rendezvous_merge")
+        states = [r["state"] for r in rest(srv, "/rendezvous")["rendezvous"]]
+        print("undone:", [e["message"] for e in undone], "merges:", len(merges), "states:", states)
+        assert len(undone) == 1 and len(merges) == 2, (undone, merges)
+        assert states == ["rejected"] * 3 + ["kept"] * 5, states
+        assert len(rest(srv, "/maps")["maps"]) == 1
+        check_transform(uav_transform(srv))
         agent.close()
     finally:
         srv.stop()
