@@ -156,6 +156,9 @@ class RendezvousOptions:
     # off by the distance between two agents
     agree_sigma_rot_deg: float = 1.0
     agree_sigma_trans_m: float = 0.1
+    # the agreement is sought among this many of the latest observations between two maps (it runs on the
+    # event loop: each observation seeds a hypothesis)
+    agree_window: int = 30
     # the observed agent's pose at the observation's time: interpolated between its keyframes; past its
     # last keyframe extrapolated at the last keyframes' velocity only this far, else held
     extrapolate_max_s: float = 0.3

@@ -130,8 +130,8 @@ def _oriented(server: Any, obs: RendezvousObs, target: int) -> Oriented | None:
     mc, mq = server.stack.map_of_agent(e.candidate[0]), server.stack.map_of_agent(e.query[0])
     if mc is None or mq is None or e.candidate not in mc.keyframes or e.query not in mq.keyframes:
         return None
-    return Oriented(e, mc.keyframes[e.candidate].world_from_cam, mq.keyframes[e.query].world_from_cam,
-                    mc.id == target, obs.timestamp)  # fmt: skip
+    return Oriented(e, mc.keyframes[e.candidate].world_from_cam.copy(),
+                    mq.keyframes[e.query].world_from_cam.copy(), mc.id == target, obs.timestamp)  # fmt: skip
 
 
 async def try_merge(bk: Any, a: int, b: int) -> None:
@@ -153,8 +153,13 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
     o = bk.options.rendezvous
     if len(pend) < o.min_observations:
         return
-    res = consensus([x for _, x in pend], o)
-    if res is None:
+    pend = sorted(pend, key=lambda p: p[0].timestamp)[-o.agree_window :]
+    # (a tenth of a second for a full window: off the event loop, on copies of the poses)
+    loop = asyncio.get_running_loop()
+    res = await loop.run_in_executor(None, consensus, [x for _, x in pend], o)
+    if res is None or a not in maps or b not in maps:
+        return
+    if any(p[0].state != "pending" for p in pend):  # another try took them meanwhile
         return
     sim = Sim3.from_se3(res.target_from_source)
     sides = (set(maps[target].agents), set(maps[source].agents))
@@ -265,6 +270,7 @@ def outvoted(bk: Any, m: Any) -> tuple[MergeHypothesis, str] | None:
                 xs.append((obs, Oriented(e, m.keyframes[e.candidate].world_from_cam,
                                          m.keyframes[e.query].world_from_cam,
                                          e.candidate[0] in hyp.target_agents, obs.timestamp)))  # fmt: skip
+        xs = sorted(xs, key=lambda p: p[0].timestamp)[-o.agree_window :]
         res = consensus([x for _, x in xs], o)
         if res is None:
             continue

@@ -157,9 +157,13 @@ def consensus(obs: Sequence[Oriented], o: RendezvousOptions) -> Consensus | None
     off, cannot pull the others' transform: it only fails the gate."""
     f = (math.radians(o.agree_sigma_rot_deg), o.agree_sigma_trans_m)
     best: Consensus | None = None
+    tried: set[tuple[int, ...]] = set()
     for seed in obs:
         T = implied(seed)
         inl = [i for i, x in enumerate(obs) if chi2(T, x, f) < o.gate_chi2]
+        if tuple(inl) in tried:  # the seeds of one agreeing set all lead to its least squares
+            continue
+        tried.add(tuple(inl))
         for _ in range(3):
             if len(inl) < 2:
                 break
