@@ -5,8 +5,11 @@ the back-end (:mod:`hivemap.server.backend.rendezvous`) moves on:
 * ``held``: waiting for the observer's reference keyframe, for the observed agent to appear, or for a
   keyframe of the observed agent after the observation's time (as keyframes wait for their points);
 * ``pending``: resolved into an edge between two maps, waiting for enough consistent observations to merge;
+* ``judging``: an edge of a map's robust pose graph, not judged yet;
 * ``kept`` / ``rejected``: judged by the map's robust pose graph (or refused at a merge as inconsistent
-  with the observations that made it), ``reason`` says why.
+  with the observations that made it), ``reason`` says why;
+* ``redundant``: too close in time to another observation of the same agent by the same observer (kept,
+  not used).
 """
 
 from __future__ import annotations

@@ -159,6 +159,11 @@ class RendezvousOptions:
     # the agreement is sought among this many of the latest observations between two maps (it runs on the
     # event loop: each observation seeds a hypothesis)
     agree_window: int = 30
+    # a detector on every other frame sees a carrier 10 times a second: one observation per observer and
+    # observed agent per this many seconds (of data time) is used, the others are kept as ``redundant``;
+    # and one agreement search per map pair per ``agree_interval_s`` (wall time)
+    min_interval_s: float = 0.5
+    agree_interval_s: float = 1.0
     # the observed agent's pose at the observation's time: interpolated between its keyframes; past its
     # last keyframe extrapolated at the last keyframes' velocity only this far, else held
     extrapolate_max_s: float = 0.3

@@ -96,6 +96,17 @@ async def process(bk: Any, rids: list[int]) -> None:
                 obs.reason = edge
                 _persist(server, obs)
             continue
+        last: dict[tuple[str, str], float] = bk.__dict__.setdefault("_rv_last_used", {})
+        who = (obs.observer, obs.observed_agent)
+        gap = bk.options.rendezvous.min_interval_s
+        if who in last and abs(obs.timestamp - last[who]) < gap:
+            obs.state = "redundant"
+            obs.reason = (
+                f"within {gap:g} s of the last used observation of {obs.observed_agent} by {obs.observer}"
+            )
+            _persist(server, obs)
+            continue
+        last[who] = obs.timestamp
         obs.edge, obs.reason = _edge_dict(edge), ""
         mc, mq = _map_id(server, edge.candidate), _map_id(server, edge.query)
         assert mc is not None and mq is not None
@@ -108,7 +119,37 @@ async def process(bk: Any, rids: list[int]) -> None:
             pairs.add((min(mc, mq), max(mc, mq)))
         _persist(server, obs)
     for a, b in sorted(pairs):
-        await try_merge(bk, a, b)
+        schedule_try(bk, a, b)
+
+
+def schedule_try(bk: Any, a: int, b: int) -> None:
+    """A merge try for maps ``a`` and ``b`` now, or once ``agree_interval_s`` has passed since the last
+    one (a try already waiting covers the observations that arrive meanwhile)."""
+    pair = (min(a, b), max(a, b))
+    last_try: dict[tuple[int, int], float] = bk.__dict__.setdefault("_rv_last_try", {})
+    waiting: dict[tuple[int, int], asyncio.Task[None]] = bk.__dict__.setdefault("_rv_waiting", {})
+    if pair in waiting and not waiting[pair].done():
+        return
+    delay = max(
+        0.0, last_try.get(pair, -math.inf) + bk.options.rendezvous.agree_interval_s - time.monotonic()
+    )
+
+    async def run() -> None:
+        if delay > 0:
+            await asyncio.sleep(delay)
+        last_try[pair] = time.monotonic()
+        try:
+            await try_merge(bk, *pair)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            logger.exception("rendezvous merge try of maps %s failed", pair)
+            bk.server.events.add("error", f"rendezvous merge try of maps {pair} failed (see log)")
+
+    task = asyncio.get_running_loop().create_task(run())
+    waiting[pair] = task
+    bk._tasks.add(task)
+    task.add_done_callback(bk._tasks.discard)
 
 
 def add_to_map(bk: Any, obs: RendezvousObs, edge: NewEdge, map_id: int) -> None:
@@ -321,7 +362,7 @@ async def retry_pending(bk: Any) -> None:
             if a is not None and b is not None and a != b:
                 pairs.add((min(a, b), max(a, b)))
     for a, b in sorted(pairs):
-        await try_merge(bk, a, b)
+        schedule_try(bk, a, b)
 
 
 def held_for(server: Any, folded: str) -> list[int]:

@@ -115,8 +115,9 @@ def test_rendezvous_merge_the_maps_by_the_true_transform_and_survive_a_restart(t
         maps = rest(srv, "/maps")["maps"]
         assert len(maps) == 1, maps
         merges = events(srv, "rendezvous_merge")
-        # the third merges them (consensus of three), the fourth is an edge of the merged map
-        assert len(merges) == 1 and merges[0]["data"]["n_observations"] == 3, merges
+        # the third merges them (or the third and fourth, if they arrive within one agreement interval);
+        # a later one is an edge of the merged map
+        assert len(merges) == 1 and merges[0]["data"]["n_observations"] >= 3, merges
         err_m, err_deg = check_transform(uav_transform(srv))
         print(f"rendezvous merge: {err_m * 100:.1f} cm, {err_deg:.2f} deg from the truth")
         listing = rest(srv, f"/maps/{maps[0]['id']}/rendezvous")["rendezvous"]
