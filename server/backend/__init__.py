@@ -10,7 +10,9 @@ corrections; one module per stage.
 * :mod:`.surgery`: which map keeps its frame, fusing a loop's points, the merge and loop records;
 * :mod:`.optimise`: pose graph and global BA;
 * :mod:`.gnss`: the GNSS stage's inputs, acceptance and bend, and the GNSS-guided retry;
-* :mod:`.corrections`: moving a map by corrections and the corrections sent to agents.
+* :mod:`.corrections`: moving a map by corrections and the corrections sent to agents;
+* :mod:`.rendezvous`: agents' observations of each other as edges and as merge evidence
+  (:mod:`.rendezvous_fit`: their geometry).
 
 Attached to a :class:`~hivemap.server.core.HiveServer` by :func:`install` (the app factory calls it when
 ``settings.backend.enabled``). Every candidate and rejection reason is published on ``/events``.
