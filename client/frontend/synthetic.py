@@ -14,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.camera import PinholeCamera, StereoRig
-from hivemap.maps.geometry import se3
+from hivemap.maps.geometry import se3, transform_points
+from hivemap.maps.markers import Carrier
 
 F64 = NDArray[np.float64]
 
@@ -37,6 +38,7 @@ class _Plane:
     size: tuple[float, float]  # metres along u, v
     tex: NDArray[np.float32]
     px_per_m: float
+    one_sided: bool = False  # seen only from the side u x v points away from (a marker's face)
 
 
 class SyntheticScene:
@@ -83,6 +85,8 @@ class SyntheticScene:
             a = (hit - p.origin) @ p.ax_u
             b = (hit - p.origin) @ p.ax_v
             ok = (t > 0.05) & (t < best_t) & (a >= 0) & (a <= p.size[0]) & (b >= 0) & (b <= p.size[1])
+            if p.one_sided:
+                ok &= den > 0
             if not ok.any():
                 continue
             mx = (a * p.px_per_m).astype(np.float32).reshape(H, W)
@@ -92,6 +96,24 @@ class SyntheticScene:
             best_t[ok] = t[ok]
         self.last_depth = (best_t * rays_c.reshape(-1, 3)[:, 2]).reshape(H, W)  # z in the camera, metres
         return np.clip(img, 0, 255).astype(np.uint8).reshape(H, W)
+
+    def add_marker_carrier(self, carrier: Carrier, world_from_body: F64, cell_px: int = 12) -> None:
+        """Draw ``carrier``'s markers (with a one-cell white quiet zone) at the carrier's body pose."""
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, carrier.dictionary))
+        cells = dictionary.markerSize + 2
+        for m in carrier.markers:
+            c = transform_points(world_from_body, m.corners_body)
+            ax_u = (c[1] - c[0]) / np.linalg.norm(c[1] - c[0])
+            ax_v = (c[3] - c[0]) / np.linalg.norm(c[3] - c[0])
+            cell_m = m.size_m / cells
+            code = cv2.aruco.generateImageMarker(dictionary, m.marker_id, cells * cell_px, borderBits=1)
+            tex = np.full(((cells + 2) * cell_px,) * 2, 255.0, np.float32)
+            tex[cell_px:-cell_px, cell_px:-cell_px] = code
+            side = m.size_m + 2 * cell_m
+            ppm = len(tex) / side
+            # remap samples texel centres at integers: the texture's edge is half a texel before texel 0
+            origin = c[0] - cell_m * (ax_u + ax_v) + 0.5 / ppm * (ax_u + ax_v)
+            self.planes.append(_Plane(origin, ax_u, ax_v, (side, side), tex, ppm, True))
 
 
 def body_from_cam_pitched(pitch_down_deg: float) -> F64:
