@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.markers import Carrier, Marker
+from hivemap.sim.render import Quads
 from hivemap.sim.scenarios import AgentSpec, Scenario
 
 F64 = NDArray[np.float64]
@@ -159,3 +160,40 @@ def marker_texture(dictionary: str, marker_id: int, size_px: int) -> NDArray[np.
     o = (size_px - cell * CODE_CELLS) // 2
     out[o : o + cell * CODE_CELLS, o : o + cell * CODE_CELLS] = img
     return out
+
+
+class CarrierScene:
+    """The team's carriers as the renderer draws them: one texture layer per marker (appended after the
+    world's layers, starting at ``first_layer``) plus one plain layer, and per frame the quads of every
+    carrier but the observer's own at the agents' true poses."""
+
+    def __init__(self, geometry: dict[str, CarrierGeometry], first_layer: int, tex_px: int, dictionary: str):
+        self.geometry = geometry
+        ids = [i for g in geometry.values() for i in g.ids]
+        self.layer_of = {i: first_layer + k for k, i in enumerate(ids)}
+        self.plain_layer = first_layer + len(ids)
+        textures = [marker_texture(dictionary, i, tex_px) for i in ids]
+        self.layers = np.stack([*textures, np.full((tex_px, tex_px), 255, np.uint8)])
+
+    def quads(self, world_from_body: dict[str, F64], observer: str) -> Quads:
+        corners, layers, shades = [], [], []
+        for aid, g in self.geometry.items():
+            if aid == observer or aid not in world_from_body:
+                continue
+            T = world_from_body[aid]
+            for f, i in zip(g.faces, g.ids, strict=True):
+                corners.append(f @ T[:3, :3].T + T[:3, 3])
+                layers.append(self.layer_of[i])
+                shades.append(MARKER_SHADE)
+            for q in g.plain:
+                corners.append(q @ T[:3, :3].T + T[:3, 3])
+                layers.append(self.plain_layer)
+                shades.append(BODY_SHADE)
+        n = len(corners)
+        uv = np.tile(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]), (n, 1, 1))
+        return Quads(
+            np.asarray(corners, dtype=np.float64).reshape(n, 4, 3),
+            uv,
+            np.asarray(layers, dtype=np.int32),
+            np.asarray(shades, dtype=np.float64),
+        )

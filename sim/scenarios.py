@@ -118,6 +118,7 @@ class Scenario:
     origin_alt: float = 23.0  # ellipsoidal height, m
     start_time_ns: int = 1_700_000_000_000_000_000  # timestamp of t = 0 (2023-11-14T22:13:20Z)
     hold_s: float = 2.0  # all agents stand still this long at the start (static IMU init)
+    markers: bool = True  # issue 25: agents carry fiducial marker carriers (sim/carriers.py)
 
     def agent(self, agent_id: str) -> AgentSpec:
         for a in self.agents:

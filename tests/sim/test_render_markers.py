@@ -1,0 +1,91 @@
+"""Marker carriers in the renders (issue 25): cv2.aruco finds the carriers' ids where their true corners
+project, with both renderers; markers off draws none; each dataset gets the team's layout."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from hivemap.maps.camera import PinholeCamera
+from hivemap.maps.geometry import se3, so3_exp
+from hivemap.maps.markers import LAYOUT_FILE, load_layout
+from hivemap.sim.carriers import DICTIONARY, CarrierScene, team_carriers, team_geometry
+from hivemap.sim.dataset import render_scenario, stereo_extrinsics
+from hivemap.sim.render import GLRenderer, NumpyRenderer, make_renderer
+from hivemap.sim.scenarios import get_scenario
+from hivemap.sim.world import generate_world
+
+CAM = PinholeCamera(320, 240, 215.0, 215.0, 159.5, 119.5, (-0.05, 0.01, 0.0002, -0.0001))
+R_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera looks along +x, level
+SC = get_scenario("tiny")
+
+
+@pytest.fixture(scope="module")
+def world():  # type: ignore[no-untyped-def]
+    return generate_world(1, 48.0)
+
+
+def _scene(world):  # type: ignore[no-untyped-def]
+    return CarrierScene(team_geometry(SC), len(world.layers), world.layers.shape[1], DICTIONARY)
+
+
+def _detect(gray: np.ndarray) -> dict[int, np.ndarray]:
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, DICTIONARY)))
+    corners, ids, _ = det.detectMarkers(gray)
+    return {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners, strict=True)}
+
+
+def _view(world):  # type: ignore[no-untyped-def]
+    """uav1's cube 2.5 m in front of a level camera 1 m above the road, seen a little from below."""
+    x, y = float(world.roads[0][0, 0]), float(world.roads[1][0, 1])
+    world_from_cam = se3(so3_exp([0, 0, 0.3]) @ R_LEVEL, [x, y, 1.0])
+    carrier = se3(so3_exp([0, 0, np.pi + 0.5]), world_from_cam[:3, :3] @ [0.2, -0.3, 2.5] + world_from_cam[:3, 3])
+    return world_from_cam, carrier
+
+
+@pytest.mark.parametrize("backend", ["gl", "numpy"])
+def test_rendered_carrier_is_detected_at_its_projected_corners(world, backend: str) -> None:
+    scene = _scene(world)
+    r = make_renderer(world, CAM, backend, extra_layers=scene.layers)
+    assert isinstance(r, GLRenderer if backend == "gl" else NumpyRenderer)
+    world_from_cam, carrier = _view(world)
+    gray, depth = r.render(world_from_cam, scene.quads({"uav1": carrier}, "ugv"))
+    r.close()
+    carriers = team_carriers(SC, {a.agent_id: stereo_extrinsics(a)[0] for a in SC.agents})
+    found = _detect(gray)
+    assert found and set(found) <= carriers["uav1"].ids(), found
+    cam_from_body = np.linalg.inv(world_from_cam) @ carrier
+    by_id = {m.marker_id: m for m in carriers["uav1"].markers}
+    for i, uv in found.items():
+        pts = by_id[i].corners_body @ cam_from_body[:3, :3].T + cam_from_body[:3, 3]
+        proj, ok = CAM.project(pts)
+        assert ok.all()
+        err = np.linalg.norm(proj - uv, axis=1).max()
+        assert err < 1.0, (i, err, proj, uv)
+        # the depth image holds the marker's own depth at its centre
+        c = np.round(proj.mean(0)).astype(int)
+        assert abs(float(depth[c[1], c[0]]) - pts[:, 2].mean()) < 0.05
+
+
+def test_markers_off_renders_no_marker(world) -> None:
+    r = make_renderer(world, CAM, "gl")
+    world_from_cam, _ = _view(world)
+    gray, _ = r.render(world_from_cam)
+    r.close()
+    assert _detect(gray) == {}
+
+
+def test_layout_written_only_with_markers(tmp_path: Path) -> None:
+    sc = replace(SC, duration_s=0.3)
+    w = generate_world(SC.seed, SC.world_size_m)
+    render_scenario(sc, tmp_path / "on", agents=["ugv"], progress=False, world=w)
+    lay = load_layout(tmp_path / "on" / "ugv" / LAYOUT_FILE)
+    assert set(lay) == {a.agent_id for a in SC.agents}
+    for a in SC.agents:
+        assert np.allclose(lay[a.agent_id].body_from_cam, stereo_extrinsics(a)[0])
+    render_scenario(replace(sc, markers=False), tmp_path / "off", agents=["ugv"], progress=False, world=w)
+    assert not (tmp_path / "off" / "ugv" / LAYOUT_FILE).exists()
