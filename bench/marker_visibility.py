@@ -21,12 +21,12 @@ from hivemap.sim.scenario_file import resolve_scenario
 from hivemap.sim.trajectories import plan_trajectories
 
 DESIGNS = {
-    "cube30+board1x2": CarrierDesign(),
-    "cube20+board1x2": CarrierDesign(uav_cube_m=0.20),
-    "cube40+board1x2": CarrierDesign(uav_cube_m=0.40),
-    "cube30+board2x2": CarrierDesign(ugv_rows_x=(-0.55, 0.55)),
-    "cube30+roof1x2+back": CarrierDesign(ugv_back=True),
-    "cube30+roof1x2+back+sides": CarrierDesign(ugv_back=True, ugv_sides=True),
+    "cube30+roof1x2": CarrierDesign(ugv_back=False, ugv_sides=False),
+    "cube20+roof1x2": CarrierDesign(uav_cube_m=0.20, ugv_back=False, ugv_sides=False),
+    "cube40+roof1x2": CarrierDesign(uav_cube_m=0.40, ugv_back=False, ugv_sides=False),
+    "cube30+roof2x2": CarrierDesign(ugv_rows_x=(-0.55, 0.55), ugv_back=False, ugv_sides=False),
+    "cube30+roof1x2+back60": CarrierDesign(ugv_sides=False, ugv_panel_m=0.6),
+    "chosen: cube30+roof1x2+back70+sides70": CarrierDesign(),
 }
 RATE_HZ = 10.0
 WINDOW_S = 15.0
@@ -102,7 +102,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="factory01")
     ap.add_argument("--seeds", default="default,1,2,3")
-    ap.add_argument("--designs", default=",".join(DESIGNS))
+    ap.add_argument("--designs", default=",".join(DESIGNS), help="comma-separated, names as in DESIGNS")
     ap.add_argument("--min-px", type=float, default=20.0)
     args = ap.parse_args()
     for seed in args.seeds.split(","):

@@ -43,9 +43,9 @@ class CarrierDesign:
     ugv_gap_m: float = 0.30
     ugv_rows_x: tuple[float, ...] = (-0.55,)
     roof_z: float = 0.5  # UGV_ROOF_HEIGHT - UGV_BODY_HEIGHT
-    ugv_back: bool = False  # two panels of face ``ugv_panel_m`` on the back, facing -x
-    ugv_sides: bool = False  # two panels on each side
-    ugv_panel_m: float = 0.6
+    ugv_back: bool = True  # two panels of face ``ugv_panel_m`` on the back, facing -x
+    ugv_sides: bool = True  # two panels on each side
+    ugv_panel_m: float = 0.7
     ugv_half_length_m: float = 1.1
     ugv_half_width_m: float = 0.7
     dictionary: str = DICTIONARY
