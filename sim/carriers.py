@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.markers import Carrier, Marker
 from hivemap.sim.render import Quads
-from hivemap.sim.scenarios import AgentSpec, Scenario
+from hivemap.sim.scenarios import UGV_ROOF_HEIGHT, AgentSpec, Scenario
 
 F64 = NDArray[np.float64]
 DICTIONARY = "DICT_4X4_50"
@@ -75,6 +75,7 @@ class CarrierGeometry:
     faces: F64
     ids: tuple[int, ...]
     plain: F64
+    kind: str = "uav"
 
 
 def uav_faces(d: CarrierDesign) -> tuple[F64, F64]:
@@ -119,7 +120,7 @@ def ugv_faces(d: CarrierDesign) -> tuple[F64, F64]:
 
 def carrier_geometry(spec: AgentSpec, first_id: int, d: CarrierDesign) -> CarrierGeometry:
     faces, plain = uav_faces(d) if spec.kind == "uav" else ugv_faces(d)
-    return CarrierGeometry(faces, tuple(range(first_id, first_id + len(faces))), plain)
+    return CarrierGeometry(faces, tuple(range(first_id, first_id + len(faces))), plain, spec.kind)
 
 
 def team_geometry(scenario: Scenario, d: CarrierDesign = CarrierDesign()) -> dict[str, CarrierGeometry]:
@@ -165,10 +166,23 @@ def marker_texture(dictionary: str, marker_id: int, size_px: int) -> NDArray[np.
 class CarrierScene:
     """The team's carriers as the renderer draws them: one texture layer per marker (appended after the
     world's layers, starting at ``first_layer``) plus one plain layer, and per frame the quads of every
-    carrier but the observer's own at the agents' true poses."""
+    carrier but the observer's own at the agents' true poses.
 
-    def __init__(self, geometry: dict[str, CarrierGeometry], first_layer: int, tex_px: int, dictionary: str):
+    A UAV's cube is drawn only once all of it is above ``dock_z`` (the UGV's roof): docked on the roof it
+    hangs into the UGV's landing well. The UGV's body is not drawn, so without this rule the cube of the
+    UAV ahead would fill the lower half of the next UAV's image 0.25 m away while they wait for take-off
+    (and the tiny preset's uav1 never initialised)."""
+
+    def __init__(
+        self,
+        geometry: dict[str, CarrierGeometry],
+        first_layer: int,
+        tex_px: int,
+        dictionary: str,
+        dock_z: float = UGV_ROOF_HEIGHT,
+    ):
         self.geometry = geometry
+        self.dock_z = dock_z
         ids = [i for g in geometry.values() for i in g.ids]
         self.layer_of = {i: first_layer + k for k, i in enumerate(ids)}
         self.plain_layer = first_layer + len(ids)
@@ -181,6 +195,8 @@ class CarrierScene:
             if aid == observer or aid not in world_from_body:
                 continue
             T = world_from_body[aid]
+            if g.kind == "uav" and float((g.faces[..., :] @ T[:3, :3].T + T[:3, 3])[..., 2].min()) < self.dock_z:
+                continue
             for f, i in zip(g.faces, g.ids, strict=True):
                 corners.append(f @ T[:3, :3].T + T[:3, 3])
                 layers.append(self.layer_of[i])

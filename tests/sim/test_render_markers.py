@@ -34,16 +34,18 @@ def _scene(world):  # type: ignore[no-untyped-def]
 
 
 def _detect(gray: np.ndarray) -> dict[int, np.ndarray]:
-    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, DICTIONARY)))
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, DICTIONARY)), params)
     corners, ids, _ = det.detectMarkers(gray)
     return {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners, strict=True)}
 
 
 def _view(world):  # type: ignore[no-untyped-def]
-    """uav1's cube 2.5 m in front of a level camera 1 m above the road, seen a little from below."""
+    """uav1's cube 2.5 m in front of a level camera 1 m above the road, seen from below."""
     x, y = float(world.roads[0][0, 0]), float(world.roads[1][0, 1])
     world_from_cam = se3(so3_exp([0, 0, 0.3]) @ R_LEVEL, [x, y, 1.0])
-    carrier = se3(so3_exp([0, 0, np.pi + 0.5]), world_from_cam[:3, :3] @ [0.2, -0.3, 2.5] + world_from_cam[:3, 3])
+    carrier = se3(so3_exp([0, 0, np.pi + 0.5]), world_from_cam[:3, :3] @ [0.2, -0.9, 2.5] + world_from_cam[:3, 3])
     return world_from_cam, carrier
 
 
@@ -69,6 +71,17 @@ def test_rendered_carrier_is_detected_at_its_projected_corners(world, backend: s
         # the depth image holds the marker's own depth at its centre
         c = np.round(proj.mean(0)).astype(int)
         assert abs(float(depth[c[1], c[0]]) - pts[:, 2].mean()) < 0.05
+
+
+def test_docked_uav_carrier_is_not_drawn(world) -> None:
+    """On the UGV's roof a UAV's cube sits in the landing well: the same view with the UAV 1.5 m up (its
+    take-off height on the roof) shows no marker."""
+    scene = _scene(world)
+    world_from_cam, carrier = _view(world)
+    docked = carrier.copy()
+    docked[2, 3] = 1.5
+    assert len(scene.quads({"uav1": carrier}, "ugv").corners) == 6
+    assert len(scene.quads({"uav1": docked}, "ugv").corners) == 0
 
 
 def test_markers_off_renders_no_marker(world) -> None:
