@@ -12,19 +12,21 @@ Run: .venv/bin/python bench/marker_visibility.py [--seeds default,1,2,3] [--scen
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import numpy as np
 
 from hivemap.sim.carriers import CODE_CELLS, FACE_CELLS, CarrierDesign, team_geometry
 from hivemap.sim.dataset import cached_world, stereo_extrinsics
 from hivemap.sim.scenario_file import resolve_scenario
+from hivemap.sim.scenarios import UGV_ROOF_HEIGHT
 from hivemap.sim.trajectories import plan_trajectories
 
 DESIGNS = {
     "cube30+roof1x2": CarrierDesign(ugv_back=False, ugv_sides=False),
     "cube20+roof1x2": CarrierDesign(uav_cube_m=0.20, ugv_back=False, ugv_sides=False),
     "cube40+roof1x2": CarrierDesign(uav_cube_m=0.40, ugv_back=False, ugv_sides=False),
-    "cube30+roof2x2": CarrierDesign(ugv_rows_x=(-0.55, 0.55), ugv_back=False, ugv_sides=False),
+    "cube30+roof2x2": CarrierDesign(ugv_rows_x=(-0.65, 0.65), ugv_back=False, ugv_sides=False),
     "cube30+roof1x2+back60": CarrierDesign(ugv_sides=False, ugv_panel_m=0.6),
     "chosen: cube30+roof1x2+back70+sides70": CarrierDesign(),
 }
@@ -68,6 +70,8 @@ def visibility(scenario, design: CarrierDesign, min_px: float) -> dict[tuple[str
                 cam_from_world = np.linalg.inv(wc)
                 Wb = W[c][i]
                 pw = marker.reshape(-1, 3) @ Wb[:3, :3].T + Wb[:3, 3]
+                if geo[c].kind == "uav" and float((faces @ Wb[:3, :3].T + Wb[:3, 3])[..., 2].min()) < UGV_ROOF_HEIGHT:
+                    continue  # docked: not drawn (CarrierScene)
                 pc = pw @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
                 pc = pc.reshape(len(faces), 4, 3)
                 centre_w = pw.reshape(len(faces), 4, 3).mean(1)
@@ -104,9 +108,11 @@ def main() -> None:
     ap.add_argument("--seeds", default="default,1,2,3")
     ap.add_argument("--designs", default=",".join(DESIGNS), help="comma-separated, names as in DESIGNS")
     ap.add_argument("--min-px", type=float, default=20.0)
+    ap.add_argument("--takeoff-interval", type=float, default=0.0, help="Scenario.takeoff_interval_s")
     args = ap.parse_args()
     for seed in args.seeds.split(","):
         sc = resolve_scenario(args.scenario, None if seed == "default" else int(seed))
+        sc = dataclasses.replace(sc, takeoff_interval_s=args.takeoff_interval)
         t_off = sc.hold_s
         for name in args.designs.split(","):
             vis = visibility(sc, DESIGNS[name], args.min_px)

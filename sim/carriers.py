@@ -41,7 +41,7 @@ class CarrierDesign:
     uav_hang_m: float = 0.05
     ugv_face_m: float = 0.55
     ugv_gap_m: float = 0.30
-    ugv_rows_x: tuple[float, ...] = (-0.55,)
+    ugv_rows_x: tuple[float, ...] = (-0.65,)
     roof_z: float = 0.5  # UGV_ROOF_HEIGHT - UGV_BODY_HEIGHT
     ugv_back: bool = True  # two panels of face ``ugv_panel_m`` on the back, facing -x
     ugv_sides: bool = True  # two panels on each side

@@ -38,7 +38,9 @@ SKY_TOP, SKY_HORIZON = 150.0, 215.0
 @dataclass(frozen=True)
 class Quads:
     """Textured planar quads drawn on top of the static scene in one frame (the agents' marker carriers):
-    corners (Q, 4, 3) in the world, uv (Q, 4, 2), texture layer (Q,) and shade (Q,), as ``box_quads``."""
+    corners (Q, 4, 3) in the world, uv (Q, 4, 2), texture layer (Q,) and shade (Q,), as ``box_quads``.
+    Each is one-sided: seen from its front only (corners p0, p1, p2 clockwise in the image), because the
+    agents' bodies, which would hide a panel's back, are not drawn."""
 
     corners: F64
     uv: F64
@@ -260,7 +262,13 @@ class GLRenderer:
             vao = self.ctx.vertex_array(
                 self.prog, [(vbo, "3f 2f 1f 1f", "in_pos", "in_uv", "in_layer", "in_shade")]
             )
+            # carriers are seen from the front only (see Quads): clockwise in the image is clockwise in
+            # GL's window too (the image rows are read bottom-up, and so is its y axis)
+            self.ctx.front_face = "cw"
+            self.ctx.enable(moderngl.CULL_FACE)
             vao.render(moderngl.TRIANGLES)
+            self.ctx.disable(moderngl.CULL_FACE)
+            self.ctx.front_face = "ccw"
             vao.release()
             vbo.release()
         w, h = self.plan.size
@@ -353,12 +361,15 @@ class NumpyRenderer:
         faces = [zip(self.corners, self.uvs, self.box_layers, self.shades, strict=True)]
         if quads is not None:
             faces.append(zip(*_quad_arrays(quads), strict=True))
-        for c, uv, lay, sh in itertools.chain(*faces):
+        n_static = len(self.corners)
+        for q, (c, uv, lay, sh) in enumerate(itertools.chain(*faces)):
             rays = self._candidate_rays((c - o) @ T[:3, :3])
             if rays is None:
                 continue
             e1, e2 = c[1] - c[0], c[3] - c[0]
             nrm = np.cross(e1, e2)
+            if q >= n_static and (c[0] - o) @ nrm <= 0:
+                continue  # a carrier quad seen from its back (one-sided, as in the GL renderer)
             den = d[rays] @ nrm
             with np.errstate(divide="ignore", invalid="ignore"):
                 t_r = ((c[0] - o) @ nrm) / den

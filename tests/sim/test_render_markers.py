@@ -21,7 +21,7 @@ from hivemap.sim.world import generate_world
 
 CAM = PinholeCamera(320, 240, 215.0, 215.0, 159.5, 119.5, (-0.05, 0.01, 0.0002, -0.0001))
 R_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera looks along +x, level
-SC = get_scenario("tiny")
+SC = replace(get_scenario("tiny"), markers=True)
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +82,33 @@ def test_docked_uav_carrier_is_not_drawn(world) -> None:
     docked[2, 3] = 1.5
     assert len(scene.quads({"uav1": carrier}, "ugv").corners) == 6
     assert len(scene.quads({"uav1": docked}, "ugv").corners) == 0
+
+
+@pytest.mark.parametrize("backend", ["gl", "numpy"])
+def test_carrier_faces_are_one_sided(world, backend: str) -> None:
+    """A face seen from behind is not drawn (the agent's body that would hide it is not rendered)."""
+    scene = _scene(world)
+    world_from_cam, carrier = _view(world)
+    geo = team_geometry(SC)["uav1"]
+    faces_w = geo.faces @ carrier[:3, :3].T + carrier[:3, 3]
+    to_cam = world_from_cam[:3, 3] - faces_w.mean(1)
+    nrm = np.cross(faces_w[:, 1] - faces_w[:, 0], faces_w[:, 3] - faces_w[:, 0])
+    face_w = faces_w[int(np.argmin(np.einsum("ij,ij->i", nrm, to_cam)))]  # the face that looks at the camera
+    q = scene.quads({"uav1": carrier}, "ugv")
+    k = next(i for i, c in enumerate(q.corners) if np.allclose(c, face_w))
+    keep = [i for i in range(len(q.corners)) if i != k]
+    front = type(q)(q.corners[[k]], q.uv[[k]], q.layer[[k]], q.shade[[k]])
+    back = type(q)(q.corners[[k]][:, ::-1], q.uv[[k]][:, ::-1], q.layer[[k]], q.shade[[k]])
+    assert keep  # the other faces are not needed for this view
+    r = make_renderer(world, CAM, backend, extra_layers=scene.layers)
+    centre, _ = CAM.project((face_w.mean(0) - world_from_cam[:3, 3]) @ world_from_cam[:3, :3])
+    u, v = np.round(centre[0]).astype(int)
+    z_face = float(((face_w.mean(0) - world_from_cam[:3, 3]) @ world_from_cam[:3, :3])[2])
+    _, d_front = r.render(world_from_cam, front)
+    _, d_back = r.render(world_from_cam, back)
+    r.close()
+    assert abs(float(d_front[v, u]) - z_face) < 0.05
+    assert float(d_back[v, u]) > z_face + 1.0
 
 
 def test_markers_off_renders_no_marker(world) -> None:
