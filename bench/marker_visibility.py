@@ -20,7 +20,7 @@ from hivemap.sim.carriers import CODE_CELLS, FACE_CELLS, CarrierDesign, team_geo
 from hivemap.sim.dataset import cached_world, stereo_extrinsics
 from hivemap.sim.scenario_file import resolve_scenario
 from hivemap.sim.scenarios import UGV_ROOF_HEIGHT
-from hivemap.sim.trajectories import plan_trajectories
+from hivemap.sim.trajectories import plan_trajectories, takeoff_delays
 
 DESIGNS = {
     "cube30+roof1x2": CarrierDesign(ugv_back=False, ugv_sides=False),
@@ -70,7 +70,10 @@ def visibility(scenario, design: CarrierDesign, min_px: float) -> dict[tuple[str
                 cam_from_world = np.linalg.inv(wc)
                 Wb = W[c][i]
                 pw = marker.reshape(-1, 3) @ Wb[:3, :3].T + Wb[:3, 3]
-                if geo[c].kind == "uav" and float((faces @ Wb[:3, :3].T + Wb[:3, 3])[..., 2].min()) < UGV_ROOF_HEIGHT:
+                if (
+                    geo[c].kind == "uav"
+                    and float((faces @ Wb[:3, :3].T + Wb[:3, 3])[..., 2].min()) < UGV_ROOF_HEIGHT
+                ):
                     continue  # docked: not drawn (CarrierScene)
                 pc = pw @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
                 pc = pc.reshape(len(faces), 4, 3)
@@ -113,16 +116,22 @@ def main() -> None:
     for seed in args.seeds.split(","):
         sc = resolve_scenario(args.scenario, None if seed == "default" else int(seed))
         sc = dataclasses.replace(sc, takeoff_interval_s=args.takeoff_interval)
-        t_off = sc.hold_s
+        delays = takeoff_delays(sc)
         for name in args.designs.split(","):
             vis = visibility(sc, DESIGNS[name], args.min_px)
-            print(f"\n## {args.scenario} seed {seed} (world {sc.seed}), design {name} ")
-            print("| observer -> carrier | s seen in first 15 s | s seen overall | first seen (s) | distance (m) | px (median) |")
+            head = f"{args.scenario} seed {seed} (world {sc.seed}), design {name}"
+            print(f"\n## {head}, take-off interval {args.takeoff_interval:g} s")
+            print(
+                "| observer -> carrier | s seen in the pair's first 15 s | s seen overall | first seen (s) "
+                "| distance (m) | px (median) |"
+            )
             print("|---|---|---|---|---|---|")
             for (o, c), r in vis.items():
                 tt = np.asarray(r["t"])
                 if len(tt) == 0:
                     continue
+                # the window starts when the later of the two leaves (the UGV at hold_s)
+                t_off = sc.hold_s + max(delays.get(o, 0.0), delays.get(c, 0.0))
                 early = float(((tt >= t_off) & (tt < t_off + WINDOW_S)).sum()) / RATE_HZ
                 d = np.asarray(r["dist"])
                 print(

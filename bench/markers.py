@@ -34,7 +34,9 @@ def _cases(kind: str) -> list[tuple[float, float, float, float]]:
     camera looks at the UGV from behind, behind-left and the side."""
     offsets = [(0.0, 0.0), (0.5, 0.3), (-0.5, -0.3)]
     if kind == "uav":
-        return [(p, y, ox, oy) for p, y in itertools.product((0.0, 45.0), (0.0, 30.0, 60.0)) for ox, oy in offsets]
+        return [
+            (p, y, ox, oy) for p, y in itertools.product((0.0, 45.0), (0.0, 30.0, 60.0)) for ox, oy in offsets
+        ]
     return [(45.0, y, ox, oy) for y in (0.0, 45.0, 90.0) for ox, oy in offsets]
 
 
@@ -61,7 +63,10 @@ def main() -> None:
     renderer = make_renderer(world, cam, args.backend, extra_layers=scene.layers)
     origin = np.array([world.size_m + 60.0, 0.0, 0.0])  # open ground: no building occludes the carrier
     half_fov = np.array([cam.width / 2 / cam.fx, cam.height / 2 / cam.fy])
-    print("| carrier | distance (m) | detected | median position error (% of distance) | median rotation error (deg) | median markers |")
+    print(
+        "| carrier | distance (m) | detected | median position error (% of distance) "
+        "| median rotation error (deg) | median markers |"
+    )
     print("|---|---|---|---|---|---|")
     rng = np.random.default_rng(0)
     for kind, target in (("uav", "uav1"), ("ugv", "ugv")):
@@ -83,7 +88,9 @@ def main() -> None:
                 heading = np.arctan2(R_wc[1, 2], R_wc[0, 2]) + np.radians(yaw)
                 z = 0.9 if kind == "ugv" else p_w[2]
                 world_from_body = se3(so3_exp([0, 0, heading]), [p_w[0], p_w[1], max(z, 0.9)])
-                gray, depth = renderer.render(world_from_cam, scene.quads({target: world_from_body}, OBSERVER))
+                gray, depth = renderer.render(
+                    world_from_cam, scene.quads({target: world_from_body}, OBSERVER)
+                )
                 img = apply_conditions(gray, depth, sc.lighting, sc.weather, rng)
                 truth = np.linalg.inv(world_from_cam) @ world_from_body @ ext[target]
                 obs = [o for o in detector.detect(img) if o.agent_id == target]

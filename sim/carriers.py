@@ -58,7 +58,9 @@ def _face(center: F64, normal: F64, up: F64, side: float) -> F64:
     u = up / np.linalg.norm(up)
     r = np.cross(u, n)
     h = side / 2
-    return np.array([center - r * h + u * h, center + r * h + u * h, center + r * h - u * h, center - r * h - u * h])
+    return np.array(
+        [center - r * h + u * h, center + r * h + u * h, center + r * h - u * h, center - r * h - u * h]
+    )
 
 
 def _inset(face: F64) -> F64:
@@ -83,7 +85,9 @@ def uav_faces(d: CarrierDesign) -> tuple[F64, F64]:
     s = d.uav_cube_m
     c = np.array([0.0, 0.0, -d.uav_hang_m - s / 2])
     z = np.array([0.0, 0.0, 1.0])
-    faces = [_face(c + n * s / 2, n, z, s) for n in (np.eye(3)[0], -np.eye(3)[0], np.eye(3)[1], -np.eye(3)[1])]
+    faces = [
+        _face(c + n * s / 2, n, z, s) for n in (np.eye(3)[0], -np.eye(3)[0], np.eye(3)[1], -np.eye(3)[1])
+    ]
     faces.append(_face(c - z * s / 2, -z, np.eye(3)[0], s))
     top = _face(c + z * s / 2, z, np.eye(3)[0], s)
     return np.array(faces), top[None]
@@ -195,7 +199,10 @@ class CarrierScene:
             if aid == observer or aid not in world_from_body:
                 continue
             T = world_from_body[aid]
-            if g.kind == "uav" and float((g.faces[..., :] @ T[:3, :3].T + T[:3, 3])[..., 2].min()) < self.dock_z:
+            if (
+                g.kind == "uav"
+                and float((g.faces[..., :] @ T[:3, :3].T + T[:3, 3])[..., 2].min()) < self.dock_z
+            ):
                 continue
             for f, i in zip(g.faces, g.ids, strict=True):
                 corners.append(f @ T[:3, :3].T + T[:3, 3])

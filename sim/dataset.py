@@ -405,7 +405,11 @@ def render_agent(
 
             bar = tqdm(todo, desc=f"{scenario.name}/{spec.agent_id}", unit="frame", disable=not progress)
             for i in bar:
-                quads = None if scene is None else scene.quads({k: P[i] for k, P in team_poses.items()}, spec.agent_id)
+                quads = (
+                    None
+                    if scene is None
+                    else scene.quads({k: P[i] for k, P in team_poses.items()}, spec.agent_id)
+                )
                 for c, (T_BS, d) in enumerate(zip((T0, T1), dirs, strict=True)):
                     gray, depth = renderer.render(W[i] @ T_BS, quads)
                     rng = np.random.default_rng([scenario.seed, agent_index, int(i), c, 7])
@@ -488,7 +492,16 @@ class RenderMismatch(ValueError):
 
 # what makes two renders the same world: resuming into a folder that differs in one of them would mix
 # frames of two worlds in one dataset
-_SAME_WORLD = ("scenario", "seed", "world_size_m", "lighting", "weather", "camera", "start_time_ns", "markers")
+_SAME_WORLD = (
+    "scenario",
+    "seed",
+    "world_size_m",
+    "lighting",
+    "weather",
+    "camera",
+    "start_time_ns",
+    "markers",
+)
 
 
 def _check_same_world(path: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
@@ -569,7 +582,16 @@ def render_scenario(
         dur = traj.duration if scenario.duration_s is None else min(scenario.duration_s, traj.duration)
         write_marker_layout(out / spec.agent_id, scenario)
         rep = render_agent(
-            world, scenario, spec, idx, traj, out / spec.agent_id, backend, dur, progress, team=plan.trajectories
+            world,
+            scenario,
+            spec,
+            idx,
+            traj,
+            out / spec.agent_id,
+            backend,
+            dur,
+            progress,
+            team=plan.trajectories,
         )
         results.append(rep)
         reports[spec.agent_id] = {

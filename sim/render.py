@@ -180,7 +180,9 @@ def _all_layers(world: World, extra: NDArray[np.uint8] | None) -> NDArray[np.uin
     if extra is None or len(extra) == 0:
         return world.layers
     if extra.shape[1:] != world.layers.shape[1:]:
-        raise ValueError(f"extra texture layers {extra.shape[1:]} do not match the world's {world.layers.shape[1:]}")
+        raise ValueError(
+            f"extra texture layers {extra.shape[1:]} do not match the world's {world.layers.shape[1:]}"
+        )
     return np.concatenate([world.layers, np.asarray(extra, dtype=np.uint8)])
 
 
@@ -256,7 +258,10 @@ class GLRenderer:
         self.vao.render(moderngl.TRIANGLES)
         if quads is not None and len(quads.corners):
             tris = np.concatenate(
-                [_quad_tris(c, uv, int(la), float(sh)) for c, uv, la, sh in zip(*_quad_arrays(quads), strict=True)]
+                [
+                    _quad_tris(c, uv, int(la), float(sh))
+                    for c, uv, la, sh in zip(*_quad_arrays(quads), strict=True)
+                ]
             )
             vbo = self.ctx.buffer(tris.astype(np.float32).tobytes())
             vao = self.ctx.vertex_array(

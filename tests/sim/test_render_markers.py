@@ -45,7 +45,9 @@ def _view(world):  # type: ignore[no-untyped-def]
     """uav1's cube 2.5 m in front of a level camera 1 m above the road, seen from below."""
     x, y = float(world.roads[0][0, 0]), float(world.roads[1][0, 1])
     world_from_cam = se3(so3_exp([0, 0, 0.3]) @ R_LEVEL, [x, y, 1.0])
-    carrier = se3(so3_exp([0, 0, np.pi + 0.5]), world_from_cam[:3, :3] @ [0.2, -0.9, 2.5] + world_from_cam[:3, 3])
+    carrier = se3(
+        so3_exp([0, 0, np.pi + 0.5]), world_from_cam[:3, :3] @ [0.2, -0.9, 2.5] + world_from_cam[:3, 3]
+    )
     return world_from_cam, carrier
 
 
