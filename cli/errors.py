@@ -43,8 +43,9 @@ def config_error(path: Path | str | None, exc: Exception) -> ConfigError:
 def one_line(exc: BaseException) -> str | None:
     """The one-line message of a known error, or None for an unexpected one."""
     from hivemap.client.dataset import DatasetError
+    from hivemap.maps.markers import LayoutError
 
-    known: tuple[type[BaseException], ...] = (DatasetError, ConfigError)
+    known: tuple[type[BaseException], ...] = (DatasetError, ConfigError, LayoutError)
     try:
         from hivemap.client.link import LinkFailed, LinkRefused
         from hivemap.client.outbox import OutboxError

@@ -30,10 +30,11 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextvars
+import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,9 +44,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.client.logtags import CorrectionSummary
+from hivemap.client.rendezvous import RendezvousSource
 from hivemap.client.replay_io import _Gnss
 from hivemap.client.runner import OfflineAgent, RunnerOptions, _make_agent
 from hivemap.maps.camera import PinholeCamera, StereoRig
+from hivemap.maps.markers import LAYOUT_FILE, Carrier, load_layout
+from hivemap.protocol import Rendezvous
 
 log = logging.getLogger(__name__)
 
@@ -108,10 +112,13 @@ class Agent:
         T_BS: dict[str, F64] | None = None,
         use_imu: bool = True,
         options: AgentOptions | None = None,
+        carriers: Mapping[str, Carrier] | None = None,
     ) -> None:
         """``rig``: the stereo pair (``T_BS`` of cam0/cam1 inside); ``imu_noise``: EuRoC/Kalibr IMU noise
         names (defaults when empty); ``T_BS``: body_from_sensor for ``imu0`` and ``gnss0`` (lever arm);
-        ``use_imu=False``: a camera-only agent (no IMU samples expected)."""
+        ``use_imu=False``: a camera-only agent (no IMU samples expected); ``carriers``: the team's marker
+        carriers (``hivemap.maps.markers.load_layout``): the other agents' are detected in cam0 and
+        streamed as rendezvous (``RunnerOptions.markers``)."""
         self.agent_id, self.kind = agent_id, kind
         self.options = options or AgentOptions()
         self.rig = rig
@@ -137,6 +144,11 @@ class Agent:
         self.link_error: BaseException | None = None  # why the link ended (refused, unreachable), if it did
         self.link_stats: Any = None  # hivemap.client.link.LinkStats of the last connection
         self.frames = 0
+        self.rendezvous: RendezvousSource | None = None
+        mk = self.options.runner.markers
+        if mk.enabled and carriers and any(a != agent_id for a in carriers):
+            self.rendezvous = RendezvousSource(rig.left, carriers, agent_id, mk)
+        self._rendezvous_callbacks: list[Callable[[Rendezvous], None]] = []
 
     # -- construction ---------------------------------------------------------------------------------
     @classmethod
@@ -160,6 +172,10 @@ class Agent:
         kwargs.setdefault("agent_id", ds.agent_id)
         kwargs.setdefault("kind", ds.kind)
         kwargs.setdefault("use_imu", len(ds.imu) > 0)
+        layout = Path(ds.root) / LAYOUT_FILE
+        detect = (kwargs.get("options") or AgentOptions()).runner.markers.enabled
+        if detect and "carriers" not in kwargs and layout.is_file():
+            kwargs["carriers"] = load_layout(layout)  # LayoutError: one line naming the file and field
         return cls(ds.rig, imu_noise=dict(ds.imu_noise), T_BS=dict(ds.T_BS), **kwargs)
 
     @property
@@ -214,6 +230,11 @@ class Agent:
             res: Any = self.core.step(t, left, right, imu)
             self._prev_t = t
             self.frames += 1
+            rv = self.rendezvous
+            seen = [] if rv is None else rv.observe(t, left, res, self.core.frontend)
+            for r in seen:
+                if self._stream is not None:  # after the frame's keyframes: the reference is sent first
+                    self._stream.send_rendezvous(r)
             tracked = res.state.tracked
             out = FrameResult(
                 float(t), str(res.state.value), tracked,
@@ -223,6 +244,9 @@ class Agent:
         for info in applied:
             for cb in list(self._callbacks):
                 cb(info)
+        for r in seen:
+            for rcb in list(self._rendezvous_callbacks):
+                rcb(r)
         return out
 
     def _take_imu(self, t: float) -> F64 | None:
@@ -254,6 +278,10 @@ class Agent:
     def on_correction(self, callback: Callable[[CorrectionInfo], None]) -> None:
         """Call ``callback(CorrectionInfo)`` after each server correction is applied."""
         self._callbacks.append(callback)
+
+    def on_rendezvous(self, callback: Callable[[Rendezvous], None]) -> None:
+        """Call ``callback(Rendezvous)`` for each marker carrier seen (the front-end's session numbering)."""
+        self._rendezvous_callbacks.append(callback)
 
     def submit_correction(self, msg: Any) -> None:
         """A server ``Correction`` (``hivemap.protocol``), applied before the next frame. ``connect`` does
@@ -417,6 +445,10 @@ class _Stream:
             )  # fmt: skip
         elif isinstance(ev, PoseUpdateEvent):
             self._submit(PoseUpdates(ev.kf_ids, ev.world_from_cam, ev.point_ids, ev.xyz, session))
+
+    def send_rendezvous(self, r: Rendezvous) -> None:
+        """A rendezvous of the front-end's session ``r.session``, into the outbox like every message."""
+        self._submit(dataclasses.replace(r, session=self.first_session + int(r.session)))
 
     def failure(self) -> BaseException | None:
         """Why the link's task ended, if it ended by itself (None while it runs or after a clean close)."""

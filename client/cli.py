@@ -32,6 +32,14 @@ def agent_command(
     agent_id: Annotated[str | None, typer.Option("--agent-id", help="Agent id (default: dataset's).")] = None,
     token: Annotated[str | None, typer.Option("--token", help="Agent token for the server.")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    no_markers: Annotated[
+        bool,
+        typer.Option(
+            "--no-markers",
+            help="Do not detect the marker carriers the dataset's markers.yaml lists (no rendezvous "
+            "messages).",
+        ),
+    ] = False,
     max_connect_attempts: Annotated[
         int,
         typer.Option(
@@ -80,6 +88,7 @@ def agent_command(
     Streaming, SIGTERM/SIGINT stop the replay: unacknowledged messages stay in OUT/outbox.sqlite (sent
     at the next start with the same --out) and the agent exits 0. Exit 3: the server refused the agent;
     exit 4: the server could not be reached (--max-connect-attempts)."""
+    from hivemap.client.frontend.markers import MarkerOptions
     from hivemap.client.runner import RunnerOptions, parse_gnss_mode
 
     try:
@@ -95,6 +104,7 @@ def agent_command(
     options = RunnerOptions(
         gnss=mode, seed=seed, max_frames=max_frames, progress=not no_progress, imu_factors=not no_imu_factors,
         max_connect_attempts=max_connect_attempts, corrections_max_wait_s=wait_corrections,
+        markers=MarkerOptions(enabled=not no_markers),
     )  # fmt: skip
     out_dir = (
         out

@@ -87,4 +87,8 @@ class Replay:
         s = RunSummary(agent_id=str(self.live.agent_id), gnss_mode=str(self.options.gnss))
         s.gnss_available = int(self.gnss.valid.sum())
         s.gnss_selected = len(self.selected)
+        rv = self.live.rendezvous
+        if rv is not None:
+            s.rendezvous_sent, s.marker_frames = rv.observations, rv.frames_run
+            s.marker_cpu_ms_mean = 1e3 * rv.cpu_s / rv.frames_run if rv.frames_run else 0.0
         return s

@@ -31,6 +31,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.client.frontend.markers import MarkerOptions
+
 if TYPE_CHECKING:
     from hivemap.client.dataset import DatasetSource
 
@@ -83,6 +85,9 @@ class RunnerOptions:
     imu_factors: bool = True  # IMU factors in the second stage (loosely coupled VIO) when there is an IMU
     progress: bool = True
     max_connect_attempts: int = 10  # streaming: see LinkOptions.max_connect_attempts
+    # issue 25: detect the marker carriers of the dataset's ``markers.yaml`` in cam0 (``enabled=False``:
+    # ``hivemap agent --no-markers``) and stream them as ``rendezvous`` messages
+    markers: MarkerOptions = field(default_factory=MarkerOptions)
 
 
 @dataclass
@@ -117,6 +122,11 @@ class RunSummary:
     rejected_fixes: list[dict[str, float]] = field(default_factory=list)
     unsent: int = 0  # streaming: messages left in the outbox (not acknowledged by the server)
     stopped_by: str = ""  # streaming: the signal that ended the replay early ("SIGTERM", "SIGINT")
+    # marker carriers seen (issue 25): rendezvous observations made (streaming: put into the outbox),
+    # frames the detector ran on and its mean CPU time per such frame
+    rendezvous_sent: int = 0
+    marker_frames: int = 0
+    marker_cpu_ms_mean: float = 0.0
 
     def to_json(self) -> str:
         from dataclasses import asdict

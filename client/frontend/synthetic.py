@@ -14,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.camera import PinholeCamera, StereoRig
-from hivemap.maps.geometry import se3
+from hivemap.maps.geometry import se3, transform_points
+from hivemap.maps.markers import Carrier
 
 F64 = NDArray[np.float64]
 
@@ -37,6 +38,7 @@ class _Plane:
     size: tuple[float, float]  # metres along u, v
     tex: NDArray[np.float32]
     px_per_m: float
+    one_sided: bool = False  # seen only from the side u x v points away from (a marker's face)
 
 
 class SyntheticScene:
@@ -55,6 +57,7 @@ class SyntheticScene:
             (np.array([h, -h, 0.0]), ey, ez, (size, wall_h)),
             (np.array([-h, -h, 0.0]), ey, ez, (size, wall_h)),
         ]
+        self._rays: dict[PinholeCamera, F64] = {}
         self.planes = []
         for o, u, v, sz in specs:
             tex = _noise_texture(rng, int(sz[1] * px_per_m), int(sz[0] * px_per_m))
@@ -63,35 +66,87 @@ class SyntheticScene:
     def render(self, camera: PinholeCamera, world_from_cam: F64) -> NDArray[np.uint8]:
         """Gray image (H,W) of the scene (no distortion support needed for tests: dist must be 0)."""
         H, W = camera.height, camera.width
-        uu, vv = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-        if camera.has_distortion:  # rays of the distorted pixels
-            xy = camera.undistort_to_normalized(np.stack([uu.ravel(), vv.ravel()], 1)).reshape(H, W, 2)
-            rays_c = np.concatenate([xy, np.ones((H, W, 1))], -1)
-        else:
-            xn, yn = (uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy
-            rays_c = np.stack([xn, yn, np.ones_like(uu)], -1)
+        rays_c = self._rays.get(camera)
+        if rays_c is None:  # per camera: undistorting every pixel costs more than the rest of a render
+            uu, vv = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+            if camera.has_distortion:  # rays of the distorted pixels
+                xy = camera.undistort_to_normalized(np.stack([uu.ravel(), vv.ravel()], 1)).reshape(H, W, 2)
+                rays_c = np.concatenate([xy, np.ones((H, W, 1))], -1)
+            else:
+                xn, yn = (uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy
+                rays_c = np.stack([xn, yn, np.ones_like(uu)], -1)
+            self._rays[camera] = rays_c
         R, c = world_from_cam[:3, :3], world_from_cam[:3, 3]
-        rays = rays_c.reshape(-1, 3) @ R.T
+        rays_flat = rays_c.reshape(-1, 3)
+        rays = rays_flat @ R.T
         best_t = np.full(len(rays), np.inf)
         img = np.zeros(len(rays), np.float32)
         for p in self.planes:
+            idx = self._window(p, rays_flat, R, c)
+            if idx is not None and not len(idx):
+                continue
+            r = rays if idx is None else rays[idx]
             n = np.cross(p.ax_u, p.ax_v)
-            den = rays @ n
+            den = r @ n
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = ((p.origin - c) @ n) / den
-            hit = c + rays * t[:, None]
+            hit = c + r * t[:, None]
             a = (hit - p.origin) @ p.ax_u
             b = (hit - p.origin) @ p.ax_v
-            ok = (t > 0.05) & (t < best_t) & (a >= 0) & (a <= p.size[0]) & (b >= 0) & (b <= p.size[1])
+            bt = best_t if idx is None else best_t[idx]
+            ok = (t > 0.05) & (t < bt) & (a >= 0) & (a <= p.size[0]) & (b >= 0) & (b <= p.size[1])
+            if p.one_sided:
+                ok &= den > 0
             if not ok.any():
                 continue
-            mx = (a * p.px_per_m).astype(np.float32).reshape(H, W)
-            my = (b * p.px_per_m).astype(np.float32).reshape(H, W)
-            val = cv2.remap(p.tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).reshape(-1)
-            img[ok] = val[ok]
-            best_t[ok] = t[ok]
+            val = _sample(p.tex, a * p.px_per_m, b * p.px_per_m)
+            sel = np.flatnonzero(ok) if idx is None else idx[ok]
+            img[sel] = val[ok]
+            best_t[sel] = t[ok]
         self.last_depth = (best_t * rays_c.reshape(-1, 3)[:, 2]).reshape(H, W)  # z in the camera, metres
         return np.clip(img, 0, 255).astype(np.uint8).reshape(H, W)
+
+    @staticmethod
+    def _window(p: _Plane, rays_c: F64, R: F64, c: F64) -> NDArray[np.int64] | None:
+        """The pixels whose rays can hit a plane wholly in front of the camera (inside its corners'
+        bounding box in normalized coordinates), or None (every pixel) for one that is not."""
+        su, sv = p.size
+        corners = p.origin + np.array([[0, 0], [su, 0], [su, sv], [0, sv]]) @ np.stack([p.ax_u, p.ax_v])
+        cc = (corners - c) @ R
+        if (cc[:, 2] <= 0.05).any():
+            return None
+        xy = cc[:, :2] / cc[:, 2:]
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        x, y = rays_c[:, 0], rays_c[:, 1]
+        return np.flatnonzero((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]))
+
+    def add_marker_carrier(self, carrier: Carrier, world_from_body: F64, cell_px: int = 12) -> None:
+        """Draw ``carrier``'s markers (with a one-cell white quiet zone) at the carrier's body pose."""
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, carrier.dictionary))
+        cells = dictionary.markerSize + 2
+        for m in carrier.markers:
+            c = transform_points(world_from_body, m.corners_body)
+            ax_u = (c[1] - c[0]) / np.linalg.norm(c[1] - c[0])
+            ax_v = (c[3] - c[0]) / np.linalg.norm(c[3] - c[0])
+            cell_m = m.size_m / cells
+            code = cv2.aruco.generateImageMarker(dictionary, m.marker_id, cells * cell_px, borderBits=1)
+            tex = np.full(((cells + 2) * cell_px,) * 2, 255.0, np.float32)
+            tex[cell_px:-cell_px, cell_px:-cell_px] = code
+            side = m.size_m + 2 * cell_m
+            ppm = len(tex) / side
+            # remap samples texel centres at integers: the texture's edge is half a texel before texel 0
+            origin = c[0] - cell_m * (ax_u + ax_v) + 0.5 / ppm * (ax_u + ax_v)
+            self.planes.append(_Plane(origin, ax_u, ax_v, (side, side), tex, ppm, True))
+
+
+def _sample(tex: NDArray[np.float32], x: F64, y: F64) -> NDArray[np.float32]:
+    """Bilinear texture values at (x, y) (any count: cv2.remap takes maps below 32767 columns)."""
+    n, w = len(x), 512
+    pad = -n % w
+    mx = np.pad(x.astype(np.float32), (0, pad)).reshape(-1, w)
+    my = np.pad(y.astype(np.float32), (0, pad)).reshape(-1, w)
+    out = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).reshape(-1)[:n]
+    return np.asarray(out, dtype=np.float32)
 
 
 def body_from_cam_pitched(pitch_down_deg: float) -> F64:

@@ -37,6 +37,8 @@ def _mistakes(tiny: Path, tmp: Path) -> list[tuple[str, list[str], str]]:
     corrupt = _copy(tiny, tmp / "corrupt")
     png = sorted((corrupt / "mav0" / "cam0" / "data").glob("*.png"))[3]
     png.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00garbage" * 20)
+    bad_markers = _copy(tiny, tmp / "bad_markers")
+    (bad_markers / "markers.yaml").write_text("format_version: 1\ncarriers: [{agent_id: ugv}]\n")
     bad_toml = tmp / "bad.toml"
     bad_toml.write_text('port = 8765\n[tokens\nuav1 = "x"\n')
     bad_field = tmp / "bad_field.toml"
@@ -48,6 +50,7 @@ def _mistakes(tiny: Path, tmp: Path) -> list[tuple[str, list[str], str]]:
         ("truncated imu0/data.csv", ["agent", "--dataset", str(trunc), *offline], str(imu)),
         ("missing sensor.yaml", ["agent", "--dataset", str(no_yaml), *offline], "cam1/sensor.yaml"),
         ("corrupt PNG", ["agent", "--dataset", str(corrupt), *offline], png.name),
+        ("malformed markers.yaml", ["agent", "--dataset", str(bad_markers), *offline], "markers.yaml"),
         ("URL without scheme",
          ["agent", "--dataset", str(tiny), "--server", "localhost:8765", "--token", "t"], "--server"),
         ("bad TOML", ["server", "--config", str(bad_toml), "--port", "0"], "bad.toml: invalid TOML"),
