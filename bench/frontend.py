@@ -3,9 +3,13 @@
     .venv/bin/python bench/frontend.py                          # synthetic scene (self-contained)
     .venv/bin/python bench/frontend.py --dataset DATA/factory01/uav1 [--max-frames N] [--no-imu]
         [--option imu_gate_strong_scale=1.0 ...]                # FrontendOptions fields
+        [--markers [--markers-every K]]                         # + marker detection (issue 25)
 
 Prints frames/s of ``Frontend.process`` alone (images are pre-loaded / pre-rendered outside the
 timed region), peak RSS over the run, and ATE (evo, SE(3) alignment) when ground truth exists.
+``--markers``: the agent's marker detection (``hivemap.client.rendezvous``) runs in the timed region
+after each frame, on the carriers of the dataset's ``markers.yaml`` or, without one, a stand-in team
+(a board on another agent): the detector's cost is about the same whether a carrier is in view.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import resource  # noqa: E402
 import time  # noqa: E402
+from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -47,6 +52,8 @@ def main() -> None:
     ap.add_argument("--contrast", default=None, help="stretch | clahe | off (default: the front-end's)")
     ap.add_argument("--tum-out", default=None, help="write the VIO body trajectory (TUM) here")
     ap.add_argument("--option", action="append", default=[], help="FrontendOptions field=value (repeat)")
+    ap.add_argument("--markers", action="store_true", help="also run the agent's marker detection")
+    ap.add_argument("--markers-every", type=int, default=2, help="detect on every k-th frame")
     args = ap.parse_args()
     cv2.setNumThreads(1)
 
@@ -97,6 +104,7 @@ def main() -> None:
     opts = FrontendOptions() if args.contrast is None else replace(FrontendOptions(), contrast=args.contrast)
     opts = replace(opts, **{k: ast.literal_eval(v) for k, v in (a.split("=", 1) for a in args.option)})
     fe = Frontend(rig, opts, imu_params=imu_params)
+    rv = _rendezvous(args, rig.left, name) if args.markers else None
     busy = 0.0
     cpu = 0.0
     refs = []
@@ -114,6 +122,8 @@ def main() -> None:
         t0 = time.perf_counter()
         c0 = time.process_time()
         res = fe.process(t, left, right, samples)
+        if rv is not None:
+            rv.observe(t, left, res, fe)
         busy += time.perf_counter() - t0
         cpu += time.process_time() - c0
         states[res.state.value] = states.get(res.state.value, 0) + 1
@@ -138,6 +148,12 @@ def main() -> None:
         f"visual poses refused by the IMU gate {st.imu_rejections}"
     )
     print("  time per frame (ms): " + ", ".join(f"{k} {1e3 * v / n:.1f}" for k, v in fe.stats.timing.items()))
+    if rv is not None:
+        per = 1e3 * rv.cpu_s / max(rv.frames_run, 1)
+        print(
+            f"  markers: detector on {rv.frames_run} frames, {per:.1f} ms CPU each, "
+            f"{rv.observations} observations"
+        )
     if gt is not None and refs:
         sess = fe.session
         rows = [r for r in refs if r[1] == sess and r[2] in fe.keyframes]
@@ -155,6 +171,23 @@ def main() -> None:
                 for j, T in zip(idx, est, strict=True):
                     w, x, y, z = quat_wxyz_from_rotmat(T[:3, :3])
                     f.write(f"{times[j]:.9f} {T[0, 3]} {T[1, 3]} {T[2, 3]} {x} {y} {z} {w}\n")
+
+
+def _rendezvous(args: argparse.Namespace, camera: Any, own: str) -> Any:
+    from pathlib import Path
+
+    from hivemap.client.frontend.markers import MarkerOptions
+    from hivemap.client.rendezvous import RendezvousSource
+    from hivemap.maps.markers import LAYOUT_FILE, Carrier, Marker, load_layout
+
+    layout = Path(args.dataset or ".") / LAYOUT_FILE
+    if args.dataset and layout.is_file():
+        carriers = load_layout(layout)
+    else:
+        sq = 0.25 * np.array([[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0]], dtype=np.float64)
+        markers = tuple(Marker(i, 0.5, sq + [0.6 * (i % 2), 0.6 * (i // 2), 1.0]) for i in range(4))
+        carriers = {"other": Carrier("other", "DICT_4X4_50", np.eye(4), markers)}
+    return RendezvousSource(camera, carriers, own, MarkerOptions(every_k_frames=args.markers_every))
 
 
 if __name__ == "__main__":

@@ -41,7 +41,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hivemap.eval.rendezvous import merge_timeline
+from hivemap.eval.rendezvous import all_together_s, merge_timeline
 from hivemap.eval.startposes import StartPoseOptions, start_poses, start_poses_toml
 from hivemap.maps.markers import LAYOUT_FILE
 
@@ -320,7 +320,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
     """One server, every agent streaming to it at once."""
     import httpx
 
-    from hivemap.eval.globalmap import all_merged_at, loop_errors, team_by_map
+    from hivemap.eval.globalmap import loop_errors, team_by_map
     from hivemap.eval.trajectory import groundtruth_trajectory
 
     port = free_port()
@@ -377,6 +377,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
         maps = httpx.get(url + "/maps", timeout=30).json()["maps"]
         gt_cam = {aid: groundtruth_trajectory(scen / aid, sensor="cam0") for aid, _ in agents}
         t_first = min(float(g.timestamps[0]) for g in gt_cam.values())
+        timeline = merge_timeline(events, t_first)
         for aid, _kind in agents:
             res = results[aid]
             out = work / aid
@@ -410,8 +411,8 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
                 mode_dir / "server", [(aid, results[aid].run.get("map_id")) for aid, _ in agents]
             ),
             "start_poses": start_table,
-            "all_merged_s": all_merged_at(events, len(agents), t_first),
-            "merge_timeline": merge_timeline(events, t_first),
+            "all_merged_s": all_together_s(timeline, [aid for aid, _ in agents]),
+            "merge_timeline": timeline,
             "markers": {
                 "condition": "on" if opts.markers else "off",
                 "layouts": sorted(a for a, _ in agents if (scen / a / LAYOUT_FILE).exists()),

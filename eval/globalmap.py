@@ -108,20 +108,6 @@ def team_by_map(
     return out
 
 
-def all_merged_at(events: Sequence[dict[str, Any]], n_agents: int, mission_t0: float) -> float | None:
-    """Mission time (s, the query keyframe's data time) of the merge that put all ``n_agents`` agents
-    (one map each at the start) into one map; None if they never were."""
-    maps = n_agents
-    for e in events:
-        d = e.get("data") or {}
-        if e.get("kind") != "merge_detail":
-            continue
-        maps -= 1
-        if maps == 1:
-            return None if d.get("query_t") is None else float(d["query_t"]) - mission_t0
-    return 0.0 if n_agents == 1 else None
-
-
 def globalmap_section(results: dict[tuple[str, str], dict[str, Any]]) -> list[str]:
     """The report's check of the global map per co-location run: which start poses the server had, when
     all agents were in one map, the team ATE per map and the accepted loops' and merges' errors."""

@@ -13,21 +13,32 @@ def base_agent(key: str) -> str:
     return key.split("#", 1)[0]
 
 
+def _key_agent(k: Any) -> str | None:
+    """The agent (with its session suffix) of a keyframe key ``[agent, id]`` as events carry it."""
+    if isinstance(k, list | tuple) and len(k) == 2 and isinstance(k[0], str):
+        return k[0]
+    return None
+
+
 def _merge_agents(d: dict[str, Any]) -> tuple[str, str] | None:
+    """The two agent sessions a merge event joined: from its detection (place recognition), its own
+    query / candidate keys (a session guess), or an ``agents`` pair (a rendezvous)."""
     det = d.get("detection") or {}
-    q, c = det.get("query_key"), det.get("candidate_key")
-    if q and c:
-        return base_agent(str(q[0])), base_agent(str(c[0]))
+    for q, c in ((det.get("query_key"), det.get("candidate_key")), (d.get("query"), d.get("candidate"))):
+        a, b = _key_agent(q), _key_agent(c)
+        if a and b:
+            return a, b
     agents = d.get("agents")
     if isinstance(agents, list | tuple) and len(agents) == 2:
-        return base_agent(str(agents[0])), base_agent(str(agents[1]))
+        return str(agents[0]), str(agents[1])
     return None
 
 
 def merge_timeline(events: Sequence[dict[str, Any]], mission_t0: float) -> list[dict[str, Any]]:
-    """Each merge that joined two groups of agents, in order: mission time (s, of the query keyframe or
-    observation), the two agents, the evidence (``by``), and the agents together after it. A merge undone
-    later stays in the list: the question is when the agents first shared a map."""
+    """Each merge that joined two groups of agent sessions, in order: mission time (s, of the query
+    keyframe or observation), the two sessions, the evidence (``by``), and the agents (without session
+    suffix) together after it. A merge undone later stays in the list: the question is when the agents
+    first shared a map."""
     group: dict[str, set[str]] = {}
     out = []
     for e in events:
@@ -49,9 +60,20 @@ def merge_timeline(events: Sequence[dict[str, Any]], mission_t0: float) -> list[
             "t": None if t is None else float(t) - mission_t0,
             "agents": [a, b],
             "by": d.get("by", ""),
-            "together": sorted(joined),
+            "together": sorted({base_agent(x) for x in joined}),
         })  # fmt: skip
     return out
+
+
+def all_together_s(timeline: Sequence[dict[str, Any]], agents: Sequence[str]) -> float | None:
+    """Mission time of the first merge after which every one of ``agents`` (some session of it) shared
+    one map; None if they never did (0 for one agent)."""
+    if len(set(agents)) <= 1:
+        return 0.0
+    for m in timeline:
+        if set(agents) <= set(m["together"]):
+            return m["t"]
+    return None
 
 
 def ugv_joined_s(timeline: Sequence[dict[str, Any]], ugv: str = "ugv") -> float | None:

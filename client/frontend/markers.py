@@ -43,7 +43,9 @@ class MarkerOptions:
     """Detection and acceptance of carrier poses. ``from_table`` reads a TOML ``[markers]`` table."""
 
     enabled: bool = True
-    every_k_frames: int = 1  # the agent runs the detector on every k-th cam0 frame
+    # the agent runs the detector on every k-th cam0 frame: 10 Hz of 20 Hz frames keeps its CPU near a
+    # tenth of the front-end's (docs/decisions.md, issue 25), plenty for the server's consistency check
+    every_k_frames: int = 2
     # corner noise of the covariance (px per coordinate, 1 sigma): sub-pixel refined corners of a
     # rendered or printed marker; the solve's own residual is used when larger
     pixel_sigma_px: float = 0.5

@@ -75,7 +75,7 @@ def test_rendezvous_match_ground_truth(flight: tuple[SyntheticSequence, list]) -
     agent = _agent(flight)
     seen, kfs = _run(flight, agent)
     agent.close()
-    assert len(seen) >= 8 and agent.rendezvous is not None and agent.rendezvous.observations == len(seen)
+    assert len(seen) >= 5 and agent.rendezvous is not None and agent.rendezvous.observations == len(seen)
     emitted_before: set[int] = set()
     kf_t = {e.kf_id: e.timestamp for e in kfs}
     for r in seen:
@@ -117,6 +117,6 @@ def test_streamed_rendezvous_keep_the_link_and_every_keyframe(
         info = server.json("/agents/uav1")
     finally:
         server.stop()
-    assert len(seen) >= 8
+    assert len(seen) >= 5
     assert agent.link_error is None and agent.link_stats.connects == 1
     assert info["keyframes"] == len(kfs) and info["pending_keyframes"] == 0
