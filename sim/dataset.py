@@ -343,8 +343,10 @@ def render_agent(
     duration: float | None = None,
     progress: bool = True,
     renderer_factory: Callable[..., Any] | None = None,
+    team: dict[str, Trajectory] | None = None,
 ) -> AgentReport:
-    """Render (or resume) one agent into ``agent_dir``."""
+    """Render (or resume) one agent into ``agent_dir``; with ``scenario.markers`` every frame also draws
+    the marker carriers of the other agents of ``team`` (all trajectories of the plan) at their poses."""
     dur = traj.duration if duration is None else min(duration, traj.duration)
     fp = fingerprint(scenario, spec, dur, traj)
     mark = agent_dir / COMPLETE_MARK
@@ -388,16 +390,28 @@ def render_agent(
         d.mkdir(parents=True, exist_ok=True)
     todo = [i for i in range(len(t_cam)) if not all((d / f"{cam_ns[i]}.png").is_file() for d in dirs)]
     rendered = 0
+    scene, team_poses = None, {}
+    if scenario.markers and team:
+        from hivemap.sim.carriers import DICTIONARY, CarrierScene, team_geometry
+
+        scene = CarrierScene(team_geometry(scenario), len(world.layers), world.layers.shape[1], DICTIONARY)
+        team_poses = {k: tr.world_from_body(t_cam) for k, tr in team.items() if k != spec.agent_id}
     if todo:
-        renderer = renderer_factory(world, cam, backend=backend)
+        extra = {} if scene is None else {"extra_layers": scene.layers}
+        renderer = renderer_factory(world, cam, backend=backend, **extra)
         _fast_texture_filtering(renderer)
         try:
             from tqdm import tqdm
 
             bar = tqdm(todo, desc=f"{scenario.name}/{spec.agent_id}", unit="frame", disable=not progress)
             for i in bar:
+                quads = (
+                    None
+                    if scene is None
+                    else scene.quads({k: P[i] for k, P in team_poses.items()}, spec.agent_id)
+                )
                 for c, (T_BS, d) in enumerate(zip((T0, T1), dirs, strict=True)):
-                    gray, depth = renderer.render(W[i] @ T_BS)
+                    gray, depth = renderer.render(W[i] @ T_BS, quads)
                     rng = np.random.default_rng([scenario.seed, agent_index, int(i), c, 7])
                     img = apply_conditions(gray, depth, lighting, weather, rng)
                     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img, dtype=np.uint8))
@@ -415,6 +429,19 @@ def render_agent(
     return AgentReport(spec.agent_id, len(t_cam), rendered, False, secs, _dir_bytes(agent_dir))
 
 
+def write_marker_layout(agent_dir: Path, scenario: Scenario) -> None:
+    """``markers.yaml`` with the whole team's carriers when the scenario has markers (else none)."""
+    from hivemap.maps.markers import LAYOUT_FILE, save_layout
+    from hivemap.sim.carriers import team_carriers
+
+    path = agent_dir / LAYOUT_FILE
+    if not scenario.markers:
+        path.unlink(missing_ok=True)
+        return
+    agent_dir.mkdir(parents=True, exist_ok=True)
+    save_layout(path, team_carriers(scenario, {a.agent_id: stereo_extrinsics(a)[0] for a in scenario.agents}))
+
+
 def manifest_dict(
     scenario: Scenario, reports: dict[str, dict[str, Any]], duration: float | None
 ) -> dict[str, Any]:
@@ -428,6 +455,7 @@ def manifest_dict(
         "world_size_m": scenario.world_size_m,
         "lighting": scenario.lighting,
         "weather": scenario.weather,
+        "markers": scenario.markers,
         "duration_s": duration,
         "start_time_ns": scenario.start_time_ns,
         "origin": {"lat": scenario.origin_lat, "lon": scenario.origin_lon, "alt": scenario.origin_alt},
@@ -464,7 +492,16 @@ class RenderMismatch(ValueError):
 
 # what makes two renders the same world: resuming into a folder that differs in one of them would mix
 # frames of two worlds in one dataset
-_SAME_WORLD = ("scenario", "seed", "world_size_m", "lighting", "weather", "camera", "start_time_ns")
+_SAME_WORLD = (
+    "scenario",
+    "seed",
+    "world_size_m",
+    "lighting",
+    "weather",
+    "camera",
+    "start_time_ns",
+    "markers",
+)
 
 
 def _check_same_world(path: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
@@ -543,7 +580,19 @@ def render_scenario(
             continue
         traj = plan.trajectories[spec.agent_id]
         dur = traj.duration if scenario.duration_s is None else min(scenario.duration_s, traj.duration)
-        rep = render_agent(world, scenario, spec, idx, traj, out / spec.agent_id, backend, dur, progress)
+        write_marker_layout(out / spec.agent_id, scenario)
+        rep = render_agent(
+            world,
+            scenario,
+            spec,
+            idx,
+            traj,
+            out / spec.agent_id,
+            backend,
+            dur,
+            progress,
+            team=plan.trajectories,
+        )
         results.append(rep)
         reports[spec.agent_id] = {
             "complete": True,

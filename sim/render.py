@@ -7,12 +7,15 @@
 - ``NumpyRenderer``: the same scene ray-cast in numpy (ground plane + box faces). Slow, but needs
   nothing; it is the fallback when EGL is missing and the depth reference in tests.
 
-``make_renderer(world, camera, backend="auto")`` picks one. Both return
-``render(world_from_cam) -> (gray uint8 (H, W), depth float32 (H, W))`` with the camera's distortion.
+``make_renderer(world, camera, backend="auto", extra_layers=None)`` picks one. Both return
+``render(world_from_cam, quads=None) -> (gray uint8 (H, W), depth float32 (H, W))`` with the camera's
+distortion; ``quads`` are per-frame objects (the other agents' marker carriers) textured from
+``extra_layers``, texture layers appended after the world's.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass
 from typing import Protocol
@@ -32,10 +35,23 @@ F32 = NDArray[np.float32]
 SKY_TOP, SKY_HORIZON = 150.0, 215.0
 
 
+@dataclass(frozen=True)
+class Quads:
+    """Textured planar quads drawn on top of the static scene in one frame (the agents' marker carriers):
+    corners (Q, 4, 3) in the world, uv (Q, 4, 2), texture layer (Q,) and shade (Q,), as ``box_quads``.
+    Each is one-sided: seen from its front only (corners p0, p1, p2 clockwise in the image), because the
+    agents' bodies, which would hide a panel's back, are not drawn."""
+
+    corners: F64
+    uv: F64
+    layer: NDArray[np.int32]
+    shade: F64
+
+
 class Renderer(Protocol):
     camera: PinholeCamera
 
-    def render(self, world_from_cam: F64) -> tuple[U8, F32]: ...
+    def render(self, world_from_cam: F64, quads: Quads | None = None) -> tuple[U8, F32]: ...
 
     def close(self) -> None: ...
 
@@ -160,17 +176,38 @@ def _quad_tris(c: F64, uv: F64, layer: int, shade: float) -> F64:
     return out
 
 
+def _all_layers(world: World, extra: NDArray[np.uint8] | None) -> NDArray[np.uint8]:
+    if extra is None or len(extra) == 0:
+        return world.layers
+    if extra.shape[1:] != world.layers.shape[1:]:
+        raise ValueError(
+            f"extra texture layers {extra.shape[1:]} do not match the world's {world.layers.shape[1:]}"
+        )
+    return np.concatenate([world.layers, np.asarray(extra, dtype=np.uint8)])
+
+
+def _quad_arrays(q: Quads) -> tuple[F64, F64, NDArray[np.int32], F64]:
+    return q.corners, q.uv, q.layer, q.shade
+
+
 class GLRenderer:
     """moderngl + headless EGL renderer (see module docstring)."""
 
-    def __init__(self, world: World, camera: PinholeCamera, near: float = 0.05, far: float = 3000.0) -> None:
+    def __init__(
+        self,
+        world: World,
+        camera: PinholeCamera,
+        near: float = 0.05,
+        far: float = 3000.0,
+        extra_layers: NDArray[np.uint8] | None = None,
+    ) -> None:
         import moderngl
 
         self.camera = camera
         self.near, self.far = near, far
         self.plan = _plan(camera)
         self.ctx = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]
-        layers = np.ascontiguousarray(world.layers, dtype=np.uint8)
+        layers = np.ascontiguousarray(_all_layers(world, extra_layers), dtype=np.uint8)
         L, s, _ = layers.shape
         self.tex = self.ctx.texture_array((s, s, L), 1, layers.tobytes())
         self.tex.build_mipmaps()
@@ -205,7 +242,7 @@ class GLRenderer:
             ]
         )
 
-    def render(self, world_from_cam: F64) -> tuple[U8, F32]:
+    def render(self, world_from_cam: F64, quads: Quads | None = None) -> tuple[U8, F32]:
         import moderngl
 
         cv_from_world = se3_inverse(np.asarray(world_from_cam, dtype=np.float64))
@@ -219,6 +256,26 @@ class GLRenderer:
         self.ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE * 0)
         self.tex.use(0)
         self.vao.render(moderngl.TRIANGLES)
+        if quads is not None and len(quads.corners):
+            tris = np.concatenate(
+                [
+                    _quad_tris(c, uv, int(la), float(sh))
+                    for c, uv, la, sh in zip(*_quad_arrays(quads), strict=True)
+                ]
+            )
+            vbo = self.ctx.buffer(tris.astype(np.float32).tobytes())
+            vao = self.ctx.vertex_array(
+                self.prog, [(vbo, "3f 2f 1f 1f", "in_pos", "in_uv", "in_layer", "in_shade")]
+            )
+            # carriers are seen from the front only (see Quads): clockwise in the image is clockwise in
+            # GL's window too (the image rows are read bottom-up, and so is its y axis)
+            self.ctx.front_face = "cw"
+            self.ctx.enable(moderngl.CULL_FACE)
+            vao.render(moderngl.TRIANGLES)
+            self.ctx.disable(moderngl.CULL_FACE)
+            self.ctx.front_face = "ccw"
+            vao.release()
+            vbo.release()
         w, h = self.plan.size
         gray = np.frombuffer(self.fbo.read(components=1, attachment=0, dtype="f4"), np.float32).reshape(h, w)
         inv = np.frombuffer(self.fbo.read(components=1, attachment=1, dtype="f4"), np.float32).reshape(h, w)
@@ -242,15 +299,18 @@ class GLRenderer:
 class NumpyRenderer:
     """Pure numpy ray caster of the same scene (nearest-texel shading, exact depth)."""
 
-    def __init__(self, world: World, camera: PinholeCamera) -> None:
+    def __init__(
+        self, world: World, camera: PinholeCamera, extra_layers: NDArray[np.uint8] | None = None
+    ) -> None:
         self.world = world
         self.camera = camera
+        self.layers = _all_layers(world, extra_layers)
         u, v = np.meshgrid(
             np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64)
         )
         xy = camera.undistort_to_normalized(np.stack([u.ravel(), v.ravel()], 1))
         self.rays_cam = np.concatenate([xy, np.ones((len(xy), 1))], 1)  # z = 1: t is the depth
-        self.corners, self.uvs, self.layers, self.shades = box_quads(world)
+        self.corners, self.uvs, self.box_layers, self.shades = box_quads(world)
         grid = xy.reshape(camera.height, camera.width, 2)
         # Normalised-coordinate extent of each pixel row / column, to cull rays per quad.
         self._row_lo, self._row_hi = grid[..., 1].min(1), grid[..., 1].max(1)
@@ -274,7 +334,7 @@ class NumpyRenderer:
         c = np.arange(cols[0], cols[-1] + 1)
         return (r[:, None] * w + c[None, :]).ravel()
 
-    def render(self, world_from_cam: F64) -> tuple[U8, F32]:
+    def render(self, world_from_cam: F64, quads: Quads | None = None) -> tuple[U8, F32]:
         T = np.asarray(world_from_cam, dtype=np.float64)
         d = self.rays_cam @ T[:3, :3].T
         o = T[:3, 3]
@@ -302,13 +362,19 @@ class NumpyRenderer:
         gy = (hit[ok, 1] - w.tiles_origin[1]) / w.tile_m
         ix, iy = np.clip(gx.astype(int), 0, w.tiles_n - 1), np.clip(gy.astype(int), 0, w.tiles_n - 1)
         val[ok] = self._sample(iy * w.tiles_n + ix, gx - ix, gy - iy) * GROUND_SHADE
-        # Box faces (planar quads).
-        for c, uv, lay, sh in zip(self.corners, self.uvs, self.layers, self.shades, strict=True):
+        # Box faces and the frame's extra quads (planar quads).
+        faces = [zip(self.corners, self.uvs, self.box_layers, self.shades, strict=True)]
+        if quads is not None:
+            faces.append(zip(*_quad_arrays(quads), strict=True))
+        n_static = len(self.corners)
+        for q, (c, uv, lay, sh) in enumerate(itertools.chain(*faces)):
             rays = self._candidate_rays((c - o) @ T[:3, :3])
             if rays is None:
                 continue
             e1, e2 = c[1] - c[0], c[3] - c[0]
             nrm = np.cross(e1, e2)
+            if q >= n_static and (c[0] - o) @ nrm <= 0:
+                continue  # a carrier quad seen from its back (one-sided, as in the GL renderer)
             den = d[rays] @ nrm
             with np.errstate(divide="ignore", invalid="ignore"):
                 t_r = ((c[0] - o) @ nrm) / den
@@ -331,10 +397,10 @@ class NumpyRenderer:
         return np.clip(gray + 0.5, 0, 255).astype(np.uint8), depth
 
     def _sample(self, layer: NDArray[np.int64], u: F64, v: F64) -> F64:
-        s = self.world.layers.shape[1]
+        s = self.layers.shape[1]
         x = (np.floor(np.mod(u, 1.0) * s).astype(int)) % s
         y = (np.floor(np.mod(v, 1.0) * s).astype(int)) % s
-        return self.world.layers[layer, y, x].astype(np.float64) / 255.0
+        return self.layers[layer, y, x].astype(np.float64) / 255.0
 
     def close(self) -> None:
         pass
@@ -352,20 +418,22 @@ def egl_available() -> tuple[bool, str]:
         return False, f"{type(e).__name__}: {e}"
 
 
-def make_renderer(world: World, camera: PinholeCamera, backend: str = "auto") -> Renderer:
+def make_renderer(
+    world: World, camera: PinholeCamera, backend: str = "auto", extra_layers: NDArray[np.uint8] | None = None
+) -> Renderer:
     """``backend``: "gl", "numpy", or "auto" (gl when EGL works, else numpy with a warning)."""
     if backend not in ("auto", "gl", "numpy"):
         raise ValueError(f"unknown renderer backend {backend!r}: use auto, gl or numpy")
     if backend == "numpy":
-        return NumpyRenderer(world, camera)
+        return NumpyRenderer(world, camera, extra_layers)
     if backend == "gl":
-        return GLRenderer(world, camera)
+        return GLRenderer(world, camera, extra_layers=extra_layers)
     ok, why = egl_available()
     if ok:
-        return GLRenderer(world, camera)
+        return GLRenderer(world, camera, extra_layers=extra_layers)
     log.warning(
         "headless EGL unavailable (%s); using the slow numpy renderer. Install libegl1 libegl-mesa0 "
         "libgl1-mesa-dri for the fast one.",
         why,
     )
-    return NumpyRenderer(world, camera)
+    return NumpyRenderer(world, camera, extra_layers)

@@ -118,6 +118,10 @@ class Scenario:
     origin_alt: float = 23.0  # ellipsoidal height, m
     start_time_ns: int = 1_700_000_000_000_000_000  # timestamp of t = 0 (2023-11-14T22:13:20Z)
     hold_s: float = 2.0  # all agents stand still this long at the start (static IMU init)
+    markers: bool = True  # issue 25: agents carry fiducial marker carriers (sim/carriers.py)
+    # issue 25: with a UGV, the UAVs leave its roof one after the other, the front one first, this many
+    # seconds apart, the first one this long after the UGV starts (0: all with the UGV, in formation)
+    takeoff_interval_s: float = 0.0
 
     def agent(self, agent_id: str) -> AgentSpec:
         for a in self.agents:
@@ -156,6 +160,8 @@ TINY = replace(
     description="test preset: Factory 01's first 12 s (take-off from the UGV), 320x240 at 10 Hz",
     camera=CameraSpec(320, 240, 215.0, 215.0, 159.5, 119.5, (-0.05, 0.01, 0.0002, -0.0001), 10.0),
     duration_s=12.0,
+    # the UAVs take off in formation 0.35 m apart: uav2's carrier would fill uav1's image (tracking lost)
+    markers=False,
 )
 
 DISJOINT = Scenario(

@@ -88,6 +88,20 @@ def _xy_path(route: Route, g: RoadGraph, road_width: float) -> tuple[F64, F64, l
     return xy_s, s2 * (s[-1] / max(s2[-1], 1e-9)) if s2[-1] > 0 else s2, spans
 
 
+def _spot(a: AgentSpec) -> int:
+    """A UAV's take-off spot on the UGV's roof: (spot - 2) * 0.35 m along the heading (``_agent_path``)."""
+    return int(a.agent_id[-1]) if a.agent_id[-1].isdigit() else 0
+
+
+def takeoff_delays(scenario: Scenario) -> dict[str, float]:
+    """Per UAV, how long after the UGV it leaves the roof (``Scenario.takeoff_interval_s``): the front
+    one first, so no UAV's camera looks at the carrier of the UAV right in front of it, and the UGV drives
+    ahead of the UAVs in their first seconds (issue 25: they see its markers)."""
+    dt = scenario.takeoff_interval_s
+    uavs = sorted((a for a in scenario.agents if a.kind == "uav"), key=_spot, reverse=True)
+    return {a.agent_id: (k + 1) * dt for k, a in enumerate(uavs)} if dt > 0 else {}
+
+
 def _uav_heights(
     world: Any,
     xy: F64,
@@ -254,7 +268,7 @@ def _agent_path(
     else:
         z_start = UGV_ROOF_HEIGHT + 0.1 if with_ugv else UAV_GROUND_HEIGHT
         low_spans = [spans[i] for i in r.low_edges]
-        idx = int(a.agent_id[-1]) if a.agent_id[-1].isdigit() else 0
+        idx = _spot(a)
         z = _uav_heights(world, xy, s, a, z_start, low_spans, phase=0.9 * idx)
         if with_ugv:
             # Take-off spots on the UGV roof: 0.35 m apart along the heading.
@@ -435,6 +449,7 @@ def plan_trajectories(
         loops[k] = sorted({de for de in cov if cov.count(de) > 1})
 
     # --- Geometry and timing.
+    delays = takeoff_delays(scenario)
     start_xy = None
     start_heading = 0.0
     for a in scenario.agents:
@@ -452,7 +467,8 @@ def plan_trajectories(
             d = pts3[min(8, len(pts3) - 1), :2] - pts3[0, :2]
             start_heading = float(np.arctan2(d[1], d[0]))
         meta = {"spans": spans, "xy_len": float(s[-1])}
-        trajs[a.agent_id] = _make_trajectory(a, pts3, scenario.hold_s, r, meta)
+        hold = scenario.hold_s + (delays.get(a.agent_id, 0.0) if ugv else 0.0)
+        trajs[a.agent_id] = _make_trajectory(a, pts3, hold, r, meta)
     return TrajectoryPlan(
         trajs,
         g,
