@@ -61,7 +61,11 @@ def loop_errors(
         ):
             continue
         qa, ca = str(d["query"][0]).split("#")[0], str(d["candidate"][0]).split("#")[0]
-        Tq, Tc = pose_at(qa, float(d["query_t"])), pose_at(ca, float(d["candidate_t"]))
+        if "candidate_t" not in d:  # (a merge record without its keyframes' times: nothing to check)
+            continue
+        # a rendezvous merge's query_t is its observation's time; its edge's keyframe has its own
+        Tq = pose_at(qa, float(d.get("query_kf_t", d["query_t"])))
+        Tc = pose_at(ca, float(d["candidate_t"]))
         if Tq is None or Tc is None:
             continue
         meas = np.asarray(d["candidate_from_query"], dtype=np.float64)

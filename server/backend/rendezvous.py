@@ -225,6 +225,12 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
         "sigma_rot_deg": math.degrees(e0.sigma_rot), "sigma_trans_m": e0.sigma_trans,
         "chi2_max": max(res.chi2[i] for i in inl),
     }  # fmt: skip
+    # the data times of the edge's two keyframes, so the eval can check the edge against ground truth
+    m_t = maps.get(target)
+    for name, key in (("query_kf_t", e0.query), ("candidate_t", e0.candidate)):
+        kf = m_t.keyframes.get(tuple(key)) if m_t is not None else None
+        if kf is not None:
+            rec[name] = float(kf.timestamp)
     bk.merges.append(rec)
     edges = [e0]
     first_obs.state, first_obs.map_id, first_obs.chi2 = "judging", target, res.chi2[inl[0]]
