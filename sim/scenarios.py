@@ -118,7 +118,9 @@ class Scenario:
     origin_alt: float = 23.0  # ellipsoidal height, m
     start_time_ns: int = 1_700_000_000_000_000_000  # timestamp of t = 0 (2023-11-14T22:13:20Z)
     hold_s: float = 2.0  # all agents stand still this long at the start (static IMU init)
-    markers: bool = True  # issue 25: agents carry fiducial marker carriers (sim/carriers.py)
+    # issue 25: agents carry fiducial marker carriers (sim/carriers.py). Off by default: the front-end does
+    # not yet mask them, and a carrier in view is a moving object its tracking takes as static
+    markers: bool = False
     # issue 25: with a UGV, the UAVs leave its roof one after the other, the front one first, this many
     # seconds apart, the first one this long after the UGV starts (0: all with the UGV, in formation)
     takeoff_interval_s: float = 0.0
