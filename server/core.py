@@ -31,7 +31,7 @@ import contextlib
 import gc
 import logging
 import time
-from collections.abc import Awaitable, Callable, Iterable, Sequence
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -42,7 +42,6 @@ from hivemap import __version__
 from hivemap.maps import MapStack
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import Sim3
-from hivemap.maps.store import map_rows
 from hivemap.protocol import (
     Correction,
     Hello,
@@ -58,8 +57,9 @@ from hivemap.server.agents import PendingKeyframe as PendingKeyframe
 from hivemap.server.agents import Rejected as Rejected
 from hivemap.server.events import EventLog
 from hivemap.server.ingest import Ingest, _with_last_seq
+from hivemap.server.mapedits import MapEdits
 from hivemap.server.metrics import Histogram
-from hivemap.server.persist import GraphSnapshot, ServerStore
+from hivemap.server.persist import ServerStore
 from hivemap.server.quotas import Quotas
 from hivemap.server.rendezvous import RendezvousObs
 from hivemap.server.settings import ServerSettings
@@ -72,7 +72,7 @@ PointKey = tuple[str, int]
 KeyframeObserver = Callable[[int, KfKey], Awaitable[None]]
 
 
-class HiveServer(Ingest):
+class HiveServer(Ingest, MapEdits):
     """The server state shared by the WebSocket handlers, the REST routes and the back-end."""
 
     def __init__(self, settings: ServerSettings) -> None:
@@ -513,85 +513,6 @@ class HiveServer(Ingest):
             return await self.writer.call(fn)
         finally:
             self._ingest_open.set()
-
-    async def apply_merge(
-        self,
-        target_id: int,
-        source_id: int,
-        target_from_source: Sim3,
-        fused_pairs: Sequence[tuple[tuple[str, int], tuple[str, int]]] = (),
-        by: str | None = None,
-    ) -> Any:
-        """Merge map ``source_id`` into ``target_id`` (``MapStack.merge``), re-frame the moved agents'
-        incoming data (``global_from_vio``), persist the merged map and the merge record in one commit, and
-        publish a ``merge`` event (its ``by``: what the merge rests on, if not place recognition). Returns
-        the merged map."""
-        self._ingest_open.clear()
-        try:
-            source = self.stack.maps[source_id]
-            moved = [
-                am
-                for agent in self.agents.values()
-                for am in agent.maps.values()
-                if am.folded in source.agents
-            ]
-            merged = self.stack.merge(target_id, source_id, target_from_source, list(fused_pairs))
-            if by is not None:
-                merged.merge_history[-1]["by"] = by
-            for am in moved:
-                am.global_from_vio = target_from_source @ am.global_from_vio
-            rows = [am.row() for am in moved]
-            # serialised here: other back-end tasks go on changing the merged map during the write
-            snapshot = map_rows(merged)
-
-            def op(store: ServerStore) -> None:
-                store.maps.delete_map(source_id)
-                store.maps.save_map(snapshot)
-                for row in rows:
-                    store.put_agent_map(row)
-
-            await self.writer.call(op)
-        finally:
-            self._ingest_open.set()
-        data = {"source": source_id, "target": target_id, "scale": target_from_source.s}
-        how = f"{len(fused_pairs)} fused points"
-        if by is not None:
-            data["by"] = by
-            how += f", by {by}"
-        self.events.add("merge", f"map {source_id} merged into map {target_id} ({how})", map_id=target_id,
-                        data=data)  # fmt: skip
-        return merged
-
-    async def fuse_points(self, map_id: int, pairs: Iterable[tuple[PointKey, PointKey]]) -> int:
-        """Fuse duplicate map points ``(keep, drop)`` of map ``map_id`` (``Map.fuse_points``; pairs already
-        fused or gone are skipped) and persist the changed point references, the removed points and their
-        redirects in one commit before returning. Returns how many points were fused away."""
-        m = self.stack.maps.get(map_id)
-        if m is None:
-            return 0
-        touched: set[KfKey] = set()
-        dropped: list[PointKey] = []
-        for keep, drop in pairs:
-            k2, d2 = m.resolve_point(keep), m.resolve_point(drop)
-            if k2 != d2 and k2 in m.points and d2 in m.points:
-                touched.update(m.points[d2].observations)
-                m.fuse_points(k2, d2)
-                dropped.append(d2)
-        if not dropped:
-            return 0
-        refs = [
-            (k, m.keyframes[k].point_ids.copy(), dict(m.keyframes[k].point_agents))
-            for k in sorted(touched)
-            if k in m.keyframes
-        ]
-        graph = GraphSnapshot(m)
-
-        def op(store: ServerStore) -> None:
-            store.maps.put_fusion(map_id, refs, dropped)
-            store.sync_graph(graph)
-
-        await self.writer.call(op)
-        return len(dropped)
 
     # -- inspection helpers -------------------------------------------------------------------------
     def agent_maps(self, agent_id: str) -> Iterable[AgentMap]:
