@@ -7,8 +7,11 @@
 
 Prints frames/s of ``Frontend.process`` alone (images are pre-loaded / pre-rendered outside the
 timed region), peak RSS over the run, and ATE (evo, SE(3) alignment) when ground truth exists.
-``--markers``: the agent's marker detection (``hivemap.client.rendezvous``) runs in the timed region
-after each frame, on the carriers of the dataset's ``markers.yaml`` or, without one, a stand-in team
+A dataset with a ``markers.yaml`` has the other agents' carriers masked out of tracking, as the agent
+does (``--option carrier_mask=False`` to see tracking without it); the mask's detector runs inside
+``process``. ``--markers``: the agent's rendezvous stream (``hivemap.client.rendezvous``) runs in the
+timed region after each frame (reusing the mask's detections where there is one), on the carriers
+of the dataset's ``markers.yaml`` or, without one, a stand-in team
 (a board on another agent): the detector's cost is about the same whether a carrier is in view.
 """
 
@@ -104,6 +107,14 @@ def main() -> None:
     opts = FrontendOptions() if args.contrast is None else replace(FrontendOptions(), contrast=args.contrast)
     opts = replace(opts, **{k: ast.literal_eval(v) for k, v in (a.split("=", 1) for a in args.option)})
     fe = Frontend(rig, opts, imu_params=imu_params)
+    if args.dataset:
+        from pathlib import Path
+
+        from hivemap.maps.markers import LAYOUT_FILE, load_layout
+
+        layout = Path(args.dataset) / LAYOUT_FILE
+        if layout.is_file():  # as the agent does: other agents' carriers masked out of tracking
+            fe.use_carriers(load_layout(layout), name)
     rv = _rendezvous(args, rig.left, name) if args.markers else None
     busy = 0.0
     cpu = 0.0
@@ -153,6 +164,15 @@ def main() -> None:
         print(
             f"  markers: detector on {rv.frames_run} frames, {per:.1f} ms CPU each, "
             f"{rv.observations} observations"
+        )
+    cm = fe.carrier_mask
+    if cm is not None:
+        st_m = cm.stats
+        frac = 100 * float(np.mean(st_m.masked_fraction)) if st_m.masked_fraction else 0.0
+        print(
+            f"  carrier mask: detector {1e3 * st_m.detect_s / max(st_m.frames, 1):.1f} ms per frame, "
+            f"{st_m.frames_masked} frames masked (mean {frac:.1f}% of cam0), by pose {st_m.by_pose}, "
+            f"by quads {st_m.by_quads}, held {st_m.held}"
         )
     if gt is not None and refs:
         sess = fe.session

@@ -117,8 +117,9 @@ class Agent:
         """``rig``: the stereo pair (``T_BS`` of cam0/cam1 inside); ``imu_noise``: EuRoC/Kalibr IMU noise
         names (defaults when empty); ``T_BS``: body_from_sensor for ``imu0`` and ``gnss0`` (lever arm);
         ``use_imu=False``: a camera-only agent (no IMU samples expected); ``carriers``: the team's marker
-        carriers (``hivemap.maps.markers.load_layout``): the other agents' are detected in cam0 and
-        streamed as rendezvous (``RunnerOptions.markers``)."""
+        carriers (``hivemap.maps.markers.load_layout``): the other agents' are masked out of tracking
+        (``FrontendOptions.carrier_mask``) and, unless ``RunnerOptions.markers`` is off, streamed as
+        rendezvous."""
         self.agent_id, self.kind = agent_id, kind
         self.options = options or AgentOptions()
         self.rig = rig
@@ -146,8 +147,11 @@ class Agent:
         self.frames = 0
         self.rendezvous: RendezvousSource | None = None
         mk = self.options.runner.markers
-        if mk.enabled and carriers and any(a != agent_id for a in carriers):
-            self.rendezvous = RendezvousSource(rig.left, carriers, agent_id, mk)
+        if carriers and any(a != agent_id for a in carriers):
+            # the carriers move: masked out of tracking whether or not their sightings are streamed
+            self.core.frontend.use_carriers(carriers, agent_id, mk)
+            if mk.enabled:
+                self.rendezvous = RendezvousSource(rig.left, carriers, agent_id, mk)
         self._rendezvous_callbacks: list[Callable[[Rendezvous], None]] = []
 
     # -- construction ---------------------------------------------------------------------------------
@@ -173,8 +177,7 @@ class Agent:
         kwargs.setdefault("kind", ds.kind)
         kwargs.setdefault("use_imu", len(ds.imu) > 0)
         layout = Path(ds.root) / LAYOUT_FILE
-        detect = (kwargs.get("options") or AgentOptions()).runner.markers.enabled
-        if detect and "carriers" not in kwargs and layout.is_file():
+        if "carriers" not in kwargs and layout.is_file():
             kwargs["carriers"] = load_layout(layout)  # LayoutError: one line naming the file and field
         return cls(ds.rig, imu_noise=dict(ds.imu_noise), T_BS=dict(ds.T_BS), **kwargs)
 

@@ -36,8 +36,8 @@ def agent_command(
         bool,
         typer.Option(
             "--no-markers",
-            help="Do not detect the marker carriers the dataset's markers.yaml lists (no rendezvous "
-            "messages).",
+            help="Send no rendezvous messages for the marker carriers the dataset's markers.yaml lists "
+            "(they are still masked out of tracking).",
         ),
     ] = False,
     max_connect_attempts: Annotated[

@@ -73,13 +73,14 @@ class OrbExtractor:
         )
 
     def extract(
-        self, gray: NDArray[np.uint8], adapt: bool = True
+        self, gray: NDArray[np.uint8], adapt: bool = True, mask: NDArray[np.uint8] | None = None
     ) -> tuple[NDArray[np.float32], NDArray[np.uint8], NDArray[np.uint8], NDArray[np.float32]]:
-        """-> keypoints (N,2) f32 pixels, octaves (N,) u8, descriptors (N,32) u8, angles (N,) f32."""
+        """-> keypoints (N,2) f32 pixels, octaves (N,) u8, descriptors (N,32) u8, angles (N,) f32;
+        ``mask`` (0 = no keypoints there, e.g. another agent's carrier)."""
         o = self.options
         for _attempt in range(3):
             self._orb.setFastThreshold(int(self.threshold))
-            kps = self._orb.detect(gray, None)
+            kps = self._orb.detect(gray, mask)
             n_raw = len(kps)
             if not adapt:
                 break

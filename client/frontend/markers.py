@@ -209,7 +209,13 @@ class MarkerDetector:
             self._detectors[name] = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(code), params)
 
     def detect(self, gray: NDArray[np.uint8]) -> list[CarrierObservation]:
+        return self.sightings(gray)[0]
+
+    def sightings(self, gray: NDArray[np.uint8]) -> tuple[list[CarrierObservation], dict[str, list[F64]]]:
+        """(accepted carrier poses, every detected marker quad (4, 2) by carrier, refused poses included):
+        the quads let the front-end mask a carrier out of tracking even when its pose is refused."""
         out: list[CarrierObservation] = []
+        quads: dict[str, list[F64]] = {}
         for name, det in self._detectors.items():
             corners, ids, _ = det.detectMarkers(gray)
             if ids is None or len(ids) == 0:
@@ -220,11 +226,12 @@ class MarkerDetector:
             by_carrier: dict[str, list[tuple[int, F64]]] = {}
             for mid, c in zip(ids_flat.tolist(), corners, strict=True):
                 carrier = carrier_of_marker(self.carriers, name, mid)
-                if carrier is None or carrier.agent_id == self.own_agent_id or mid in twice:
+                if carrier is None or carrier.agent_id == self.own_agent_id:
                     continue
-                by_carrier.setdefault(carrier.agent_id, []).append(
-                    (mid, np.asarray(c, np.float64).reshape(4, 2))
-                )
+                quad = np.asarray(c, np.float64).reshape(4, 2)
+                quads.setdefault(carrier.agent_id, []).append(quad)
+                if mid not in twice:
+                    by_carrier.setdefault(carrier.agent_id, []).append((mid, quad))
             for aid, seen in by_carrier.items():
                 seen.sort(key=lambda s: s[0])
                 mids = [m for m, _ in seen]
@@ -236,4 +243,4 @@ class MarkerDetector:
                     continue
                 T, cov, rms = sol
                 out.append(CarrierObservation(aid, np.asarray(mids, np.int64), T, cov, rms, len(obj)))
-        return out
+        return out, quads

@@ -84,5 +84,10 @@ class FrontendOptions:
     # velocity and bias states; the bias priors (1 sigma about each run's start) only keep them bounded.
     # Off: measured worse than the visual-only BA on factory01's UGV (docs/decisions.md, issue 28)
     vi_ba: bool = False
+    # other agents' marker carriers (a dataset's markers.yaml) masked out of ORB and stereo: they move
+    # (frontend.carrier_mask); margin (px) and frames a missed carrier stays masked
+    carrier_mask: bool = True
+    carrier_mask_margin_px: int = 6
+    carrier_mask_hold_frames: int = 4
     vi_ba_gyro_bias_sigma: float = 0.05  # rad/s
     vi_ba_acc_bias_sigma: float = 0.5  # m/s^2

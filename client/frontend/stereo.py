@@ -66,10 +66,13 @@ class StereoMatcher:
         right: NDArray[np.uint8],
         uv: NDArray[np.float32],
         init_disparity: F64,
+        right_mask: NDArray[np.uint8] | None = None,
     ) -> F64:
         """Left keypoints (N,2) -> points in the left camera frame (N,3), NaN rows where no depth.
 
-        ``init_disparity`` (N,) is the initial horizontal offset guess (pixels, >= 0).
+        ``init_disparity`` (N,) is the initial horizontal offset guess (pixels, >= 0); ``right_mask``
+        (0 = not the static world, e.g. a carrier in front of the point in the right image) drops
+        matches that land there.
         """
         n = len(uv)
         out = np.full((n, 3), np.nan)
@@ -106,6 +109,9 @@ class StereoMatcher:
         r = self.rig.right
         pr = p1.reshape(-1, 2)
         ok &= (pr[:, 0] >= 0) & (pr[:, 1] >= 0) & (pr[:, 0] <= r.width - 1) & (pr[:, 1] <= r.height - 1)
+        if right_mask is not None and ok.any():
+            at = np.round(pr[ok]).astype(np.int64)
+            ok[np.flatnonzero(ok)] = right_mask[at[:, 1], at[:, 0]] != 0
         if not ok.any():
             return out
         idx = np.flatnonzero(ok)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import replace
 
 import cv2
@@ -11,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.client.frontend import imu, mapping
+from hivemap.client.frontend.carrier_mask import CarrierMask
 from hivemap.client.frontend.emit import emit_keyframe
 from hivemap.client.frontend.events import (
     Event,
@@ -25,6 +27,7 @@ from hivemap.client.frontend.features import ContrastNormaliser, OrbExtractor
 from hivemap.client.frontend.imu import _ImuState
 from hivemap.client.frontend.inertial import MotionFilter
 from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore, hamming
+from hivemap.client.frontend.markers import MarkerOptions
 from hivemap.client.frontend.optim import (
     Intrinsics,
     PosePrior,
@@ -38,6 +41,7 @@ from hivemap.client.frontend.relocalize import relocalize
 from hivemap.client.frontend.stereo import StereoMatcher
 from hivemap.maps.camera import StereoRig
 from hivemap.maps.geometry import se3, se3_inverse
+from hivemap.maps.markers import Carrier
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +104,7 @@ class Frontend:
         self._lost_since: float | None = None
         self._bridged = False  # the IMU bridged the loss that started the current session
         self._odom_var = np.zeros(2)  # [m^2, deg^2] weak or lost tracking added since the last keyframe
+        self.carrier_mask: CarrierMask | None = None  # see ``use_carriers``
 
     # ------------------------------------------------------------------ public API
     @property
@@ -247,13 +252,32 @@ class Frontend:
             return None
         return float(math.sqrt(var[0])), float(math.sqrt(var[1]))
 
+    def use_carriers(
+        self, carriers: Mapping[str, Carrier], own_agent_id: str, marker_options: MarkerOptions | None = None
+    ) -> None:
+        """Mask the other agents' marker carriers out of tracking from now on (``carrier_mask``)."""
+        if not self.options.carrier_mask or not any(a != own_agent_id for a in carriers):
+            self.carrier_mask = None
+            return
+        o = self.options
+        self.carrier_mask = CarrierMask(
+            self.rig,
+            carriers,
+            own_agent_id,
+            marker_options or MarkerOptions(),
+            o.carrier_mask_margin_px,
+            o.carrier_mask_hold_frames,
+        )
+
     # ------------------------------------------------------------------ frames
     def _make_frame(self, t: float, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> Frame:
+        # carriers are found in the raw image, as the rendezvous detector sees them
+        masks = (None, None) if self.carrier_mask is None else self.carrier_mask.update(t, left)
         left, right = self.contrast(left, right)
-        uv, octv, desc, _ang = self.orb.extract(left)
+        uv, octv, desc, _ang = self.orb.extract(left, mask=masks[0])
         kpu = self.cam.undistort_pixels(uv.astype(np.float64)) if len(uv) else np.zeros((0, 2))
         init_d = np.full(len(uv), self._median_disp)
-        pts_cam = self.stereo.match(left, right, uv, init_d)
+        pts_cam = self.stereo.match(left, right, uv, init_d, right_mask=masks[1])
         z = pts_cam[:, 2]
         has = np.isfinite(z)
         if has.sum() > 10:

@@ -1,5 +1,6 @@
 """Marker carriers on a live agent (issue 25): a carrier in view becomes rendezvous messages whose pose
-matches ground truth, anchored to a keyframe the agent already emitted; none with detection off; a bad
+matches ground truth, anchored to a keyframe the agent already emitted; none with detection off (the
+carrier still masked out of tracking); a bad
 layout stops the agent at start-up with one line; today's server keeps the link and every keyframe."""
 
 from __future__ import annotations
@@ -76,6 +77,9 @@ def test_rendezvous_match_ground_truth(flight: tuple[SyntheticSequence, list]) -
     seen, kfs = _run(flight, agent)
     agent.close()
     assert len(seen) >= 5 and agent.rendezvous is not None and agent.rendezvous.observations == len(seen)
+    # one detection per frame: the rendezvous stream reuses the carrier mask's
+    cm = agent.core.frontend.carrier_mask
+    assert cm is not None and cm.stats.frames == len(seq.times) and agent.rendezvous.cpu_s == 0.0
     emitted_before: set[int] = set()
     kf_t = {e.kf_id: e.timestamp for e in kfs}
     for r in seen:
@@ -99,6 +103,9 @@ def test_no_rendezvous_with_detection_off(flight: tuple[SyntheticSequence, list]
     seen, _ = _run(flight, agent)
     agent.close()
     assert seen == [] and agent.rendezvous is None
+    # the carrier still moves through the images: masked out of tracking all the same
+    cm = agent.core.frontend.carrier_mask
+    assert cm is not None and cm.stats.frames_masked >= 10
 
 
 def test_streamed_rendezvous_keep_the_link_and_every_keyframe(
