@@ -7,7 +7,7 @@ viewing angles and image positions, runs the front-end's ``MarkerDetector`` and 
 position error (% of the distance) and median rotation error (deg). Acceptance: median position
 <= 2 % of the distance, rotation <= 1 deg.
 
-Run: .venv/bin/python bench/markers.py [--distances 1,2,4,6,8,10,12,15] [--backend gl]
+Run: .venv/bin/python bench/markers.py [--distances 1,2,4,6,8,10,12,15] [--backend gl] [--option k=v]
 """
 
 from __future__ import annotations
@@ -50,8 +50,11 @@ def main() -> None:
     ap.add_argument("--distances", default="1,2,4,6,8,10,12,15")
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--seed", type=int, default=1, help="world (only the far-field ground is in view)")
+    ap.add_argument("--option", action="append", default=[], help="MarkerOptions field=value (repeat)")
     args = ap.parse_args()
-    from hivemap.client.frontend.markers import MarkerDetector
+    import ast
+
+    from hivemap.client.frontend.markers import MarkerDetector, MarkerOptions
 
     sc = get_scenario("factory01")
     world = cached_world(args.seed, sc.world_size_m)
@@ -59,7 +62,8 @@ def main() -> None:
     scene = CarrierScene(team_geometry(sc), len(world.layers), world.layers.shape[1], DICTIONARY)
     ext = {a.agent_id: stereo_extrinsics(a)[0] for a in sc.agents}
     carriers = team_carriers(sc, ext)
-    detector = MarkerDetector(cam, carriers, OBSERVER)
+    changes = {k: ast.literal_eval(v) for k, v in (a.split("=", 1) for a in args.option)}
+    detector = MarkerDetector(cam, carriers, OBSERVER, MarkerOptions.from_table(changes))
     renderer = make_renderer(world, cam, args.backend, extra_layers=scene.layers)
     origin = np.array([world.size_m + 60.0, 0.0, 0.0])  # open ground: no building occludes the carrier
     half_fov = np.array([cam.width / 2 / cam.fx, cam.height / 2 / cam.fy])

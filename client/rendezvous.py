@@ -31,7 +31,8 @@ F64 = NDArray[np.float64]
 
 
 class RendezvousSource:
-    """Runs the detector on every ``options.every_k_frames``-th frame; counts what it saw."""
+    """Runs the detector on every ``options.every_k_frames``-th frame, or takes the detections of the
+    front-end's carrier mask (one detector per frame); counts what it saw."""
 
     def __init__(
         self,
@@ -52,14 +53,21 @@ class RendezvousSource:
         from hivemap.client.frontend.events import TrackingState
 
         self.frames_seen += 1
-        if res.state != TrackingState.OK or (self.frames_seen - 1) % max(self.options.every_k_frames, 1):
+        mask = getattr(frontend, "carrier_mask", None)
+        if mask is not None and mask.frame_t == float(t):
+            # the front-end's carrier mask ran the detector on this frame: its whole-image searches
+            # (every ``carrier_mask_full_every``-th frame) set the rate instead of ``every_k_frames``
+            due = bool(mask.full_frame)
+        else:
+            mask = None
+            due = (self.frames_seen - 1) % max(self.options.every_k_frames, 1) == 0
+        if res.state != TrackingState.OK or not due:
             return []
         ref = _reference(frontend, res)
         if ref is None:
             return []
-        mask = getattr(frontend, "carrier_mask", None)
-        if mask is not None and mask.frame_t == float(t):
-            seen = mask.observations  # the front-end's carrier mask ran the detector on this frame
+        if mask is not None:
+            seen = mask.observations
         else:
             c0 = time.process_time()
             seen = self.detector.detect(gray)

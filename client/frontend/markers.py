@@ -50,6 +50,12 @@ class MarkerOptions:
     # rendered or printed marker; the solve's own residual is used when larger
     pixel_sigma_px: float = 0.5
     corner_refine_win: int = 5  # cv2 sub-pixel refinement window (half size, px)
+    # adaptive-threshold windows (px) cv2.aruco tries, min to max by step: 5 and 15 found as many markers
+    # as cv2's 3, 13 and 23 in half the time (one pass less; docs/decisions.md, issue 25), which counts
+    # now that the carrier mask runs the detector on every frame
+    adaptive_thresh_win_min: int = 5
+    adaptive_thresh_win_max: int = 15
+    adaptive_thresh_win_step: int = 10
     max_reproj_rms_px: float = 2.0  # a larger residual: the corners do not fit the carrier's geometry
     max_rot_sigma_deg: float = 5.0  # covariance plausibility: 1-sigma rotation bound
     max_pos_sigma_rel: float = 0.1  # 1-sigma position bound as a fraction of the distance
@@ -201,6 +207,9 @@ class MarkerDetector:
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         params.cornerRefinementWinSize = options.corner_refine_win
+        params.adaptiveThreshWinSizeMin = options.adaptive_thresh_win_min
+        params.adaptiveThreshWinSizeMax = options.adaptive_thresh_win_max
+        params.adaptiveThreshWinSizeStep = options.adaptive_thresh_win_step
         self._detectors: dict[str, cv2.aruco.ArucoDetector] = {}
         for name in sorted({c.dictionary for c in carriers.values() if c.agent_id != own_agent_id}):
             code = getattr(cv2.aruco, name, None)
@@ -211,9 +220,12 @@ class MarkerDetector:
     def detect(self, gray: NDArray[np.uint8]) -> list[CarrierObservation]:
         return self.sightings(gray)[0]
 
-    def sightings(self, gray: NDArray[np.uint8]) -> tuple[list[CarrierObservation], dict[str, list[F64]]]:
+    def sightings(
+        self, gray: NDArray[np.uint8], offset: tuple[int, int] = (0, 0)
+    ) -> tuple[list[CarrierObservation], dict[str, list[F64]]]:
         """(accepted carrier poses, every detected marker quad (4, 2) by carrier, refused poses included):
-        the quads let the front-end mask a carrier out of tracking even when its pose is refused."""
+        the quads let the front-end mask a carrier out of tracking even when its pose is refused.
+        ``gray`` may be a crop of the image whose top-left pixel is at ``offset`` (x, y) in it."""
         out: list[CarrierObservation] = []
         quads: dict[str, list[F64]] = {}
         for name, det in self._detectors.items():
@@ -228,7 +240,7 @@ class MarkerDetector:
                 carrier = carrier_of_marker(self.carriers, name, mid)
                 if carrier is None or carrier.agent_id == self.own_agent_id:
                     continue
-                quad = np.asarray(c, np.float64).reshape(4, 2)
+                quad = np.asarray(c, np.float64).reshape(4, 2) + offset
                 quads.setdefault(carrier.agent_id, []).append(quad)
                 if mid not in twice:
                     by_carrier.setdefault(carrier.agent_id, []).append((mid, quad))

@@ -89,5 +89,6 @@ class FrontendOptions:
     carrier_mask: bool = True
     carrier_mask_margin_px: int = 6
     carrier_mask_hold_frames: int = 4
+    carrier_mask_full_every: int = 2  # frames between whole-image carrier searches (around masks between)
     vi_ba_gyro_bias_sigma: float = 0.05  # rad/s
     vi_ba_acc_bias_sigma: float = 0.5  # m/s^2

@@ -267,6 +267,7 @@ class Frontend:
             marker_options or MarkerOptions(),
             o.carrier_mask_margin_px,
             o.carrier_mask_hold_frames,
+            o.carrier_mask_full_every,
         )
 
     # ------------------------------------------------------------------ frames

@@ -1,7 +1,7 @@
 """Other agents' carriers masked out of tracking (issues 25/28): no ORB feature and no stereo match on a
 carrier whose true outline is known, from its pose or, when the pose is refused, from its marker quads;
-a carrier the detector misses keeps its mask for ``hold_frames`` frames; a live agent masks carriers
-with the rendezvous stream off."""
+a carrier the detector misses keeps its mask for ``hold_frames`` frames; between whole-image searches
+the masked carriers are followed."""
 
 from __future__ import annotations
 
@@ -104,6 +104,21 @@ def test_missed_carrier_stays_masked_for_hold_frames(view: tuple) -> None:
     held = [cm.update(0.05 * (i + 1), blank)[0] is not None for i in range(4)]
     assert held == [True, True, True, False]
     assert cm.stats.held == 3
+
+
+def test_between_whole_image_searches_only_masked_carriers_are_followed(view: tuple) -> None:
+    left = view[0]
+    blank = np.full_like(left, 128)
+    cm = CarrierMask(RIG, CARRIERS, "uav1", full_every=2)
+    assert cm.update(0.0, left)[0] is not None and cm.full_frame
+    # frame 1: searched around the mask only, the carrier found there again with its pose
+    assert cm.update(0.05, left)[0] is not None and not cm.full_frame
+    assert [o.agent_id for o in cm.observations] == ["uav2"] and cm.stats.by_pose == 2
+    cm = CarrierMask(RIG, CARRIERS, "uav1", full_every=2)
+    assert cm.update(0.0, blank) == (None, None)
+    # a carrier appearing between two whole-image searches is masked from the next one on
+    assert cm.update(0.05, left) == (None, None) and cm.observations == []
+    assert cm.update(0.10, left)[0] is not None and cm.full_frame
 
 
 def test_own_carrier_is_not_masked(view: tuple) -> None:
