@@ -266,6 +266,8 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
             "queued": len(be.queue),
             "idle": be.idle(),
             "verifications": be.verifications,
+            # a back-end from before two-phase verification verified every candidate fully
+            "full_verifications": getattr(be, "full_verifications", be.verifications),
             "correction_latencies": be.correction_latencies,
             "visual_merges": sum(1 for m in be.merges if m.get("by") != "start_pose"),
             "loops": len(be.loops),
@@ -282,17 +284,21 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
         import cProfile
 
         prof = cProfile.Profile(time.thread_time)
-        prepare = detect.prepare
 
-        def profiled(*args: Any, **kwargs: Any) -> Any:
-            assert prof is not None
-            prof.enable()
-            try:
-                return prepare(*args, **kwargs)
-            finally:
-                prof.disable()
+        def profiled(fn: Any) -> Any:
+            def run(*args: Any, **kwargs: Any) -> Any:
+                assert prof is not None
+                prof.enable()
+                try:
+                    return fn(*args, **kwargs)
+                finally:
+                    prof.disable()
 
-        detect.prepare = profiled  # type: ignore[assignment]
+            return run
+
+        detect.prepare = profiled(detect.prepare)  # type: ignore[assignment]
+        if hasattr(detect, "second_phase"):  # two-phase verification: its phase-2 jobs too
+            detect.second_phase = profiled(detect.second_phase)  # type: ignore[assignment]
 
     # the cost of shipping a job to a worker: pickling every 10th job once more (CPU ms, bytes)
     import pickle
@@ -468,7 +474,9 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
         "query_cpu_ms_mean": float(np.mean(fig["query_cpu_ms"])) if fig["query_cpu_ms"] else float("nan"),
         "query_cpu_ms_p95": _pct(fig["query_cpu_ms"], 95),
         "verify_cpu_ms_per_query": fig["verify_cpu_ms"] / max(1, fig["queries"]),
-        "verifications": fig["verifications"], "merges": fig["visual_merges"], "loops": fig["loops"],
+        "verifications": fig["verifications"],
+        "full_verifications": fig.get("full_verifications", fig["verifications"]),
+        "merges": fig["visual_merges"], "loops": fig["loops"],
         "maps": fig["maps"], "cpu_pct": 100 * cpu / max(t_end - t0, 1e-9), "rss_mb": rss,
         "wall_s": t_end - t0, "send_late_p95": _pct([x for s in stats for x in s.late_s], 95),
         "errors": sorted({e for s in stats for e in s.errors})[:5],
@@ -485,7 +493,8 @@ def summary(r: dict[str, Any]) -> str:
         f"{r['dropped']} dropped, {r['skipped']} skipped in a backlog)",
         f"query lag p50 {r['lag_p50']:.2f} s p95 {r['lag_p95']:.2f} s max {r['lag_max']:.2f} s",
         f"query {r['query_ms_mean']:.0f} ms mean (CPU {r['query_cpu_ms_mean']:.0f} ms mean, "
-        f"p95 {r['query_cpu_ms_p95']:.0f} ms), {r['verifications']} verifications "
+        f"p95 {r['query_cpu_ms_p95']:.0f} ms), {r['verifications']} verifications, "
+        f"{r['full_verifications']} of them full (phase 2) "
         f"(CPU {r['verify_cpu_ms_per_query']:.0f} ms per query), job {r['job_kb_mean']:.0f} kB mean "
         f"(pickled {r['pickle_kb_mean']:.0f} kB in {r['pickle_ms_mean']:.1f} ms CPU)",
         f"corrections {r['n_corr']} p50 {r['corr_p50'] * 1e3:.0f} ms p95 {r['corr_p95'] * 1e3:.0f} ms",

@@ -1,7 +1,8 @@
 """Detection: the place recogniser's set-up, indexing keyframes, a query keyframe's BoW look-up and
-its verification job (:class:`~hivemap.server.placerec.PlaceRecognizer`; the job runs where the
-scheduler's verifier runs it) and publishing what it found on ``/events``. Runs in the
-place-recognition thread, which alone touches the recogniser and its keyframe database.
+its verification jobs (:class:`~hivemap.server.placerec.PlaceRecognizer`; phase 1 for every candidate,
+phase 2 for its survivors; the jobs run where the scheduler's verifier runs them) and publishing what
+it found on ``/events``. Runs in the place-recognition thread, which alone touches the recogniser and
+its keyframe database.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Any
 
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.convert import split_folded
-from hivemap.server.placerec import PlaceRecognizer, RecognitionResult
+from hivemap.server.placerec import CandidateReport, PlaceRecognizer, RecognitionResult
 from hivemap.server.placerec.job import QueryJob
 
 logger = logging.getLogger(__name__)
@@ -74,6 +75,20 @@ def prepare(
         except RuntimeError as exc:  # "dictionary changed size during iteration"
             logger.debug("detect %s retried: %s", key, exc)
     return None
+
+
+def second_phase(
+    recognizer: PlaceRecognizer, stack: Any, job: QueryJob, reports: list[CandidateReport]
+) -> tuple[QueryJob | None, float]:
+    """The full verification job of a two-phase query's survivors (:meth:`PlaceRecognizer.second_phase`),
+    with the CPU ms it took; None when there is nothing to verify (or the maps kept changing under it)."""
+    for _ in range(DETECT_RETRIES):
+        c0 = time.thread_time()
+        try:
+            return recognizer.second_phase(stack.maps, job, reports), (time.thread_time() - c0) * 1e3
+        except RuntimeError as exc:  # "dictionary changed size during iteration"
+            logger.debug("phase 2 of %s retried: %s", job.query_key, exc)
+    return None, 0.0
 
 
 def publish(events: Any, res: RecognitionResult) -> None:

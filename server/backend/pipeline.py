@@ -98,7 +98,8 @@ class Pipeline:
         self.query_cpu_ms: list[float] = []  # per query: look-up and job (this process) + verification
         self.verify_cpu_ms = 0.0  # all verifications (in whichever process ran them)
         self.job_bytes: list[int] = []  # per query: the arrays its verification job carries
-        self.verifications = 0
+        self.verifications = 0  # candidates verified (with two phases: that went through phase 1)
+        self.full_verifications = 0  # candidates that got the full verification (two phases: phase 2's)
         self.merges: list[dict[str, Any]] = []
         self.loops: list[dict[str, Any]] = []
         self.correction_bytes: dict[str, int] = {}

@@ -45,6 +45,7 @@ from hivemap.server.backend.optimise import NewEdge
 from hivemap.server.backend.pipeline import Pipeline
 from hivemap.server.convert import split_folded
 from hivemap.server.placerec import Detection
+from hivemap.server.placerec.phases import combine_phases
 
 logger = logging.getLogger(__name__)
 
@@ -272,6 +273,15 @@ class Backend(Pipeline):
                 self._pr_exec, detect.prepare, recognizer, stack, key, self.options.fix_scale
             )
             reports = await self.verifier.run(prep[1]) if prep is not None and prep[1].candidates else []
+            more_cpu_ms, more_bytes = 0.0, 0
+            if prep is not None and prep[1].phase == 1:
+                # phase 2: the full verification of phase 1's survivors, on slices taken now
+                second, more_cpu_ms = await loop.run_in_executor(
+                    self._pr_exec, detect.second_phase, recognizer, stack, prep[1], reports
+                )
+                full = await self.verifier.run(second) if second is not None else None
+                more_bytes = second.nbytes if second is not None else 0
+                reports = combine_phases(prep[1], reports, full)
             if prev is not None:
                 await asyncio.shield(prev)
             if prep is None:
@@ -282,11 +292,13 @@ class Backend(Pipeline):
             self.queries += 1
             self.query_ms.append(res.time_ms)
             verify_ms = sum(r.cpu_ms for r in reports)
-            self.query_cpu_ms.append(prep[2] + verify_ms)
+            self.query_cpu_ms.append(prep[2] + more_cpu_ms + verify_ms)
             self.verify_cpu_ms += verify_ms
-            self.job_bytes.append(prep[1].nbytes)
-            n_verified = sum(1 for c in res.candidates if c.reason != "covered_by_accepted_window")
-            self.verifications += n_verified
+            self.job_bytes.append(prep[1].nbytes + more_bytes)
+            verified = [c for c in res.candidates if c.reason != "covered_by_accepted_window"]
+            self.verifications += len(verified)
+            # candidates that got the full verification: all of them with one phase, phase 2's with two
+            self.full_verifications += sum(1 for c in verified if c.phase != 1)
             detect.publish(self.server.events, res)
             det, prior = self._accept(res.detection) if res.detection is not None else (None, None)
             if det is not None:

@@ -67,6 +67,7 @@ class MapSlice:
     obs_point: NDArray[np.int32]
     obs_kf: NDArray[np.int32]
     obs_kp: NDArray[np.int32]
+    light: bool = False  # positions only: no descriptors (``desc`` empty) and no observations
 
     @property
     def nbytes(self) -> int:
@@ -97,6 +98,9 @@ class QueryJob:
     features: dict[KfKey, FeatureVector]
     best_covisible: dict[KfKey, list[KfKey]] = field(default_factory=dict)
     skip_covered: bool = True  # candidates inside an accepted candidate's window are not verified
+    # 0: the full verification of every candidate; 1: phase 1 of a two-phase verification (light slices,
+    # BoW matching and RANSAC only); 2: the full verification of phase 1's survivors (:mod:`.phases`)
+    phase: int = 0
 
     @property
     def nbytes(self) -> int:
@@ -122,9 +126,13 @@ def _copy_keyframe(kf: Keyframe) -> Keyframe:
     return c
 
 
-def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = None) -> MapSlice:
+def slice_of(
+    m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = None, light: bool = False
+) -> MapSlice:
     """The slice of map ``m`` (``map_id`` in the stack) holding keyframes ``keys`` (those still in it) and
-    their points (``has``: which keypoints reference a point of the map, kept across queries)."""
+    their points (``has``: which keypoints reference a point of the map, kept across queries). ``light``:
+    the points' positions only, without descriptors and observations (what phase 1 of a two-phase
+    verification reads, :mod:`.phases`)."""
     has = has if has is not None else HasCache()
     kfs = [_copy_keyframe(m.keyframes[k]) for k in dict.fromkeys(keys) if k in m.keyframes]
     per_kf = [has.refs(m, kf) for kf in kfs]
@@ -150,6 +158,10 @@ def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = 
     agent_idx = np.array(list(map({a: i for i, a in enumerate(agents)}.__getitem__, agent_col)), np.int32)
     ids = np.array(id_col, dtype=np.int64)
     xyz = np.array(list(map(_XYZ, pts)), dtype=np.float64).reshape(-1, 3)
+    if light:
+        no = np.zeros(0, np.int32)
+        return MapSlice(map_id, kfs, agents, agent_idx, ids, xyz, np.zeros((0, 32), np.uint8), no, no, no,
+                        light=True)  # fmt: skip
     desc = np.array(list(map(_DESC, pts)), dtype=np.uint8).reshape(-1, 32)
     # the observations in the slice's keyframes, from the keyframes' side (a point's full observation list
     # is ~8x larger), ordered per point as the map adds them: by its keyframes' order of arrival
@@ -172,7 +184,7 @@ def slice_of(m: Any, map_id: int, keys: Iterable[KfKey], has: HasCache | None = 
 class _Point:
     __slots__ = ("xyz", "descriptor", "observations")
 
-    def __init__(self, xyz: F64, descriptor: NDArray[np.uint8]) -> None:
+    def __init__(self, xyz: F64, descriptor: NDArray[np.uint8] | None) -> None:
         self.xyz = xyz
         self.descriptor = descriptor
         self.observations: dict[KfKey, int] = {}
@@ -185,7 +197,7 @@ class SliceMap:
         self.id = s.map_id
         self.keyframes: dict[KfKey, Keyframe] = {kf.key: kf for kf in s.keyframes}
         keys = [(s.agents[a], p) for a, p in zip(s.agent_idx.tolist(), s.ids.tolist(), strict=True)]
-        pts = [_Point(s.xyz[i], s.desc[i]) for i in range(len(keys))]
+        pts = [_Point(s.xyz[i], None if s.light else s.desc[i]) for i in range(len(keys))]
         kf_keys = [kf.key for kf in s.keyframes]
         for i, j, kp in zip(s.obs_point.tolist(), s.obs_kf.tolist(), s.obs_kp.tolist(), strict=True):
             pts[i].observations[kf_keys[j]] = kp

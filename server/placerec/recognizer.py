@@ -19,6 +19,7 @@ from hivemap.maps.odometry import correction_slack
 from hivemap.maps.vocabulary import BowVector, FeatureVector, Vocabulary
 from hivemap.server.placerec.job import Candidate, QueryJob, slice_of
 from hivemap.server.placerec.match import _best_covisible
+from hivemap.server.placerec.phases import combine_phases, survivors
 from hivemap.server.placerec.retrieve import group_candidates
 from hivemap.server.placerec.types import (
     CandidateReport,
@@ -130,10 +131,15 @@ class PlaceRecognizer:
         retrieves and verifies does not grow with the number of agents (:mod:`.retrieve`).
 
         ``fix_scale``: True for metric agents (SE(3)), or a function (query map, candidate map) -> bool.
-        The three steps (:meth:`prepare`, :func:`~.verify.run_job`, :meth:`conclude`) in this thread.
+        The steps (:meth:`prepare`, :func:`~.verify.run_job`, with two phases :meth:`second_phase` and
+        :func:`~.phases.combine_phases`, then :meth:`conclude`) in this thread.
         """
         result, job = self.prepare(maps, query_map, query_key, fix_scale, merge, loop)
-        return self.conclude(result, run_job(job))
+        reports = run_job(job)
+        if job.phase == 1:
+            second = self.second_phase(maps, job, reports)
+            reports = combine_phases(job, reports, run_job(second) if second is not None else None)
+        return self.conclude(result, reports)
 
     def prepare(
         self,
@@ -145,7 +151,8 @@ class PlaceRecognizer:
         loop: bool = True,
     ) -> tuple[RecognitionResult, QueryJob]:
         """Retrieve the query's candidates and take what verifying them reads of the maps (:mod:`.job`);
-        the job may run in another process while the maps change."""
+        the job may run in another process while the maps change. With ``two_phase``, the job is phase 1
+        (:mod:`.phases`): its reports go to :meth:`second_phase`."""
         t0 = time.perf_counter()
         o = self.options
         mq = maps[query_map]
@@ -182,7 +189,7 @@ class PlaceRecognizer:
             cmap = self.kfdb.map_of(ck)
             fs = fix_scale(query_map, cmap) if callable(fix_scale) else bool(fix_scale)
             cands.append((ck, cmap, kind, score, fs))
-        job = self._job(maps, query_map, query_key, cands, o.thresholds)
+        job = self._job(maps, query_map, query_key, cands, o.thresholds, phase=1 if o.two_phase else 0)
         result.reason = result.reason or ("" if todo else "no_bow_candidates")
         result.time_ms = (time.perf_counter() - t0) * 1e3
         return result, job
@@ -194,8 +201,10 @@ class PlaceRecognizer:
         query_key: KfKey,
         cands: list[tuple[KfKey, int, str, float, bool]],
         th: Thresholds,
+        phase: int = 0,
     ) -> QueryJob:
-        """The job verifying ``cands`` (key, map, kind, BoW score, fixed scale) for the query."""
+        """The job verifying ``cands`` (key, map, kind, BoW score, fixed scale) for the query (``phase``:
+        :attr:`QueryJob.phase`; phase 1 takes light slices)."""
         o = self.options
         by_map: dict[int, list[KfKey]] = {query_map: [query_key]}
         best: dict[KfKey, list[KfKey]] = {}
@@ -215,9 +224,25 @@ class PlaceRecognizer:
             else:
                 slack = (math.inf, math.inf) if loose else correction_slack(maps[query_map], query_key, ck)
             out.append(Candidate(ck, cmap, kind, score, fs, window, correction_slack=slack))
-        slices = [slice_of(maps[mid], mid, keys, self._has) for mid, keys in by_map.items() if mid in maps]
+        light = phase == 1
+        slices = [slice_of(maps[mid], mid, ks, self._has, light) for mid, ks in by_map.items() if mid in maps]
         features = {kf.key: self._fv(kf)[1] for s in slices for kf in s.keyframes}
-        return QueryJob(o, th, query_key, query_map, out, slices, features, best)
+        return QueryJob(o, th, query_key, query_map, out, slices, features, best, phase=phase)
+
+    def second_phase(
+        self, maps: Mapping[int, Any], job: QueryJob, reports: list[CandidateReport]
+    ) -> QueryJob | None:
+        """Phase 2 of a two-phase query: the full verification job of the candidates that passed phase 1
+        (``reports``, :func:`~.verify.run_job` of ``job``), with slices taken now. None: no survivor, or
+        the query's map or keyframe is gone (merged meanwhile)."""
+        keep = survivors(job, reports)
+        mq = maps.get(job.query_map)
+        if not keep or mq is None or job.query_key not in mq.keyframes:
+            return None
+        cands = [(c.key, c.map_id, c.kind, c.bow_score, c.fix_scale) for c in keep]
+        second = self._job(maps, job.query_map, job.query_key, cands, job.thresholds, phase=2)
+        second.skip_covered = job.skip_covered
+        return second
 
     def conclude(self, result: RecognitionResult, reports: list[CandidateReport]) -> RecognitionResult:
         """The query's outcome from its candidates' reports: the best accepted candidate, after the

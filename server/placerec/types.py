@@ -84,6 +84,13 @@ class PlaceRecOptions:
     # from ``AcceptOptions.loop_max_correction_*`` for metric agents (docs/decisions.md).
     loop_max_correction_m: float = 0.0
     loop_max_correction_deg: float = 0.0
+    # Two phases (:mod:`.phases`): every candidate's BoW matches and RANSAC first, on slices of the maps
+    # without descriptors or observations; the full verification only for candidates that reached the
+    # inlier threshold (most never do, and their slices were most of a look-up's cost).
+    two_phase: bool = True
+    # Metric maps: a candidate whose 3D-3D matches hold no ``min_inliers`` keeping their mutual distances
+    # (what a rigid transform's inliers must do) is refused before RANSAC (``phases.rigid_consensus_bound``).
+    consensus_pretest: bool = True
 
 
 @dataclass
@@ -104,6 +111,7 @@ class CandidateReport:
     reason: str = ""
     time_ms: float = 0.0
     cpu_ms: float = 0.0  # CPU time of the verification (thread time, in whichever process ran it)
+    phase: int = 0  # two-phase verification: 1 refused in phase 1, 2 fully verified; 0 one phase
     target_from_source: Sim3 | None = field(default=None, repr=False)
     query_points: list[PointKey] = field(default_factory=list, repr=False)
     candidate_points: list[PointKey] = field(default_factory=list, repr=False)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,6 +32,7 @@ from hivemap.server.placerec.match import (
     match_bow,
     refine_sim3,
 )
+from hivemap.server.placerec.phases import rigid_consensus_bound
 from hivemap.server.placerec.types import CandidateReport, PlaceRecOptions, Thresholds
 from hivemap.server.placerec.views import KeyframeViews
 
@@ -43,13 +45,15 @@ F64 = NDArray[np.float64]
 
 def run_job(job: QueryJob) -> list[CandidateReport]:
     """Verify the job's candidates in order; a candidate inside the window of one accepted before it is
-    reported as covered, not verified."""
+    reported as covered, not verified. A phase-1 job (:mod:`.phases`) screens every candidate instead."""
     maps = maps_of(job)
     views = KeyframeViews()
 
     def fv_of(kf: Any) -> FeatureVector:
         return job.features[kf.key]
 
+    if job.phase == 1:
+        return [_screen(job, c, fv_of, maps, views) for c in job.candidates]
     covered: set[KfKey] = set()
     out: list[CandidateReport] = []
     for c in job.candidates:
@@ -62,11 +66,33 @@ def run_job(job: QueryJob) -> list[CandidateReport]:
                      c.fix_scale, job.thresholds, c.kind, views,
                      c.correction_slack)  # fmt: skip
         rep.bow_score = c.bow_score
+        rep.phase = job.phase
         out.append(rep)
         if rep.accepted:
             covered.add(c.key)
             covered.update(c.window)
     return out
+
+
+def _screen(job: QueryJob, c: Any, fv_of: Callable[[Any], FeatureVector], maps: Mapping[int, Any],
+            views: KeyframeViews) -> CandidateReport:  # fmt: skip
+    """Phase 1 of one candidate: the verification's first stage (BoW matches against the window, RANSAC
+    on their 3-D points, the inlier threshold). ``reason`` is ``"phase1_passed"`` for a survivor."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    rep = CandidateReport(job.query_key, c.key, c.map_id, c.kind, bow_score=c.bow_score, phase=1)
+    try:
+        if _first_stage(job.options, fv_of, maps, job.query_map, job.query_key, c.map_id, c.key,
+                        c.fix_scale, job.thresholds, rep, views) is not None:  # fmt: skip
+            rep.reason = "phase1_passed"
+    except KeyError as e:
+        log.debug("phase 1 of %s against %s: %r fused meanwhile", job.query_key, c.key, e)
+        rep.reason = "points_fused_meanwhile"
+    except Exception as e:  # a bad candidate must never break ingest; it is logged and reported
+        log.exception("phase 1 of %s against %s failed", job.query_key, c.key)
+        rep.reason = f"error:{type(e).__name__}"
+    rep.time_ms = (time.perf_counter() - t0) * 1e3
+    rep.cpu_ms = (time.thread_time() - c0) * 1e3
+    return rep
 
 
 def verify(
@@ -104,7 +130,29 @@ def verify(
     return rep
 
 
-def _verify_inner(
+@dataclass
+class _Stage1:
+    """What the first stage found: the maps, keyframes, the window, the 3D-3D correspondences and the
+    RANSAC estimate (``inl``: its inliers among them)."""
+
+    mq: Any
+    mc: Any
+    q: Any
+    c: Any
+    q_pk: list[PointKey | None]
+    q_has: NDArray[np.bool_]
+    window: list[KfKey]
+    corr_q: list[int]
+    corr_c: list[PointKey]
+    xq: F64
+    xc: F64
+    c_cfw: F64
+    max_err: float
+    sim: Sim3
+    inl: NDArray[np.bool_]
+
+
+def _first_stage(
     o: PlaceRecOptions,
     fv_of: Callable[[Any], FeatureVector],
     maps: Mapping[int, Any],
@@ -116,25 +164,26 @@ def _verify_inner(
     th: Thresholds,
     rep: CandidateReport,
     views: KeyframeViews,
-    correction_slack: tuple[float, float] = (0.0, 0.0),
-) -> None:
+) -> _Stage1 | None:
+    """BoW matches against the candidate window -> 3D-3D correspondences -> RANSAC; None (and
+    ``rep.reason`` set) when the candidate cannot reach the thresholds. Reads the points' positions only."""
     mq, mc = maps.get(query_map), maps.get(cand_map)
     if mq is None or mc is None:
         # merged into another map since the query started (the event loop merges while this thread
         # verifies): this candidate is skipped, the agents' next keyframes query the merged map
         rep.reason = "map_merged_meanwhile"
-        return
+        return None
     q = mq.keyframes[query_key]
     c = mc.keyframes.get(cand_key)
     if c is None:
         rep.reason = "candidate_missing"
-        return
+        return None
     q_fv = fv_of(q)
     q_pk = views.point_keys(q)
     q_has = views.has(mq, q)
     if int(q_has.sum()) < th.min_matches:  # not enough query points for a verification to pass
         rep.reason = "few_bow_matches"
-        return
+        return None
 
     # 1. BoW matches against the candidate window -> 3D-3D correspondences
     window = [cand_key] + [k for k in _best_covisible(mc, cand_key, o.covisible_window) if k != cand_key]
@@ -163,7 +212,7 @@ def _verify_inner(
     rep.n_matches = len(corr_q)
     if rep.n_matches < th.min_matches:
         rep.reason = "few_bow_matches"
-        return
+        return None
     xq = np.array([mq.points[q_pk[i]].xyz for i in corr_q], dtype=np.float64)
     xc = np.array([mc.points[k].xyz for k in corr_c], dtype=np.float64)
 
@@ -171,15 +220,44 @@ def _verify_inner(
     c_cfw = se3_inverse(np.asarray(c.world_from_cam, dtype=np.float64))
     depth_c = np.median(np.linalg.norm(xc @ c_cfw[:3, :3].T + c_cfw[:3, 3], axis=1))
     max_err = max(o.ransac_min_error, o.ransac_rel_error * float(depth_c))
+    pretest = o.consensus_pretest and fix_scale
+    if pretest and rigid_consensus_bound(xq, xc, max_err, th.min_inliers) < th.min_inliers:
+        # no rigid transform can have enough inliers (they would keep their distances): RANSAC would
+        # run to its trial limit for nothing
+        rep.reason = "few_consistent_matches"
+        return None
     est = estimate_sim3_ransac(xq, xc, max_err, fix_scale, o.ransac_min_trials)
     if est is None:
         rep.reason = "ransac_failed"
-        return
+        return None
     sim, inl = est
     rep.n_ransac_inliers = int(inl.sum())
     if rep.n_ransac_inliers < th.min_inliers:
         rep.reason = "few_ransac_inliers"
+        return None
+    return _Stage1(mq, mc, q, c, q_pk, q_has, window, corr_q, corr_c, xq, xc, c_cfw, max_err, sim, inl)
+
+
+def _verify_inner(
+    o: PlaceRecOptions,
+    fv_of: Callable[[Any], FeatureVector],
+    maps: Mapping[int, Any],
+    query_map: int,
+    query_key: KfKey,
+    cand_map: int,
+    cand_key: KfKey,
+    fix_scale: bool,
+    th: Thresholds,
+    rep: CandidateReport,
+    views: KeyframeViews,
+    correction_slack: tuple[float, float] = (0.0, 0.0),
+) -> None:
+    st = _first_stage(o, fv_of, maps, query_map, query_key, cand_map, cand_key, fix_scale, th, rep, views)
+    if st is None:
         return
+    mq, mc, q, c, q_pk, q_has, window = st.mq, st.mc, st.q, st.c, st.q_pk, st.q_has, st.window
+    xq, xc, c_cfw, max_err, sim, inl = st.xq, st.xc, st.c_cfw, st.max_err, st.sim, st.inl
+    corr_q, corr_c = st.corr_q, st.corr_c
     if fix_scale and o.metric_max_log_scale > 0:
         # metric agents: the free-scale estimate must agree with scale 1 (sanity gate); run only for
         # a candidate the rigid estimate accepted, as it rejects nothing else

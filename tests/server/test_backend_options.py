@@ -102,8 +102,10 @@ def test_default_preset_equals_the_defaults_before_the_split() -> None:
         holder = o if stage is None else getattr(o, stage)
         assert getattr(holder, name) == TODAY[old], old
     # options added since the split (issue 23: candidates verified once per covisibility group, what a
-    # look-up retrieves independent of the team; its verification budget and 4 x agents are gone)
-    added = {"group_covisible": 10, "group_min_ratio": 0.75, "retrieve_max": 16, "max_groups": 3}
+    # look-up retrieves independent of the team; its verification budget and 4 x agents are gone; two-phase
+    # verification and the rigid-consensus pre-test)
+    added = {"group_covisible": 10, "group_min_ratio": 0.75, "retrieve_max": 16, "max_groups": 3,
+             "two_phase": True, "consensus_pretest": True}  # fmt: skip
     plain = _plain(o.placerec)
     assert {k: plain.pop(k) for k in added} == added
     assert plain == TODAY["placerec"]

@@ -9,6 +9,7 @@ from test_placerec import _recognizer, scene  # noqa: F401  (the synthetic scene
 
 from hivemap.server.backend.backlog import QueryQueue
 from hivemap.server.backend.executor import ProcessVerifier
+from hivemap.server.placerec.phases import combine_phases
 from hivemap.server.placerec.verify import run_job
 
 
@@ -21,13 +22,21 @@ def test_a_job_verified_in_a_worker_process_reports_what_the_thread_does(scene) 
     pr = _recognizer(maps)
     result, job = pr.prepare(maps, 0, ("uavA", 6), loop=False)
     assert job.candidates, result.reason
-    # the job holds slices of the maps it reads, not the maps: the query's and the candidates' windows
+    # the job holds slices of the maps it reads, not the maps: the query's and the candidates' windows;
+    # phase 1's without the points' descriptors and observations
+    assert job.phase == 1 and all(s.light and len(s.desc) == 0 for s in job.slices)
     assert {s.map_id for s in job.slices} <= {0, 1, 2, 3}
     assert sum(len(s.keyframes) for s in job.slices) <= 1 + 6 * len(job.candidates)
-    inline = run_job(job)
     pool = ProcessVerifier(1)
     try:
-        remote = asyncio.run(pool.run(job))
+        first_inline = run_job(job)
+        first = asyncio.run(pool.run(job))
+        assert _summary(first) == _summary(first_inline)
+        second_job = pr.second_phase(maps, job, first)
+        assert second_job is not None and second_job.phase == 2
+        assert not any(s.light for s in second_job.slices)
+        inline = run_job(second_job)
+        remote = asyncio.run(pool.run(second_job))
     finally:
         pool.shutdown()
     assert _summary(remote) == _summary(inline)
@@ -38,7 +47,7 @@ def test_a_job_verified_in_a_worker_process_reports_what_the_thread_does(scene) 
         assert abs(a.target_from_source.s - b.target_from_source.s) < 1e-9
         assert a.query_points == b.query_points and a.candidate_points == b.candidate_points
     # the detection concluded from the worker's reports is the inline one's
-    det = pr.conclude(result, remote).detection
+    det = pr.conclude(result, combine_phases(job, first, remote)).detection
     assert det is not None and det.candidate_map == 1
 
 
