@@ -203,3 +203,19 @@ def test_far_points_or_too_few_pairs_are_refused() -> None:
     start = se3(so3_exp(np.radians(3.0) * UP), np.array([0.2, -0.2, 0.1])) @ s["true"]
     res, out = _weld(s, _detection(s, start, n_pairs=10), True, FitOptions())
     assert not res.ok and out is None and "point pairs" in res.reason
+
+
+def test_a_tilt_error_is_corrected_within_the_tilt_prior_and_kept_in_4_dof() -> None:
+    s = _scene(7)
+    # the levelled fit's tilt is off by 0.5 deg (its keyframes' IMU up directions were), its yaw by 3 deg
+    tilt = so3_exp(np.radians(0.5) * np.array([1.0, 0.0, 0.0]))
+    start = se3(so3_exp(np.radians(3.0) * UP) @ tilt, np.array([0.2, -0.2, 0.1])) @ s["true"]
+    det = _detection(s, start)
+    held, out_held = _weld(s, det, True, FitOptions())
+    free, out_free = _weld(s, det, True, FitOptions(weld_tilt_sigma_deg=0.2))
+    assert held.ok and free.ok and out_held is not None and out_free is not None
+    assert free.dof == "tilt0.2"
+    # 4 DoF keeps the tilt it was given; a 0.2 deg prior lets thousands of stereo observations take it out
+    assert 0.4 < _rel_error(s, out_held)[1] < 0.6, _rel_error(s, out_held)
+    err = _rel_error(s, out_free)
+    assert err[0] < 0.02 and err[1] < 0.1, err
