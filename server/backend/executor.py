@@ -5,7 +5,8 @@ is the back-end's heavy work and pure Python + NumPy, so threads would share one
 in a pool of processes (``local``, sized by ``workers``: default the cores less one for the event loop,
 at least one), as a Ray task on a Ray cluster (``ray``, the optional ``hivemap[cluster]`` extra), or in
 the place-recognition thread itself (``thread``: no processes, one core). The results come back to the
-event loop, which applies them as before.
+event loop, which applies them as before. Other pure jobs of the back-end (a loop's weld,
+:mod:`.weld`) go the same way through :meth:`Verifier.call`.
 """
 
 from __future__ import annotations
@@ -15,8 +16,9 @@ import concurrent.futures
 import logging
 import multiprocessing
 import os
+from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from hivemap.server.placerec.job import QueryJob
 from hivemap.server.placerec.types import CandidateReport
@@ -25,6 +27,8 @@ from hivemap.server.placerec.verify import run_job
 logger = logging.getLogger(__name__)
 
 EXECUTORS = ("local", "thread", "ray")
+
+T = TypeVar("T")
 
 
 def default_workers() -> int:
@@ -40,6 +44,10 @@ class Verifier(Protocol):
     workers: int
 
     async def run(self, job: QueryJob) -> list[CandidateReport]: ...
+
+    async def call(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` where the verification jobs run (``fn`` a module-level function, picklable)."""
+        ...
 
     def shutdown(self) -> None: ...
 
@@ -57,7 +65,10 @@ class ThreadVerifier:
         self._pool = pool
 
     async def run(self, job: QueryJob) -> list[CandidateReport]:
-        return await asyncio.get_running_loop().run_in_executor(self._pool, run_job, job)
+        return await self.call(run_job, job)
+
+    async def call(self, fn: Callable[..., T], *args: Any) -> T:
+        return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
 
     def shutdown(self) -> None:  # the pool is the back-end's
         pass
@@ -78,10 +89,13 @@ class ProcessVerifier:
         return pool
 
     async def run(self, job: QueryJob) -> list[CandidateReport]:
+        return await self.call(run_job, job)
+
+    async def call(self, fn: Callable[..., T], *args: Any) -> T:
         try:
-            return await asyncio.wrap_future(self._pool.submit(run_job, job))
+            return await asyncio.wrap_future(self._pool.submit(fn, *args))
         except BrokenProcessPool:
-            # a worker died (killed, out of memory): this query fails, the next ones get a new pool
+            # a worker died (killed, out of memory): this job fails, the next ones get a new pool
             logger.error("a verification worker died: restarting the pool")
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = self._start()
@@ -105,11 +119,16 @@ class RayVerifier:
             kwargs: dict[str, Any] = {"address": address} if address else {"num_cpus": workers}
             ray.init(**kwargs, include_dashboard=False, logging_level=logging.WARNING)
         self.workers = workers
-        self._task = ray.remote(num_cpus=1)(run_job)
+        self._tasks: dict[Callable[..., Any], Any] = {}
 
     async def run(self, job: QueryJob) -> list[CandidateReport]:
-        ref = self._task.remote(job)
-        result: list[CandidateReport] = await ref
+        return await self.call(run_job, job)
+
+    async def call(self, fn: Callable[..., T], *args: Any) -> T:
+        task = self._tasks.get(fn)
+        if task is None:
+            task = self._tasks[fn] = self._ray.remote(num_cpus=1)(fn)
+        result: T = await task.remote(*args)
         return result
 
     def shutdown(self) -> None:

@@ -40,6 +40,7 @@ from hivemap.server.backend import (
     rendezvous,
     sessionguess,
     surgery,
+    weld,
 )
 from hivemap.server.backend.optimise import NewEdge
 from hivemap.server.backend.pipeline import Pipeline
@@ -326,6 +327,14 @@ class Backend(Pipeline):
         levelled, sigmas = fit.levelled(self.options, maps, self._gnss_unbend, det)
         if levelled is not None:
             det = replace(det, target_from_source=levelled)
+        up_q = self._up_cam(maps[det.query_map], det.query_key) if levelled is not None else None
+        welded, weld_rec = await weld.run(self, det, up_q)
+        if welded is None:
+            return
+        det = welded
+        if det.query_map not in maps or det.candidate_map not in maps or det.query_map == det.candidate_map:
+            server.events.add("merge", f"stale merge detection {det.query_key} dropped", data=det.to_dict())
+            return
         target = surgery.target_of(maps, det.query_map, det.candidate_map, self._agent_kind)
         target_id, source_id, sim, pairs = det.merge_args(target)
         sides = (set(maps[target_id].agents), set(maps[source_id].agents))
@@ -354,6 +363,8 @@ class Backend(Pipeline):
                        n_inliers=det.n_inliers)  # fmt: skip
         if prior is not None:
             rec.update(by="place_recognition+prior" if prior["agrees"] else "place_recognition", prior=prior)
+        if weld_rec is not None:
+            rec["weld"] = weld_rec
         self.merges.append(rec)
         if self.options.optimise.gnc:  # on trial until loops between its sides confirm it
             self.evidence.add_merge(target_id, source_id, edge, sim, sides, rec)
@@ -442,9 +453,17 @@ class Backend(Pipeline):
         levelled, sigmas = fit.levelled(o, self.server.stack.maps, self._gnss_unbend, det, ups)
         if levelled is not None:
             det = replace(det, target_from_source=levelled)
-            measured = Tc.inverse() @ levelled @ Tq
+        welded, weld_rec = await weld.run(self, det, ups[0] if levelled is not None else None)
+        if welded is None or det.query_map not in self.server.stack.maps:
+            return
+        det, m = welded, self.server.stack.maps[det.query_map]
+        Tc = Sim3.from_se3(m.keyframes[det.candidate_key].world_from_cam)
+        Tq = Sim3.from_se3(m.keyframes[det.query_key].world_from_cam)
+        measured = Tc.inverse() @ det.target_from_source @ Tq
         m.add_loop_edge(det.candidate_key, det.query_key)
         rec = surgery.loop_record(m, det, measured, tilt, levelled is not None, len(pairs), sigmas)
+        if weld_rec is not None:
+            rec["weld"] = weld_rec
         self.loops.append(rec)
         pre = (det.target_from_source, surgery.loop_neighbourhood(m, det.query_key))
         edge = NewEdge(det.candidate_key, det.query_key, measured, *sigmas)
