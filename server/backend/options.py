@@ -82,14 +82,15 @@ class FitOptions:
     # Weld (:mod:`~hivemap.server.backend.weld`): the fitted transform refined by stereo reprojection over
     # both covisible windows (this many keyframes a side) before the edge enters the graph; refused, with
     # its loop or merge, when the 99 % bound of its covariance exceeds these, or with fewer point pairs
-    weld: bool = False
+    weld: bool = True
     weld_window: int = 5
     weld_max_bound_m: float = 0.5
     weld_max_bound_deg: float = 2.0
     weld_min_points: int = 20
     # 0: yaw and translation only (the levelled fit's tilt held); > 0: the tilt free within a prior of this
-    # sigma; < 0: 6 DoF. Without both keyframes' up directions the weld is 6 DoF.
-    weld_tilt_sigma_deg: float = 0.0
+    # sigma (about the up directions' own error, which was most of what loops were off by); < 0: 6 DoF.
+    # Without both keyframes' up directions the weld is 6 DoF.
+    weld_tilt_sigma_deg: float = 0.2
     weld_compare: bool = False  # also solve the other variants and record them (measurement only)
 
 

@@ -9,9 +9,10 @@ loss, solved by gtsam's Levenberg-Marquardt, with the gross outliers dropped and
 
 The unknown is the query camera's pose in the candidate map's frame (gtsam ``Pose3``, tangent
 ``[rot, trans]`` in that camera), so its marginal covariance is directly the loop edge's uncertainty at
-the query keyframe. With both keyframes' IMU up directions the fit was levelled (:mod:`.fit`) and the weld
-turns only about the up axis (4 DoF: ``FitOptions.weld_tilt_sigma_deg = 0``); a positive sigma lets it
-correct the tilt within that prior; negative, or without up directions: 6 DoF. A weld whose 99 % bound
+the query keyframe. With both keyframes' IMU up directions the fit was levelled (:mod:`.fit`); the weld
+may correct its tilt within a prior of ``FitOptions.weld_tilt_sigma_deg`` (default 0.2 deg: the up
+directions' own error was most of what loops were off by), 0 turns it only about the up axis (4 DoF);
+negative, or without up directions: 6 DoF. A weld whose 99 % bound
 exceeds ``weld_max_bound_m`` / ``weld_max_bound_deg`` is refused, and so is the detection (its RANSAC
 transform was fitted to the same points, so it is no better determined).
 

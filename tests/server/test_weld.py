@@ -164,7 +164,7 @@ def test_a_perturbed_transform_is_welded_back_to_the_truth(seed: int, levelled: 
     assert before[0] > 0.25 and before[1] > 2.9
     res, out = _weld(s, det, levelled, FitOptions())
     assert res.ok, res.reason
-    assert res.dof == ("4dof" if levelled else "6dof")
+    assert res.dof == ("tilt0.2" if levelled else "6dof")  # the default: tilt free within 0.2 deg
     assert out is not None
     err = _rel_error(s, out)
     assert err[0] < 0.02 and err[1] < 0.1, (before, err)
@@ -211,8 +211,9 @@ def test_a_tilt_error_is_corrected_within_the_tilt_prior_and_kept_in_4_dof() -> 
     tilt = so3_exp(np.radians(0.5) * np.array([1.0, 0.0, 0.0]))
     start = se3(so3_exp(np.radians(3.0) * UP) @ tilt, np.array([0.2, -0.2, 0.1])) @ s["true"]
     det = _detection(s, start)
-    held, out_held = _weld(s, det, True, FitOptions())
+    held, out_held = _weld(s, det, True, FitOptions(weld_tilt_sigma_deg=0.0))
     free, out_free = _weld(s, det, True, FitOptions(weld_tilt_sigma_deg=0.2))
+    assert held.dof == "4dof"
     assert held.ok and free.ok and out_held is not None and out_free is not None
     assert free.dof == "tilt0.2"
     # 4 DoF keeps the tilt it was given; a 0.2 deg prior lets thousands of stereo observations take it out
