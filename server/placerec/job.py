@@ -67,7 +67,8 @@ class MapSlice:
     obs_point: NDArray[np.int32]
     obs_kf: NDArray[np.int32]
     obs_kp: NDArray[np.int32]
-    light: bool = False  # positions only: no descriptors (``desc`` empty) and no observations
+    # positions only: no descriptors (``desc`` empty), the observations in no particular order
+    light: bool = False
 
     @property
     def nbytes(self) -> int:
@@ -131,8 +132,8 @@ def slice_of(
 ) -> MapSlice:
     """The slice of map ``m`` (``map_id`` in the stack) holding keyframes ``keys`` (those still in it) and
     their points (``has``: which keypoints reference a point of the map, kept across queries). ``light``:
-    the points' positions only, without descriptors and observations (what phase 1 of a two-phase
-    verification reads, :mod:`.phases`)."""
+    the points' positions only, without descriptors, and the observations unordered (what phase 1 of a
+    two-phase verification reads, :mod:`.phases`)."""
     has = has if has is not None else HasCache()
     kfs = [_copy_keyframe(m.keyframes[k]) for k in dict.fromkeys(keys) if k in m.keyframes]
     per_kf = [has.refs(m, kf) for kf in kfs]
@@ -158,11 +159,6 @@ def slice_of(
     agent_idx = np.array(list(map({a: i for i, a in enumerate(agents)}.__getitem__, agent_col)), np.int32)
     ids = np.array(id_col, dtype=np.int64)
     xyz = np.array(list(map(_XYZ, pts)), dtype=np.float64).reshape(-1, 3)
-    if light:
-        no = np.zeros(0, np.int32)
-        return MapSlice(map_id, kfs, agents, agent_idx, ids, xyz, np.zeros((0, 32), np.uint8), no, no, no,
-                        light=True)  # fmt: skip
-    desc = np.array(list(map(_DESC, pts)), dtype=np.uint8).reshape(-1, 32)
     # the observations in the slice's keyframes, from the keyframes' side (a point's full observation list
     # is ~8x larger), ordered per point as the map adds them: by its keyframes' order of arrival
     rank = np.empty(len(seen), np.int64)
@@ -171,6 +167,11 @@ def slice_of(
     rows = row_by_seen[rank[inverse.reshape(-1)]] if len(codes) else np.zeros(0, np.int64)
     keep = rows >= 0
     obs_pt, obs_kf, obs_kp = rows[keep], kf_all[keep], kp_all[keep]
+    if light:  # the references as they come (phase 1 reads them per keyframe, not per point)
+        return MapSlice(map_id, kfs, agents, agent_idx, ids, xyz, np.zeros((0, 32), np.uint8),
+                        obs_pt.astype(np.int32), obs_kf.astype(np.int32), obs_kp.astype(np.int32),
+                        light=True)  # fmt: skip
+    desc = np.array(list(map(_DESC, pts)), dtype=np.uint8).reshape(-1, 32)
     arrival = has.arrival(m)
     kf_arrival = np.array([arrival.get(kf.key, len(arrival)) for kf in kfs], dtype=np.int64)
     order = np.lexsort((kf_arrival[obs_kf] if len(obs_kf) else obs_kf, obs_pt))

@@ -31,6 +31,15 @@ def _u64(d: NDArray[np.uint8]) -> NDArray[np.uint64]:
     return np.ascontiguousarray(d, dtype=np.uint8).reshape(-1, 32).view(np.uint64)
 
 
+def _hamming(desc_a: NDArray[np.uint8], ia: I64, desc_b: NDArray[np.uint8], ib: I64) -> NDArray[np.int16]:
+    """Hamming distances of descriptor pairs ``(desc_a[ia[k]], desc_b[ib[k]])``; the four words' counts
+    added column by column (a ``sum(axis=1)`` over four columns took 2.5x as long)."""
+    x = _u64(desc_a)[ia]
+    x ^= _u64(desc_b)[ib]
+    c = np.bitwise_count(x).astype(np.int16)
+    return c[:, 0] + c[:, 1] + c[:, 2] + c[:, 3]  # type: ignore[no-any-return]
+
+
 def match_bow(
     fv_a: FeatureVector,
     desc_a: NDArray[np.uint8],
@@ -63,8 +72,32 @@ def match_bow(
     a_rep = np.repeat(ia, cnt)
     offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
     b_rep = ib_sorted[np.repeat(start, cnt) + offs]
-    dist = np.bitwise_count(_u64(desc_a)[a_rep] ^ _u64(desc_b)[b_rep]).sum(axis=1)
-    return _best_unique(a_rep, b_rep, dist, max_distance, ratio)
+    dist = _hamming(desc_a, a_rep, desc_b, b_rep)
+    nz = cnt > 0
+    return _best_per_block(ia[nz], (np.cumsum(cnt) - cnt)[nz], b_rep, dist, max_distance, ratio)
+
+
+def _best_per_block(
+    a: I64, starts: I64, b: I64, dist: NDArray[Any], max_distance: float, ratio: float
+) -> I64:
+    """:func:`_best_unique` with a ratio test, for pairs already in blocks of one ``a`` each (``a[i]``'s
+    pairs from ``starts[i]``, ``a`` increasing), without sorting them: one minimum per block gives the
+    best (the first of equals, as the stable sort did), a second with the best masked the second best."""
+    pos = np.arange(len(dist), dtype=np.int64)
+    key = (np.asarray(dist, dtype=np.int64) << 32) | pos
+    low = np.minimum.reduceat(key, starts)
+    best = low & 0xFFFFFFFF
+    best_d = low >> 32
+    key[best] = np.iinfo(np.int64).max  # a block of one pair keeps it: no second best
+    second = np.minimum.reduceat(key, starts)
+    second_d = np.where(second == np.iinfo(np.int64).max, np.inf, second >> 32)
+    ok = (best_d <= max_distance) & (best_d < ratio * second_d)
+    pa, pb, pd = a[ok], b[best[ok]], best_d[ok]
+    o = np.argsort((pb.astype(np.int64) << 9) | pd, kind="stable")
+    pa, pb = pa[o], pb[o]
+    keep = np.ones(len(pb), dtype=bool)
+    keep[1:] = pb[1:] != pb[:-1]
+    return np.stack([pa[keep], pb[keep]], axis=1).astype(np.int64)
 
 
 def _best_unique(a: I64, b: I64, dist: NDArray[Any], max_distance: float, ratio: float | None) -> I64:
@@ -125,7 +158,7 @@ def match_projected(
     kj = sdm["j"].astype(np.int64)
     near = sdm["v"] <= radius * scale[kj]
     pi, kj = pi[near], kj[near]
-    dist = np.bitwise_count(_u64(desc_pts)[pi] ^ _u64(descriptors)[kidx[kj]]).sum(axis=1)
+    dist = _hamming(desc_pts, pi, descriptors, kidx[kj])
     pairs = _best_unique(pi, kidx[kj], dist, max_distance, None)
     return pairs
 

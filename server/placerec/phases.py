@@ -14,65 +14,126 @@ reports one full verification of every candidate would give, except for the time
 
 from __future__ import annotations
 
+import logging
+import time
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.distance import pdist, squareform
 
-from hivemap.server.placerec.job import Candidate, QueryJob
+from hivemap.server.placerec.consensus import ransac_stage
+from hivemap.server.placerec.job import Candidate, MapSlice, QueryJob
+from hivemap.server.placerec.match import match_bow
 from hivemap.server.placerec.types import CandidateReport
 
+log = logging.getLogger(__name__)
+KfKey = tuple[str, int]
+
 PASSED = "phase1_passed"
-# above this many matches the pre-test is not run (its pair matrix grows with the square), above this
-# many matches left in the core its links are not peeled (a matrix product: beyond ~400 it costs more
-# than the RANSAC it would save); peeling rounds of the links (stopping early: a looser, valid bound)
-_PRETEST_MAX = 600
-_TRUSS_MAX = 400
-_TRUSS_ROUNDS = 4
 
 
-def rigid_consensus_bound(xq: NDArray[np.float64], xc: NDArray[np.float64], max_err: float, k: int) -> int:
-    """An upper bound on the inliers of a rigid transform ``xc ~ T xq`` (matched points (N, 3)) at error
-    ``max_err`` that has ``k`` or more of them; below ``k``: no rigid transform has ``k`` inliers.
-
-    Two inliers of a rigid transform keep their distance to within ``2 max_err`` (triangle inequality;
-    pycolmap counts a match within ``max_err`` as an inlier), so a transform's inliers are a clique of the
-    graph linking the matches that do. In a clique of ``k`` every match has ``k - 1`` links and every link
-    ``k - 2`` common neighbours, so matches and links with fewer are peeled off (the graph's ``k``-core,
-    then its ``k``-truss); the matches left are returned. Wrong matches rarely keep their distances to
-    each other, so little is left of them."""
-    n = len(xq)
-    if n < k or n > _PRETEST_MAX or k < 3:
-        return n
-    tol = 2.0 * max_err * (1 + 1e-9)  # a hair wider: a pair exactly at the bound stays linked
-    adj = squareform(np.abs(pdist(xq) - pdist(xc)) <= tol)
-    alive = _core(adj, k - 1)
-    if alive.sum() < k or alive.sum() > _TRUSS_MAX:
-        return int(alive.sum())
-    # links: common neighbours by a product of the core's adjacency (float32: exact for these counts)
-    a = adj[np.ix_(alive, alive)].astype(np.float32)
-    for _ in range(_TRUSS_ROUNDS):
-        weak = (a > 0) & ((a @ a) < k - 2)
-        if not weak.any():
-            break
-        a[weak] = 0.0
-        left = _core(a > 0, k - 1)
-        if left.sum() < k:
-            return int(left.sum())
-        a = a[np.ix_(left, left)]
-    return int(_core(a > 0, k - 1).sum())
+def screen_job(job: QueryJob) -> list[CandidateReport]:
+    """Phase 1 of every candidate of ``job`` (a phase-1 job, light slices), in order."""
+    slices = {s.map_id: _Rows(s) for s in job.slices}
+    return [_screen(job, c, slices) for c in job.candidates]
 
 
-def _core(adj: NDArray[np.bool_], d: int) -> NDArray[np.bool_]:
-    """The nodes of the graph ``adj`` left after removing, again and again, those with fewer than ``d``
-    links."""
-    deg = adj.sum(axis=1)
-    alive = np.ones(len(adj), dtype=bool)
-    while True:
-        drop = alive & (deg < d)
-        if not drop.any():
-            return alive
-        alive &= ~drop
-        deg = deg - adj[:, drop].sum(axis=1)
+class _Rows:
+    """A light slice read by keyframe: per keypoint, the slice's row of the point it references (-1:
+    none), from the slice's observations. Array work: the full verification's map-like view of a slice
+    builds an object per point, most of phase 1's time when it used it."""
+
+    def __init__(self, s: MapSlice) -> None:
+        self.slice = s
+        self._index = {kf.key: i for i, kf in enumerate(s.keyframes)}
+        order = np.argsort(s.obs_kf, kind="stable")
+        bounds = np.searchsorted(s.obs_kf[order], np.arange(len(s.keyframes) + 1))
+        self._refs = [order[a:b] for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)]
+        self._rows: dict[KfKey, NDArray[np.int64]] = {}
+
+    def keyframe(self, key: KfKey) -> object | None:
+        i = self._index.get(key)
+        return None if i is None else self.slice.keyframes[i]
+
+    def rows(self, key: KfKey) -> NDArray[np.int64]:
+        r = self._rows.get(key)
+        if r is None:
+            i = self._index[key]
+            sel = self._refs[i]
+            r = np.full(len(self.slice.keyframes[i].point_ids), -1, dtype=np.int64)
+            r[self.slice.obs_kp[sel]] = self.slice.obs_point[sel]
+            self._rows[key] = r
+        return r
+
+
+def _screen(job: QueryJob, c: Candidate, slices: dict[int, _Rows]) -> CandidateReport:
+    """Phase 1 of one candidate: what the full verification's first stage does
+    (:func:`.verify._first_stage`: BoW matches of the query against the window, each query keypoint and
+    each point used once, in the window's order; RANSAC; the inlier threshold), on point rows instead of
+    point keys. ``reason`` is :data:`PASSED` for a survivor."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    rep = CandidateReport(job.query_key, c.key, c.map_id, c.kind, bow_score=c.bow_score, phase=1)
+    try:
+        if _first_stage(job, c, slices, rep):
+            rep.reason = PASSED
+    except Exception as e:  # a bad candidate must never break ingest; it is logged and reported
+        log.exception("phase 1 of %s against %s failed", job.query_key, c.key)
+        rep.reason = f"error:{type(e).__name__}"
+    rep.time_ms = (time.perf_counter() - t0) * 1e3
+    rep.cpu_ms = (time.thread_time() - c0) * 1e3
+    return rep
+
+
+def _first_stage(job: QueryJob, c: Candidate, slices: dict[int, _Rows], rep: CandidateReport) -> bool:
+    o, th = job.options, job.thresholds
+    sq, sc = slices.get(job.query_map), slices.get(c.map_id)
+    if sq is None or sc is None:
+        rep.reason = "map_merged_meanwhile"
+        return False
+    q: Any = sq.keyframe(job.query_key)
+    ck: Any = sc.keyframe(c.key)
+    if q is None:
+        rep.reason = "points_fused_meanwhile"
+        return False
+    if ck is None:
+        rep.reason = "candidate_missing"
+        return False
+    q_rows = sq.rows(q.key)
+    q_has = q_rows >= 0
+    if int(q_has.sum()) < th.min_matches:
+        rep.reason = "few_bow_matches"
+        return False
+    window = [c.key] + [k for k in job.best_covisible.get(c.key, [])[: o.covisible_window] if k != c.key]
+    seen_q = np.zeros(len(q_rows), dtype=bool)
+    seen_c = np.zeros(len(sc.slice.xyz), dtype=bool)
+    corr_q: list[NDArray[np.int64]] = []
+    corr_c: list[NDArray[np.int64]] = []
+    q_fv = job.features[q.key]
+    for wk in window:
+        w: Any = sc.keyframe(wk)
+        if w is None:
+            continue
+        w_rows = sc.rows(wk)
+        pairs = match_bow(q_fv, q.descriptors, job.features[wk], w.descriptors, o.bow_max_distance,
+                          o.bow_ratio, q_has, w_rows >= 0)  # fmt: skip
+        iq, pc = pairs[:, 0], w_rows[pairs[:, 1]]
+        # a window's pairs use each query keypoint once; keypoints of one keyframe may share a point
+        idx = np.flatnonzero(~seen_q[iq] & ~seen_c[pc])
+        _, first = np.unique(pc[idx], return_index=True)
+        idx = idx[np.sort(first)]
+        iq, pc = iq[idx], pc[idx]
+        seen_q[iq] = True
+        seen_c[pc] = True
+        corr_q.append(iq)
+        corr_c.append(pc)
+    cq = np.concatenate(corr_q) if corr_q else np.zeros(0, np.int64)
+    cc = np.concatenate(corr_c) if corr_c else np.zeros(0, np.int64)
+    rep.n_matches = len(cq)
+    if rep.n_matches < th.min_matches:
+        rep.reason = "few_bow_matches"
+        return False
+    xq, xc = sq.slice.xyz[q_rows[cq]], sc.slice.xyz[cc]
+    return ransac_stage(o, xq, xc, ck.world_from_cam, c.fix_scale, th, rep) is not None
 
 
 def survivors(job: QueryJob, reports: list[CandidateReport]) -> list[Candidate]:

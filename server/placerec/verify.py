@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
 from hivemap.maps.vocabulary import FeatureVector
+from hivemap.server.placerec.consensus import ransac_stage
 from hivemap.server.placerec.job import QueryJob, maps_of
 from hivemap.server.placerec.match import (
     PointSet,
@@ -32,7 +33,7 @@ from hivemap.server.placerec.match import (
     match_bow,
     refine_sim3,
 )
-from hivemap.server.placerec.phases import rigid_consensus_bound
+from hivemap.server.placerec.phases import screen_job
 from hivemap.server.placerec.types import CandidateReport, PlaceRecOptions, Thresholds
 from hivemap.server.placerec.views import KeyframeViews
 
@@ -45,15 +46,15 @@ F64 = NDArray[np.float64]
 
 def run_job(job: QueryJob) -> list[CandidateReport]:
     """Verify the job's candidates in order; a candidate inside the window of one accepted before it is
-    reported as covered, not verified. A phase-1 job (:mod:`.phases`) screens every candidate instead."""
+    reported as covered, not verified. A phase-1 job screens every candidate instead (:mod:`.phases`)."""
+    if job.phase == 1:
+        return screen_job(job)
     maps = maps_of(job)
     views = KeyframeViews()
 
     def fv_of(kf: Any) -> FeatureVector:
         return job.features[kf.key]
 
-    if job.phase == 1:
-        return [_screen(job, c, fv_of, maps, views) for c in job.candidates]
     covered: set[KfKey] = set()
     out: list[CandidateReport] = []
     for c in job.candidates:
@@ -72,27 +73,6 @@ def run_job(job: QueryJob) -> list[CandidateReport]:
             covered.add(c.key)
             covered.update(c.window)
     return out
-
-
-def _screen(job: QueryJob, c: Any, fv_of: Callable[[Any], FeatureVector], maps: Mapping[int, Any],
-            views: KeyframeViews) -> CandidateReport:  # fmt: skip
-    """Phase 1 of one candidate: the verification's first stage (BoW matches against the window, RANSAC
-    on their 3-D points, the inlier threshold). ``reason`` is ``"phase1_passed"`` for a survivor."""
-    t0, c0 = time.perf_counter(), time.thread_time()
-    rep = CandidateReport(job.query_key, c.key, c.map_id, c.kind, bow_score=c.bow_score, phase=1)
-    try:
-        if _first_stage(job.options, fv_of, maps, job.query_map, job.query_key, c.map_id, c.key,
-                        c.fix_scale, job.thresholds, rep, views) is not None:  # fmt: skip
-            rep.reason = "phase1_passed"
-    except KeyError as e:
-        log.debug("phase 1 of %s against %s: %r fused meanwhile", job.query_key, c.key, e)
-        rep.reason = "points_fused_meanwhile"
-    except Exception as e:  # a bad candidate must never break ingest; it is logged and reported
-        log.exception("phase 1 of %s against %s failed", job.query_key, c.key)
-        rep.reason = f"error:{type(e).__name__}"
-    rep.time_ms = (time.perf_counter() - t0) * 1e3
-    rep.cpu_ms = (time.thread_time() - c0) * 1e3
-    return rep
 
 
 def verify(
@@ -217,24 +197,11 @@ def _first_stage(
     xc = np.array([mc.points[k].xyz for k in corr_c], dtype=np.float64)
 
     # 2. RANSAC (3D threshold relative to the candidate scene depth)
-    c_cfw = se3_inverse(np.asarray(c.world_from_cam, dtype=np.float64))
-    depth_c = np.median(np.linalg.norm(xc @ c_cfw[:3, :3].T + c_cfw[:3, 3], axis=1))
-    max_err = max(o.ransac_min_error, o.ransac_rel_error * float(depth_c))
-    pretest = o.consensus_pretest and fix_scale
-    if pretest and rigid_consensus_bound(xq, xc, max_err, th.min_inliers) < th.min_inliers:
-        # no rigid transform can have enough inliers (they would keep their distances): RANSAC would
-        # run to its trial limit for nothing
-        rep.reason = "few_consistent_matches"
-        return None
-    est = estimate_sim3_ransac(xq, xc, max_err, fix_scale, o.ransac_min_trials)
+    est = ransac_stage(o, xq, xc, c.world_from_cam, fix_scale, th, rep)
     if est is None:
-        rep.reason = "ransac_failed"
         return None
-    sim, inl = est
-    rep.n_ransac_inliers = int(inl.sum())
-    if rep.n_ransac_inliers < th.min_inliers:
-        rep.reason = "few_ransac_inliers"
-        return None
+    sim, inl, max_err = est
+    c_cfw = se3_inverse(np.asarray(c.world_from_cam, dtype=np.float64))
     return _Stage1(mq, mc, q, c, q_pk, q_has, window, corr_q, corr_c, xq, xc, c_cfw, max_err, sim, inl)
 
 

@@ -1,7 +1,7 @@
-"""Two-phase verification of place-recognition candidates (server/placerec/phases.py): phase 1 (BoW
-matches and RANSAC on light slices) for every candidate, the full verification only for its survivors.
-It must find what one phase finds, refuse wrong candidates before the full verification, and the
-rigid-consensus pre-test must never refuse a candidate RANSAC would pass."""
+"""Two-phase verification of place-recognition candidates (server/placerec/phases.py, consensus.py):
+phase 1 (BoW matches and RANSAC on light slices) for every candidate, the full verification only for
+its survivors. It must find what one phase finds, refuse wrong candidates before the full
+verification, and the rigid-consensus pre-test must never refuse a candidate RANSAC would pass."""
 
 from __future__ import annotations
 
@@ -21,7 +21,8 @@ from hivemap.server.backend import preset
 from hivemap.server.backend.options import SchedulerOptions
 from hivemap.server.backend_synth import UGV_FROM_WORLD, agent_stream, make_world
 from hivemap.server.placerec import PlaceRecognizer
-from hivemap.server.placerec.phases import PASSED, rigid_consensus_bound
+from hivemap.server.placerec.consensus import rigid_consensus_bound
+from hivemap.server.placerec.phases import PASSED
 from hivemap.server.placerec.verify import run_job
 
 # what phase 1 refuses with, and what one phase refuses the same candidates with
