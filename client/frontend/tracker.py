@@ -26,17 +26,17 @@ from hivemap.client.frontend.events import (
 from hivemap.client.frontend.features import ContrastNormaliser, OrbExtractor
 from hivemap.client.frontend.imu import _ImuState
 from hivemap.client.frontend.inertial import MotionFilter
-from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore, hamming
+from hivemap.client.frontend.mapdata import Frame, KeyframeData, PointStore
 from hivemap.client.frontend.markers import MarkerOptions
 from hivemap.client.frontend.optim import (
     Intrinsics,
     PosePrior,
     optimize_pose,
     pose_hessian,
-    project,
 )
 from hivemap.client.frontend.options import FrontendOptions
 from hivemap.client.frontend.preint import KeyframeImu
+from hivemap.client.frontend.projection_match import match_by_projection
 from hivemap.client.frontend.relocalize import relocalize
 from hivemap.client.frontend.stereo import StereoMatcher
 from hivemap.maps.camera import StereoRig
@@ -387,47 +387,11 @@ class Frontend:
         return True
 
     # ------------------------------------------------------------------ matching
-    def _match_projection(
+    def _by_projection(
         self, frame: Frame, T_cw: F64, pids: I64, radius: float, taken: NDArray[np.bool_]
     ) -> tuple[I64, NDArray[np.bool_]]:
-        """Project points ``pids`` into ``frame``: -> (kp index per point or -1, visible mask)."""
         o = self.options
-        m = len(pids)
-        res = -np.ones(m, np.int64)
-        if m == 0 or frame.n == 0:
-            return res, np.zeros(m, bool)
-        X = self._pts.xyz[pids]
-        pc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
-        uvr = project(self.k, pc)
-        vis = (pc[:, 2] > 0.1) & (uvr[:, 0] >= -5) & (uvr[:, 1] >= -5)
-        vis &= (uvr[:, 0] <= self.cam.width + 5) & (uvr[:, 1] <= self.cam.height + 5)
-        idx_vis = np.flatnonzero(vis)
-        if len(idx_vis) == 0:
-            return res, vis
-        kmax = 8
-        max_r = radius * o.scale_factor ** (o.n_levels - 1)
-        dist, nn = frame.tree.query(uvr[idx_vis, :2], k=kmax, distance_upper_bound=max_r)
-        valid = nn < frame.n
-        nn_c = np.where(valid, nn, 0)
-        kscale = o.scale_factor ** frame.octaves[nn_c].astype(np.float64)
-        valid &= dist <= radius * kscale
-        valid &= ~taken[nn_c]
-        hd = hamming(self._pts.desc[pids[idx_vis]][:, None, :], frame.desc[nn_c])
-        hd = np.where(valid, hd, 999)
-        order = np.argsort(hd, axis=1)
-        best = np.take_along_axis(hd, order[:, :1], 1)[:, 0]
-        second = np.take_along_axis(hd, order[:, 1:2], 1)[:, 0]
-        ok = (best <= o.max_descriptor_distance) & ((second >= 999) | (best < o.ratio * second))
-        kp = np.take_along_axis(nn_c, order[:, :1], 1)[:, 0]
-        sel = np.flatnonzero(ok)
-        if len(sel) == 0:
-            return res, vis
-        # one point per keypoint: keep the best descriptor distance
-        srt = sel[np.argsort(best[sel], kind="stable")]
-        _, first = np.unique(kp[srt], return_index=True)
-        keep = srt[first]
-        res[idx_vis[keep]] = kp[keep]
-        return res, vis
+        return match_by_projection(self._pts, frame, self.k, self.cam, o, T_cw, pids, radius, taken)
 
     def _update_local_map(self) -> None:
         o = self.options
@@ -482,10 +446,10 @@ class Frontend:
         o = self.options
         pids = self._local_pids
         taken = np.zeros(frame.n, bool)
-        match, _ = self._match_projection(frame, T_pred, pids, o.search_radius_px, taken)
+        match, _ = self._by_projection(frame, T_pred, pids, o.search_radius_px, taken)
         sel = match >= 0
         if sel.sum() < o.min_tracked:
-            match, _ = self._match_projection(frame, T_pred, pids, 2.5 * o.search_radius_px, taken)
+            match, _ = self._by_projection(frame, T_pred, pids, 2.5 * o.search_radius_px, taken)
             sel = match >= 0
             if sel.sum() < o.min_tracked:
                 return False, int(sel.sum())
@@ -499,7 +463,7 @@ class Frontend:
         # track local map: all local points again, tight radius, around the refined pose
         local = self._local_pids
         taken = np.zeros(frame.n, bool)
-        match, vis = self._match_projection(frame, T, local, o.local_search_radius_px, taken)
+        match, vis = self._by_projection(frame, T, local, o.local_search_radius_px, taken)
         sel = match >= 0
         p2, k2 = local[sel], match[sel]
         if len(p2) < len(p_in):
