@@ -14,7 +14,6 @@ second direction.
 from __future__ import annotations
 
 import copy
-import itertools
 import operator
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -140,24 +139,28 @@ def slice_of(
     # the references of all keyframes end to end; each point once, in first-seen order, found by its code
     # (array work: a slice's keyframes hold ~10-20k references to ~2-5k points)
     kp_all = np.concatenate([r[0] for r in per_kf]) if per_kf else np.zeros(0, np.intp)
-    codes = np.concatenate([r[2] for r in per_kf]) if per_kf else np.zeros(0, np.int64)
+    codes = np.concatenate([r[1] for r in per_kf]) if per_kf else np.zeros(0, np.int64)
     kf_all = np.repeat(np.arange(len(kfs), dtype=np.int64), [len(r[0]) for r in per_kf])
-    flat = list(itertools.chain.from_iterable(r[1] for r in per_kf))
     _, first, inverse = np.unique(codes, return_index=True, return_inverse=True)
     seen = np.argsort(first, kind="stable")
-    cand = [flat[i] for i in first[seen].tolist()]
+    names, agent_num, pid = has.decode(codes[first[seen]])
+    cand = list(zip(map(names.__getitem__, agent_num.tolist()), pid.tolist(), strict=True))
     found = list(map(m.points.get, cand))
     if None in found:  # a point left the map without its keyframes' references being rewritten
         ok = np.fromiter((p is not None for p in found), bool, len(found))
-        points = {k: p for k, p in zip(cand, found, strict=True) if p is not None}
+        pts = [p for p in found if p is not None]
     else:
         ok = np.ones(len(found), bool)
-        points = dict(zip(cand, found, strict=True))
-    pts = list(points.values())
-    agent_col, id_col = tuple(zip(*points, strict=True)) if points else ((), ())
-    agents = list(dict.fromkeys(agent_col))
-    agent_idx = np.array(list(map({a: i for i, a in enumerate(agents)}.__getitem__, agent_col)), np.int32)
-    ids = np.array(id_col, dtype=np.int64)
+        pts = found
+    # the agents in order of their first point, each point's agent as an index into them
+    anum = agent_num[ok]
+    uniq, first_a, inv_a = np.unique(anum, return_index=True, return_inverse=True)
+    order_a = np.argsort(first_a, kind="stable")
+    rank_a = np.empty(len(uniq), np.int32)
+    rank_a[order_a] = np.arange(len(uniq), dtype=np.int32)
+    agents = [names[int(a)] for a in uniq[order_a]]
+    agent_idx = rank_a[inv_a.reshape(-1)] if len(anum) else np.zeros(0, np.int32)
+    ids = pid[ok]
     xyz = np.array(list(map(_XYZ, pts)), dtype=np.float64).reshape(-1, 3)
     # the observations in the slice's keyframes, from the keyframes' side (a point's full observation list
     # is ~8x larger), ordered per point as the map adds them: by its keyframes' order of arrival

@@ -31,6 +31,7 @@ class HasCache:
         self._masks: dict[KfKey, _Refs] = {}
         self._arrival: dict[int, tuple[int, KfKey | None, dict[KfKey, int]]] = {}
         self._agents: dict[str, int] = {}
+        self._names: list[str] = []
 
     def _entry(self, m: Any, kf: Any, pk: list[PointKey | None] | None = None) -> _Refs:
         stamp = hash((kf.point_ids.tobytes(), tuple(sorted(kf.point_agents.items()))))
@@ -52,20 +53,36 @@ class HasCache:
     def get(self, m: Any, kf: Any, pk: list[PointKey | None]) -> NDArray[np.bool_]:
         return self._entry(m, kf, pk).has
 
-    def refs(self, m: Any, kf: Any) -> tuple[NDArray[np.intp], list[PointKey], NDArray[np.int64]]:
-        """The keypoints of ``kf`` referencing a point of ``m``, those points' keys, and the keys as one
-        integer each (agent and id; equal keys, equal codes) for array work on a slice's points."""
+    def refs(self, m: Any, kf: Any) -> tuple[NDArray[np.intp], NDArray[np.int64]]:
+        """The keypoints of ``kf`` referencing a point of ``m`` and those points' keys as one integer each
+        (agent and id, :meth:`decode`; equal keys, equal codes) for array work on a slice's points."""
         e = self._entry(m, kf)
         if e.idx is None:
             e.idx = np.flatnonzero(e.has)
-            e.keys = [e.pk[i] for i in e.idx.tolist()]  # type: ignore[misc]
-            agents = self._agents
-            e.codes = np.fromiter(
-                ((agents.setdefault(a, len(agents)) << _ID_BITS) | p for a, p in e.keys),
-                np.int64,
-                len(e.keys),
-            )
-        return e.idx, e.keys, e.codes
+            if e.all_codes is None:
+                e.all_codes = self._codes_of(kf)
+            e.codes = e.all_codes[e.idx]
+        return e.idx, e.codes
+
+    def _agent(self, a: str) -> int:
+        n = self._agents.get(a)
+        if n is None:
+            n = self._agents[a] = len(self._agents)
+            self._names.append(a)
+        return n
+
+    def _codes_of(self, kf: Any) -> NDArray[np.int64]:
+        """Per keypoint the code of the point it references (its own agent's, or another agent's after a
+        fusion); meaningless where it references none."""
+        ids = np.asarray(kf.point_ids, dtype=np.int64)
+        codes = (np.int64(self._agent(kf.agent_id)) << _ID_BITS) | ids
+        for i, a in kf.point_agents.items():
+            codes[i] = (self._agent(a) << _ID_BITS) | int(ids[i])
+        return codes
+
+    def decode(self, codes: NDArray[np.int64]) -> tuple[list[str], NDArray[np.int64], NDArray[np.int64]]:
+        """Codes -> (the agents they name, each code's agent as an index into them, point ids)."""
+        return self._names, codes >> _ID_BITS, codes & ((1 << _ID_BITS) - 1)
 
     def arrival(self, m: Any) -> dict[KfKey, int]:
         """Each keyframe of ``m`` -> its rank in the order the map added them (rebuilt when it changed:
@@ -87,12 +104,12 @@ _ID_BITS = 40  # point ids stay below 2**40; the agent's number goes above
 
 
 class _Refs:
-    __slots__ = ("map_id", "stamp", "pk", "has", "idx", "keys", "codes")
+    __slots__ = ("map_id", "stamp", "pk", "has", "idx", "all_codes", "codes")
 
     def __init__(self, map_id: int, stamp: int, pk: list[PointKey | None], has: NDArray[np.bool_]) -> None:
         self.map_id, self.stamp, self.pk, self.has = map_id, stamp, pk, has
         self.idx: NDArray[np.intp] | None = None
-        self.keys: list[PointKey] = []
+        self.all_codes: NDArray[np.int64] | None = None
         self.codes = np.zeros(0, np.int64)
 
 
