@@ -35,6 +35,7 @@ def emit_keyframe(fe: Frontend, kf: KeyframeData) -> None:
     newp = np.unique(pids[ok])
     newp = newp[~fe._pts.emitted[newp]]
     fe._pts.emitted[newp] = True
+    fe._pts.sent_xyz[newp] = fe._pts.xyz[newp]
     T_wc = kf.T_wc
     T_wb = T_wc @ fe.cam_from_body
     rel_body = rel_cov = None

@@ -95,6 +95,7 @@ class PointStore:
         self.found = np.zeros(capacity, np.int64)
         self.first_kf = np.zeros(capacity, np.int64)
         self.emitted = np.zeros(capacity, bool)
+        self.sent_xyz = np.zeros((capacity, 3))  # the position last streamed (emitted points)
         self.obs: list[dict[int, int]] = []
 
     def _grow(self, need: int) -> None:
@@ -102,7 +103,7 @@ class PointStore:
         if need <= cap:
             return
         new = max(need, 2 * cap)
-        for name in ("xyz", "desc", "alive", "visible", "found", "first_kf", "emitted"):
+        for name in ("xyz", "desc", "alive", "visible", "found", "first_kf", "emitted", "sent_xyz"):
             a = getattr(self, name)
             b = np.zeros((new, *a.shape[1:]), a.dtype)
             b[:cap] = a

@@ -269,6 +269,10 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
     upd = [k for k in window if k not in fixed and fe._kfs[k].emitted]
     if upd:
         pp = pids[fe._pts.emitted[pids]]
+        # only points local BA moved by more than the bound since they were last streamed
+        moved = np.linalg.norm(fe._pts.xyz[pp] - fe._pts.sent_xyz[pp], axis=1) > o.point_update_min_m
+        pp = pp[moved]
+        fe._pts.sent_xyz[pp] = fe._pts.xyz[pp]
         fe._events.append(
             PoseUpdateEvent(
                 fe.session,

@@ -45,6 +45,10 @@ class FrontendOptions:
     ba_window: int = 10
     ba_fixed_max: int = 10
     ba_iterations: int = 6
+    # a point's refined position is streamed when it moved this far since it was last sent: the server's
+    # copy stays within it of the agent's, a tenth of place recognition's smallest 3-D tolerance, and
+    # about half of local BA's updates move a point by less
+    point_update_min_m: float = 0.001
     triangulation_neighbours: int = 3
     min_parallax_cos: float = 0.9998
     culling_min_found_ratio: float = 0.25

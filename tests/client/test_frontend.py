@@ -265,3 +265,44 @@ def test_relocalisation_finds_old_keyframes_by_bag_of_words() -> None:
     # the same pose as when it was there (its VIO frame is the first camera's: no IMU here)
     err = np.linalg.norm(res.world_from_body[:3, 3] - first[3].world_from_body[:3, 3])
     assert err < 0.03, err
+
+
+def _streamed_copy(point_update_min_m: float) -> tuple[Frontend, dict[int, np.ndarray], int]:
+    """The synthetic run's points as a receiver of its events holds them, and how many point updates
+    it was sent."""
+    from dataclasses import replace
+
+    from hivemap.client.frontend.options import FrontendOptions
+    from hivemap.client.frontend.tracker import PoseUpdateEvent
+
+    seq, imgs = _sequence()
+    o = replace(FrontendOptions(), point_update_min_m=point_update_min_m)
+    fe = Frontend(seq.rig, imu_params={}, options=o)
+    copy: dict[int, np.ndarray] = {}
+    n_updates = 0
+    t_prev = None
+    for i in range(N_FRAMES):
+        t = float(seq.times[i])
+        fe.process(t, *imgs[i], seq.imu_between(t_prev, t))
+        t_prev = t
+        if i == N_FRAMES - 1:
+            fe.flush()
+        for e in fe.poll_events():
+            if isinstance(e, KeyframeEvent):
+                copy.update(zip(e.new_point_ids.tolist(), e.new_point_xyz, strict=True))
+            elif isinstance(e, PoseUpdateEvent):
+                copy.update(zip(e.point_ids.tolist(), e.xyz, strict=True))
+                n_updates += len(e.point_ids)
+    return fe, copy, n_updates
+
+
+def test_point_updates_stream_only_moves_past_the_bound_and_the_copy_stays_within_it() -> None:
+    fe, copy, n_thin = _streamed_copy(0.001)
+    _, _, n_all = _streamed_copy(0.0)
+    alive = [p for p in copy if fe._pts.alive[p]]
+    assert len(alive) > 200
+    # the receiver's copy of every live point is within the bound of the agent's own position
+    err = np.linalg.norm(np.array([copy[p] for p in alive]) - fe._pts.xyz[alive], axis=1)
+    assert err.max() <= 0.001 + 1e-9, err.max()
+    # and updates under the bound were not sent (the synthetic scene's local BA moves many by less)
+    assert 0 < n_thin < 0.9 * n_all, (n_thin, n_all)
