@@ -260,6 +260,7 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
             "verify_cpu_ms": be.verify_cpu_ms,
             "job_bytes": be.job_bytes,
             "ship": app.state.bench_ship,
+            "sent": app.state.bench_sent,
             "query_lags": be.query_lags,
             "dropped": be.dropped_queries,
             "skipped": be.skipped_queries,
@@ -316,6 +317,20 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
 
     detect.prepare = shipped  # type: ignore[assignment]
     app.state.bench_ship = ship
+    # what a worker is actually sent when it keeps keyframes' features (every 10th packed job, bytes)
+    from hivemap.server.placerec import shipping
+
+    sent: list[int] = []
+    pack = shipping.Shipper.pack
+
+    def packed(self: Any, job: Any) -> Any:
+        out = pack(self, job)
+        if len(sent) * 10 <= len(app.state.hive.backend.query_ms):
+            sent.append(len(pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)))
+        return out
+
+    shipping.Shipper.pack = packed  # type: ignore[method-assign]
+    app.state.bench_sent = sent
     make_uvicorn_server(uvicorn.Config(app, **uvicorn_config_kwargs(settings))).run()
     if prof is not None and profile is not None:
         prof.dump_stats(str(profile))
@@ -468,6 +483,7 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
         "job_kb_mean": float(np.mean(fig["job_bytes"])) / 1e3 if fig.get("job_bytes") else float("nan"),
         "pickle_ms_mean": _mean([x[0] for x in fig.get("ship", [])]),
         "pickle_kb_mean": _mean([x[1] for x in fig.get("ship", [])]) / 1e3,
+        "sent_kb_mean": _mean(fig.get("sent", [])) / 1e3,
         "corr_p50": _pct(fig["correction_latencies"], 50),
         "corr_p95": _pct(fig["correction_latencies"], 95), "n_corr": len(fig["correction_latencies"]),
         "query_ms_mean": float(np.mean(fig["query_ms"])) if fig["query_ms"] else float("nan"),
@@ -496,7 +512,8 @@ def summary(r: dict[str, Any]) -> str:
         f"p95 {r['query_cpu_ms_p95']:.0f} ms), {r['verifications']} verifications, "
         f"{r['full_verifications']} of them full (phase 2) "
         f"(CPU {r['verify_cpu_ms_per_query']:.0f} ms per query), job {r['job_kb_mean']:.0f} kB mean "
-        f"(pickled {r['pickle_kb_mean']:.0f} kB in {r['pickle_ms_mean']:.1f} ms CPU)",
+        f"(pickled {r['pickle_kb_mean']:.0f} kB in {r['pickle_ms_mean']:.1f} ms CPU, "
+        f"sent to a worker {r['sent_kb_mean']:.0f} kB)",
         f"corrections {r['n_corr']} p50 {r['corr_p50'] * 1e3:.0f} ms p95 {r['corr_p95'] * 1e3:.0f} ms",
         f"visual merges {r['merges']} loops {r['loops']} maps {r['maps']}",
         f"detections {r['detections']}, accepted candidates {r['accepted']}",

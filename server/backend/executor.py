@@ -21,6 +21,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol, TypeVar
 
 from hivemap.server.placerec.job import QueryJob
+from hivemap.server.placerec.shipping import Shipper, run_shipped
 from hivemap.server.placerec.types import CandidateReport
 from hivemap.server.placerec.verify import run_job
 
@@ -75,34 +76,57 @@ class ThreadVerifier:
 
 
 class ProcessVerifier:
-    """Jobs in a pool of ``workers`` processes (spawned: the server's threads are not forked)."""
+    """Jobs in ``workers`` processes (spawned: the server's threads are not forked), each its own
+    single-process pool, so a job goes to a known worker: the one with the fewest jobs in flight. Each
+    worker keeps the features of the last ``keyframe_cache`` keyframes it was sent
+    (:mod:`~hivemap.server.placerec.shipping`); 0 ships every job whole."""
 
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, keyframe_cache: int = 0) -> None:
         self.workers = workers
-        self._pool = self._start()
+        self._cache = keyframe_cache
+        self._pools = [self._start() for _ in range(workers)]
+        self._shippers = [Shipper(keyframe_cache) for _ in range(workers)]
+        self._inflight = [0] * workers
 
-    def _start(self) -> concurrent.futures.ProcessPoolExecutor:
+    @staticmethod
+    def _start() -> concurrent.futures.ProcessPoolExecutor:
         ctx = multiprocessing.get_context("spawn")
-        pool = concurrent.futures.ProcessPoolExecutor(self.workers, mp_context=ctx)
-        for _ in range(self.workers):
-            pool.submit(_warm)
+        pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=ctx)
+        pool.submit(_warm)
         return pool
 
     async def run(self, job: QueryJob) -> list[CandidateReport]:
-        return await self.call(run_job, job)
+        if self._cache <= 0:
+            return await self.call(run_job, job)
+        i = self._pick()
+        # packed on the event loop right before the submit, so the worker sees jobs in packing order
+        shipped = self._shippers[i].pack(job)
+        return await self._submit(i, run_shipped, shipped, self._cache)
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
+        return await self._submit(self._pick(), fn, *args)
+
+    def _pick(self) -> int:
+        return min(range(self.workers), key=self._inflight.__getitem__)
+
+    async def _submit(self, i: int, fn: Callable[..., T], *args: Any) -> T:
+        self._inflight[i] += 1
         try:
-            return await asyncio.wrap_future(self._pool.submit(fn, *args))
+            return await asyncio.wrap_future(self._pools[i].submit(fn, *args))
         except BrokenProcessPool:
-            # a worker died (killed, out of memory): this job fails, the next ones get a new pool
-            logger.error("a verification worker died: restarting the pool")
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = self._start()
+            # a worker died (killed, out of memory): this job fails, the next ones get a new worker,
+            # which holds no keyframes
+            logger.error("verification worker %d died: restarting it", i)
+            self._pools[i].shutdown(wait=False, cancel_futures=True)
+            self._pools[i] = self._start()
+            self._shippers[i].reset()
             raise
+        finally:
+            self._inflight[i] -= 1
 
     def shutdown(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        for pool in self._pools:
+            pool.shutdown(wait=False, cancel_futures=True)
 
 
 class RayVerifier:
@@ -136,12 +160,17 @@ class RayVerifier:
 
 
 def make_verifier(
-    executor: str, workers: int, ray_address: str, thread_pool: concurrent.futures.Executor
+    executor: str,
+    workers: int,
+    ray_address: str,
+    thread_pool: concurrent.futures.Executor,
+    keyframe_cache: int = 0,
 ) -> Verifier:
-    """The verifier for ``executor`` (one of :data:`EXECUTORS`); ``workers`` 0: :func:`default_workers`."""
+    """The verifier for ``executor`` (one of :data:`EXECUTORS`); ``workers`` 0: :func:`default_workers`;
+    ``keyframe_cache``: keyframes whose features each local worker keeps."""
     n = workers if workers > 0 else default_workers()
     if executor == "local":
-        return ProcessVerifier(n)
+        return ProcessVerifier(n, keyframe_cache)
     if executor == "thread":
         return ThreadVerifier(thread_pool)
     if executor == "ray":

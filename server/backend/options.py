@@ -35,6 +35,10 @@ class SchedulerOptions:
     executor: str = "local"
     workers: int = 0  # processes / concurrent queries; 0: the cores less one, at least one
     ray_address: str = ""
+    # each worker process keeps the features of this many keyframes it was sent, so that a job carries
+    # only the others' (:mod:`~hivemap.server.placerec.shipping`; ~60 kB a keyframe); 0: every job
+    # carries all of its keyframes' features
+    worker_keyframe_cache: int = 3000
 
 
 @dataclass(frozen=True)

@@ -72,7 +72,13 @@ class Backend(Pipeline):
         await loop.run_in_executor(self._pr_exec, init)
         so = self.options.scheduler
         self._verifier = await loop.run_in_executor(
-            None, executor.make_verifier, so.executor, so.workers, so.ray_address, self._pr_exec
+            None,
+            executor.make_verifier,
+            so.executor,
+            so.workers,
+            so.ray_address,
+            self._pr_exec,
+            so.worker_keyframe_cache,
         )
         server.events.add("info", f"back-end verification: {so.executor} executor, "
                           f"{self._verifier.workers} worker(s)")  # fmt: skip

@@ -4,12 +4,15 @@ reports (the job carries the maps' slices as arrays); and what the queue skips i
 from __future__ import annotations
 
 import asyncio
+import pickle
 
+import pytest
 from test_placerec import _recognizer, scene  # noqa: F401  (the synthetic scene fixture)
 
 from hivemap.server.backend.backlog import QueryQueue
 from hivemap.server.backend.executor import ProcessVerifier
 from hivemap.server.placerec.phases import combine_phases
+from hivemap.server.placerec.shipping import Shipper
 from hivemap.server.placerec.verify import run_job
 
 
@@ -49,6 +52,34 @@ def test_a_job_verified_in_a_worker_process_reports_what_the_thread_does(scene) 
     # the detection concluded from the worker's reports is the inline one's
     det = pr.conclude(result, combine_phases(job, first, remote)).detection
     assert det is not None and det.candidate_map == 1
+
+
+@pytest.mark.parametrize("cache", [4, 3000])
+def test_jobs_shipped_without_the_features_a_worker_holds_report_what_whole_jobs_do(scene, cache) -> None:  # noqa: F811
+    maps = {0: scene["A"], 1: scene["B"], 2: scene["C"], 3: scene["D"]}
+    pr = _recognizer(maps)
+    jobs = []
+    for key in sorted(maps[0].keyframes)[2:]:
+        _, job = pr.prepare(maps, 0, key, loop=False)
+        if job is not None and job.candidates:
+            jobs.append(job)
+    assert len(jobs) >= 4
+    whole = [_summary(run_job(j)) for j in jobs]
+    # what the packer sends, on a mirror of the one the verifier uses (same jobs, same order)
+    shipper = Shipper(cache)
+    sizes = [(len(pickle.dumps(j)), len(pickle.dumps(shipper.pack(j)))) for j in jobs]
+    pool = ProcessVerifier(1, keyframe_cache=cache)
+    try:
+        # a small cache evicts keyframes within and between jobs: a worker that disagreed with its packer
+        # about what it holds would fail the job
+        shipped = [_summary(asyncio.run(pool.run(j))) for j in jobs]
+    finally:
+        pool.shutdown()
+    assert shipped == whole
+    assert all(b <= a + 1024 for a, b in sizes)  # never more than the whole job (and the wrapper)
+    if cache >= 3000:  # the later jobs re-read the same places: most of their features are held
+        later = sizes[len(sizes) // 2 :]
+        assert sum(b for _, b in later) < 0.6 * sum(a for a, _ in later), sizes
 
 
 def test_a_backlog_skips_keyframes_whose_place_their_agent_just_queried() -> None:
