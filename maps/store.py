@@ -166,6 +166,9 @@ class MapStore:
             "map_points": self._max_seq("map_points"),
         }
         self._agents_cache: dict[int, set[str]] = {}
+        # per map the fusion redirects its rows hold, so a sync writes only the changed ones (dropped at
+        # every other write of the map's redirects and on a rollback: the next sync then rewrites all)
+        self._redirects_cache: dict[int, dict[PointKey, PointKey]] = {}
 
     # ------------------------------------------------------------------ set-up
     def _check_schema(self) -> None:
@@ -224,8 +227,14 @@ class MapStore:
             yield
         except BaseException:
             self.conn.rollback()
+            self.forget_caches()
             raise
         self.conn.commit()
+
+    def forget_caches(self) -> None:
+        """After a rollback: what this object remembers of the rows may not be what they hold."""
+        self._agents_cache.clear()
+        self._redirects_cache.clear()
 
     def transaction(self) -> AbstractContextManager[None]:
         """Group several writes into one transaction (commits at the end unless the caller already holds
@@ -402,10 +411,21 @@ class MapStore:
                 "INSERT INTO map_loops VALUES (?, ?, ?, ?, ?)",
                 [(map_id, a[0], a[1], b[0], b[1]) for a, b in m.loop_edges()],
             )
+            cur = m.point_redirects
+            last = self._redirects_cache.pop(map_id, None)
+            if last is None:
+                self.conn.execute("DELETE FROM map_redirects WHERE map_id = ?", (map_id,))
+                last = {}
+            gone = [f for f in last if f not in cur]
+            self.conn.executemany(
+                "DELETE FROM map_redirects WHERE map_id = ? AND from_agent = ? AND from_id = ?",
+                [(map_id, f[0], f[1]) for f in gone],
+            )
             self.conn.executemany(
                 "INSERT OR REPLACE INTO map_redirects VALUES (?, ?, ?, ?, ?)",
-                [(map_id, f[0], f[1], t[0], t[1]) for f, t in m.point_redirects.items()],
+                [(map_id, f[0], f[1], t[0], t[1]) for f, t in cur.items() if last.get(f) != t],
             )
+            self._redirects_cache[map_id] = dict(cur)
 
     def delete_map(self, map_id: int) -> None:
         """Remove a map's rows (keyframes, points, graphs, its merge records)."""
@@ -417,6 +437,7 @@ class MapStore:
             if t != "map_merges" or merges:
                 self.conn.execute(f"DELETE FROM {t} WHERE map_id = ?", (map_id,))
         self._agents_cache.pop(map_id, None)
+        self._redirects_cache.pop(map_id, None)
 
     def record_merge(
         self,
@@ -457,6 +478,7 @@ class MapStore:
         self.conn.executemany(_KF_UPSERT, [(*r[:3], self._next_seq(kf_seq), *r[4:]) for r in rows.keyframes])
         self.conn.executemany("INSERT INTO map_loops VALUES (?, ?, ?, ?, ?)", rows.loops)
         self.conn.executemany("INSERT INTO map_redirects VALUES (?, ?, ?, ?, ?)", rows.redirects)
+        self._redirects_cache.pop(mid, None)
         if merges:
             self.conn.executemany("INSERT INTO map_merges (map_id, record) VALUES (?, ?)", rows.merges)
 
@@ -477,6 +499,7 @@ class MapStore:
             for t in _TABLES:
                 self.conn.execute(f"DELETE FROM {t}")
             self._agents_cache.clear()
+            self._redirects_cache.clear()
             n = len(stack.maps)
             for i, m in enumerate(stack.maps.values()):
                 self._write_map(map_rows(m), merges=True)

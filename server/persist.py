@@ -114,6 +114,7 @@ class ServerStore:
 
     def rollback(self) -> None:
         self.conn.rollback()
+        self.maps.forget_caches()
 
     def close(self) -> None:
         self.maps.close()

@@ -154,6 +154,48 @@ def test_incremental_writes_reload_to_the_same_map(tmp_path: Path) -> None:
     assert float(np.median(t_kf[-20:])) < 0.05
 
 
+def test_graph_syncs_write_only_changed_redirects_and_reload_to_the_map(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    kfs, pts = random_keyframes_and_points(rng, "uav1", 20, 1500, obs_per_keyframe=120)
+    stack = MapStack()
+    m = stack.new_map()
+    for p in pts:
+        m.add_point(p)
+    for kf in kfs:
+        m.add_keyframe(kf)
+    store = MapStore(tmp_path / "red.sqlite")
+    store.save_map(m)
+    keys = list(m.points)
+
+    def rows() -> set[tuple]:
+        return set(store.conn.execute("SELECT * FROM map_redirects").fetchall())
+
+    for start in (0, 100):  # two rounds of fusions, each followed by a sync
+        for i in range(start, start + 60, 2):
+            m.fuse_points(keys[i], keys[i + 1])
+        store.delete_points(m.id, [keys[i + 1] for i in range(start, start + 60, 2)])
+        store.sync_graph(m)
+    assert len(rows()) == len(m.point_redirects) == 60
+    # a fused-away point that comes back (an agent re-sends it) loses its redirect, in the rows too
+    back = MapPoint(keys[1][0], keys[1][1], np.zeros(3), np.zeros(32, np.uint8))
+    m.add_point(back)
+    assert keys[1] not in m.point_redirects
+    store.put_points(m.id, [back])
+    # a sync rolled back leaves rows the sync cache must not trust: the next sync rewrites them all
+    store.autocommit = False
+    store.conn.execute("BEGIN")
+    store.sync_graph(m)
+    store.conn.rollback()
+    store.forget_caches()
+    store.autocommit = True
+    assert len(rows()) == 60
+    store.sync_graph(m)
+    assert len(rows()) == 59
+    store.close()
+    with MapStore(tmp_path / "red.sqlite") as again:
+        assert again.load_stack().maps[m.id].point_redirects == m.point_redirects
+
+
 def test_writes_join_the_callers_transaction(tmp_path: Path) -> None:
     store = MapStore(tmp_path / "tx.sqlite")
     store.conn.execute("CREATE TABLE other (x INTEGER)")
