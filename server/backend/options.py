@@ -195,11 +195,11 @@ class RendezvousOptions:
     # the edge's tilt is updated with the two keyframes' IMU up directions (as loops and merges are
     # levelled), their relative tilt known to this sigma; 0: the PnP's tilt alone
     level_sigma_deg: float = 0.3
-    # consecutive observations of one agent by one observer share most of their error (the same
-    # carrier seen from a slowly changing viewpoint): each edge's covariance is multiplied by this, the
-    # number of used observations (one per ``min_interval_s``) within the time over which they stay
-    # correlated
-    correlated_edges: float = 4.0
+    # consecutive observations of one agent by one observer share much of their error (the same
+    # carrier seen from a slowly changing viewpoint): each edge's covariance is multiplied by this, so
+    # that a sighting of n edges weighs as n / correlated_edges observations (with a correlation rho
+    # between them, n edges are worth at most 1 / rho independent ones)
+    correlated_edges: float = 8.0
 
 
 @dataclass(frozen=True)
