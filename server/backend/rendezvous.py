@@ -183,6 +183,7 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
     server = bk.server
     maps = server.stack.maps
     if a not in maps or b not in maps or a == b:
+        settle_pending(bk)
         return
     target = surgery.target_of(maps, a, b, bk._agent_kind)
     source = b if target == a else a
@@ -272,6 +273,20 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
     t_det = time.monotonic()
     await bk._send_corrections(target, {}, t_det)
     bk._schedule_optimisation(target, edges, t_det)
+    settle_pending(bk)
+
+
+def settle_pending(bk: Any) -> None:
+    """Pending observations whose two keyframes are in one map by now (resolved between two maps while a
+    merge of them was being tried) become edges of that map."""
+    for obs in bk.server.rendezvous.values():
+        if obs.state != "pending" or obs.edge is None:
+            continue
+        e = edge_from(obs.edge)
+        mc, mq = _map_id(bk.server, e.candidate), _map_id(bk.server, e.query)
+        if mc is not None and mc == mq:
+            add_to_map(bk, obs, e, mc)
+            _persist(bk.server, obs)
 
 
 def judged(bk: Any, evs: list[Evidence]) -> None:
