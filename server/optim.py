@@ -45,6 +45,8 @@ class PoseGraphEdge:
     robust: bool = False
     sigma_yaw: float | None = None
     up_j: tuple[float, float, float] | None = None
+    # (6, 6) [rot, trans] covariance in gtsam's Between perturbation (``j`` side), instead of the sigmas
+    covariance: F64 | None = field(default=None, compare=False)
 
     def rotation_covariance(self) -> F64:
         """3x3 covariance of the rotation error, in keyframe ``j``'s frame (gtsam's Between error: the
@@ -99,12 +101,18 @@ def _check_graph(name: str, n: int, edges: list[PoseGraphEdge], fixed: set[int] 
 
 
 def _edge_noise(e: PoseGraphEdge, tail: list[float], options: PoseGraphOptions) -> Any:
-    """The edge's noise model: rotation block from :meth:`PoseGraphEdge.rotation_covariance`, then
-    the independent sigmas ``tail`` (translation, and log-scale for Sim(3)); Huber if robust."""
+    """The edge's noise model: its ``covariance`` (then the log-scale sigma for Sim(3)), or the rotation
+    block from :meth:`PoseGraphEdge.rotation_covariance` and the independent sigmas ``tail``
+    (translation, and log-scale for Sim(3)); Huber if robust."""
     import gtsam
 
     noise: Any
-    if e.sigma_yaw is None or e.up_j is None:
+    if e.covariance is not None:
+        cov = np.zeros((3 + len(tail), 3 + len(tail)))
+        cov[:6, :6] = e.covariance
+        cov[6:, 6:] = np.diag(np.square(tail[3:]))
+        noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+    elif e.sigma_yaw is None or e.up_j is None:
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([e.sigma_rot] * 3 + tail))
     else:
         cov = np.diag(np.r_[np.zeros(3), np.square(tail)])

@@ -19,15 +19,22 @@ def _edge(e: NewEdge | None) -> dict[str, Any] | None:
     if e is None:
         return None
     return {"candidate": list(e.candidate), "query": list(e.query), "measured": e.measured.matrix().tolist(),
-            "sigma_rot": e.sigma_rot, "sigma_trans": e.sigma_trans}  # fmt: skip
+            "sigma_rot": e.sigma_rot, "sigma_trans": e.sigma_trans,
+            "covariance": None if e.covariance is None else np.asarray(e.covariance).tolist()}  # fmt: skip
 
 
 def _new_edge(d: dict[str, Any] | None) -> NewEdge | None:
     if d is None:
         return None
     measured = Sim3.from_matrix(np.asarray(d["measured"], dtype=np.float64))
+    cov = d.get("covariance")
     return NewEdge(
-        _kf(d["candidate"]), _kf(d["query"]), measured, float(d["sigma_rot"]), float(d["sigma_trans"])
+        _kf(d["candidate"]),
+        _kf(d["query"]),
+        measured,
+        float(d["sigma_rot"]),
+        float(d["sigma_trans"]),
+        None if cov is None else np.asarray(cov, dtype=np.float64),
     )
 
 

@@ -23,13 +23,15 @@ F64 = NDArray[np.float64]
 
 class NewEdge(NamedTuple):
     """A loop's or merge's pose-graph edge: ``measured`` is cam_candidate_from_cam_query; sigmas in rad
-    and m (``FitOptions.loop_sigma_bootstrap``)."""
+    and m (``FitOptions.loop_sigma_bootstrap``). ``covariance``: (6, 6) in gtsam's Between perturbation
+    ([rot, trans], query side), used instead of the sigmas where given (a rendezvous edge's)."""
 
     candidate: KfKey
     query: KfKey
     measured: Sim3
     sigma_rot: float
     sigma_trans: float
+    covariance: F64 | None = None
 
 
 @dataclass
@@ -78,6 +80,7 @@ class PoseGraphProblem:
     # per graph edge (sigma_rot rad, sigma_trans m, extra yaw sigma rad); None: the options' sigmas
     graph_sigmas: list[tuple[float, float, float]] | None = None
     move_slack_m: float = 0.0  # how much farther than the options' limit weak tracking lets a keyframe move
+    new_edge_covs: list[F64 | None] = field(default_factory=list)  # per new edge, its covariance or None
 
 
 def pose_graph_problem(
@@ -116,6 +119,7 @@ def pose_graph_problem(
          edges[n].sigma_trans)
         for n in kept
     ]  # fmt: skip
+    covs = [edges[n].covariance for n in kept]
     initial = snap.poses.copy()
     if pre is not None:
         for k in pre[1]:
@@ -123,12 +127,12 @@ def pose_graph_problem(
                 initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
     if not any(m.keyframes[k].odom_sigma is not None for k in snap.keys):
-        return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose)
+        return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, new_edge_covs=covs)
     chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
     graph_edges = across_weak_tracking(graph_edges, snap.keys, chains, m)
     sigmas = [odometry_sigmas(chains.between(snap.keys[i], snap.keys[j]), o) for i, j in graph_edges]
     slack = max((3.0 * float(chains.weak_total(a)[0]) for a in {k[0] for k in snap.keys}), default=0.0)
-    return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, sigmas, slack)
+    return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, sigmas, slack, covs)
 
 
 def across_weak_tracking(
@@ -191,7 +195,7 @@ def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseO
         sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
         sigma_yaw=o.pose_graph_sigma_yaw if o.pose_graph_sigma_yaw > 0 else None, ups=p.ups,
         options=PoseGraphOptions(gnc=o.gnc, gnc_inlier_probability=o.gnc_inlier_probability), loose=p.loose,
-        graph_sigmas=p.graph_sigmas,
+        graph_sigmas=p.graph_sigmas, covariances=p.new_edge_covs,
     )  # fmt: skip
     n = len(p.graph_edges)
     return PoseGraphResult(res.poses, res.inlier[n:], res.chi2[n:])
@@ -211,6 +215,7 @@ def pose_graph(
     options: PoseGraphOptions | None = None,
     loose: Sequence[int] = (),
     graph_sigmas: Sequence[tuple[float, float, float]] | None = None,
+    covariances: Sequence[F64 | None] = (),
 ) -> PoseGraphResult:
     """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
     with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust (Huber,
@@ -218,6 +223,7 @@ def pose_graph(
     ``sigma_yaw`` with ``ups`` ((N, 3) up directions in the keyframes' camera frames, NaN rows where there
     is none): the graph's edges hold the rotation about the far keyframe's up with this sigma instead.
     ``graph_sigmas``: per graph edge (sigma_rot, sigma_trans, extra yaw sigma), instead of ``sigmas``.
+    ``covariances``: per new edge, a (6, 6) covariance instead of its two sigmas, or None.
 
     ``metric``: the map has metric scale (stereo agents), so the graph is SE(3) (gtsam Pose3). A Sim(3)
     graph let scale creep in at each of the dozens of loop closures of a factory run until poses
@@ -243,7 +249,9 @@ def pose_graph(
         )  # fmt: skip
         for (i, j), (sr, st, sy) in zip(graph_edges, per_edge, strict=True)
     ]
-    edges += [PoseGraphEdge(i, j, s, sr, st, robust=True) for i, j, s, sr, st in new_edges]
+    covs = list(covariances) + [None] * (len(new_edges) - len(covariances))
+    edges += [PoseGraphEdge(i, j, s, sr, st, robust=True, covariance=c)
+              for (i, j, s, sr, st), c in zip(new_edges, covs, strict=True)]  # fmt: skip
     opts = options or PoseGraphOptions()
     if metric:
         return solve_pose_graph_se3(initial, edges, set(fixed), opts, loose)

@@ -187,9 +187,23 @@ class RendezvousOptions:
     # the interpolation's uncertainty: this share of the bracketing keyframes' relative motion (at the
     # middle of the interval; extrapolation: of the motion beyond the last keyframe)
     interp_share: float = 0.2
-    # floors of an edge's sigmas (a PnP covariance can be optimistic)
+    # floors of an edge's sigmas (a PnP covariance can be optimistic): its covariance's rotation and
+    # translation eigenvalues are raised to them
     sigma_rot_floor_deg: float = 0.3
     sigma_trans_floor_m: float = 0.02
+    # the observer's own error of its frame against its reference keyframe (``ref_from_cam``): its
+    # front-end's drift over the path between them, in rotation (deg per m) and translation (m per m);
+    # the rotation acts over the whole distance to the observed agent
+    observer_drift_deg_per_m: float = 0.15
+    observer_drift_trans: float = 0.02
+    # the edge's tilt is updated with the two keyframes' IMU up directions (as loops and merges are
+    # levelled), their relative tilt known to this sigma; 0: the PnP's tilt alone
+    level_sigma_deg: float = 0.3
+    # consecutive observations of one agent by one observer share much of their error (the same
+    # carrier seen from a slowly changing viewpoint): each edge's covariance is multiplied by this, so
+    # that a sighting of n edges weighs as n / correlated_edges observations (with a correlation rho
+    # between them, n edges are worth at most 1 / rho independent ones)
+    correlated_edges: float = 8.0
 
 
 @dataclass(frozen=True)

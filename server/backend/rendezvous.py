@@ -37,13 +37,15 @@ KIND = "rendezvous"
 
 def _edge_dict(e: NewEdge) -> dict[str, Any]:
     return {"candidate": list(e.candidate), "query": list(e.query), "measured": e.measured.matrix().tolist(),
-            "sigma_rot": e.sigma_rot, "sigma_trans": e.sigma_trans}  # fmt: skip
+            "sigma_rot": e.sigma_rot, "sigma_trans": e.sigma_trans,
+            "covariance": None if e.covariance is None else np.asarray(e.covariance).tolist()}  # fmt: skip
 
 
 def edge_from(d: dict[str, Any]) -> NewEdge:
+    cov = None if d.get("covariance") is None else np.asarray(d["covariance"], dtype=np.float64)
     return NewEdge((str(d["candidate"][0]), int(d["candidate"][1])), (str(d["query"][0]), int(d["query"][1])),
                    Sim3.from_matrix(np.asarray(d["measured"], dtype=np.float64)), float(d["sigma_rot"]),
-                   float(d["sigma_trans"]))  # fmt: skip
+                   float(d["sigma_trans"]), cov)  # fmt: skip
 
 
 def _persist(server: Any, obs: RendezvousObs) -> None:
@@ -71,8 +73,9 @@ def resolve(server: Any, obs: RendezvousObs, bk: Any) -> NewEdge | str:
         if isinstance(br, str):
             why = br
             continue
+        ups = (bk._up_cam(m, obs.ref_key), bk._up_cam(om, br.a))
         return edge_of(obs.ref_key, obs.ref_from_cam, obs.cam_from_observed, obs.covariance, br,
-                       bk.options.rendezvous)  # fmt: skip
+                       bk.options.rendezvous, ups)  # fmt: skip
     return why
 
 
@@ -180,6 +183,7 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
     server = bk.server
     maps = server.stack.maps
     if a not in maps or b not in maps or a == b:
+        settle_pending(bk)
         return
     target = surgery.target_of(maps, a, b, bk._agent_kind)
     source = b if target == a else a
@@ -269,6 +273,20 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
     t_det = time.monotonic()
     await bk._send_corrections(target, {}, t_det)
     bk._schedule_optimisation(target, edges, t_det)
+    settle_pending(bk)
+
+
+def settle_pending(bk: Any) -> None:
+    """Pending observations whose two keyframes are in one map by now (resolved between two maps while a
+    merge of them was being tried) become edges of that map."""
+    for obs in bk.server.rendezvous.values():
+        if obs.state != "pending" or obs.edge is None:
+            continue
+        e = edge_from(obs.edge)
+        mc, mq = _map_id(bk.server, e.candidate), _map_id(bk.server, e.query)
+        if mc is not None and mc == mq:
+            add_to_map(bk, obs, e, mc)
+            _persist(bk.server, obs)
 
 
 def judged(bk: Any, evs: list[Evidence]) -> None:

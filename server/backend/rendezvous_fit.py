@@ -58,6 +58,83 @@ def bracket(keyframes: Sequence[tuple[float, KfKey, F64]], t: float, o: Rendezvo
     return Bracket(kl, kp, wl, wp, -(t - tl) / (tl - tp))
 
 
+def skew(v: F64) -> F64:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def adjoint(T: F64) -> F64:
+    """(6, 6) adjoint of SE(3) ``T`` in gtsam's tangent order [rot, trans]: ``T Exp(x) T^-1 = Exp(Ad x)``."""
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[3:, :3] = skew(t) @ R
+    return A
+
+
+def edge_covariance(
+    cam_from_observed: F64, covariance: F64, a_from_t: F64, path_m: float, interp: tuple[float, float],
+    o: RendezvousOptions,
+) -> F64:  # fmt: skip
+    """(6, 6) covariance of the edge ``ref_from_cam cam_from_observed a_from_t^-1`` in gtsam's Between
+    perturbation (right, on the query side; [rot, trans]): the PnP's (right perturbation of
+    ``cam_from_observed``) carried to the query keyframe; the observer's own error of ``ref_from_cam``
+    (its front-end's drift over the ``path_m`` between the reference keyframe and the frame), whose
+    rotation acts over the whole distance to the observed agent; the interpolation's ``interp`` (rad, m)."""
+    A_pnp = adjoint(a_from_t)
+    cov = A_pnp @ np.asarray(covariance, dtype=np.float64) @ A_pnp.T
+    A_obs = adjoint(a_from_t @ se3_inverse(cam_from_observed))
+    s_r, s_t = math.radians(o.observer_drift_deg_per_m) * path_m, o.observer_drift_trans * path_m
+    cov += A_obs @ np.diag([s_r**2] * 3 + [s_t**2] * 3) @ A_obs.T
+    cov += A_pnp @ np.diag([interp[0] ** 2] * 3 + [interp[1] ** 2] * 3) @ A_pnp.T
+    return 0.5 * (cov + cov.T)
+
+
+def level(measured: F64, cov: F64, up_c: F64, up_q: F64, sigma_rad: float) -> tuple[F64, F64]:
+    """The edge ``measured`` (candidate_from_query, covariance ``cov`` as :func:`edge_covariance`) updated
+    with the relative tilt the two keyframes' IMU up directions give (``up_c``, ``up_q``, in their camera
+    frames; ``sigma_rad`` the error of their relative tilt): ``measured`` should carry ``up_q`` onto
+    ``up_c``. An iterated Kalman update in the edge's tangent: the tilt, which a PnP of a carrier seen
+    from afar knows worst, comes from gravity, and whatever the PnP's translation shares with its tilt
+    error moves with it."""
+    up_c = up_c / np.linalg.norm(up_c)
+    up_q = up_q / np.linalg.norm(up_q)
+    a = np.cross(up_c, [1.0, 0.0, 0.0] if abs(up_c[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    B = np.stack([a, np.cross(up_c, a)])  # (2, 3) across up_c
+    R0 = measured[:3, :3]
+
+    def r(w: F64) -> F64:
+        return B @ (R0 @ so3_exp(w) @ up_q)
+
+    noise = sigma_rad**2 * np.eye(2)
+    x = np.zeros(6)
+    J = np.zeros((2, 6))
+    K = np.zeros((6, 2))
+    for _ in range(5):
+        r0 = r(x[:3])
+        J[:, :3] = -B @ R0 @ so3_exp(x[:3]) @ skew(up_q)  # d/dw of R Exp(w) u ~ R (u + w x u)
+        K = cov @ J.T @ np.linalg.inv(J @ cov @ J.T + noise)
+        x_new = K @ (J @ x - r0)
+        done = float(np.linalg.norm(x_new - x)) < 1e-12
+        x = x_new
+        if done:
+            break
+    IKJ = np.eye(6) - K @ J
+    out = IKJ @ cov @ IKJ.T + K @ noise @ K.T
+    return measured @ se3(so3_exp(x[:3]), x[3:]), 0.5 * (out + out.T)
+
+
+def _floored(cov: F64, floor_rot: float, floor_trans: float) -> F64:
+    """``cov`` with the eigenvalues of its rotation and translation blocks raised to at least the floors'
+    squares (the cross terms kept)."""
+    out = cov.copy()
+    for sl, f in ((slice(0, 3), floor_rot), (slice(3, 6), floor_trans)):
+        lam, U = np.linalg.eigh(out[sl, sl])
+        out[sl, sl] += U @ np.diag(np.maximum(f**2 - lam, 0.0)) @ U.T
+    return out
+
+
 def edge_of(
     ref_key: KfKey,
     ref_from_cam: F64,
@@ -65,25 +142,30 @@ def edge_of(
     covariance: F64,
     br: Bracket,
     o: RendezvousOptions,
+    ups: tuple[F64 | None, F64 | None] | None = None,
 ) -> NewEdge:
     """The observation as an edge from the observer's reference keyframe (candidate) to the observed
     agent's keyframe ``br.a`` (query): the observed pose at the observation's time is ``a`` moved by the
-    interpolated share of its motion a -> b. Sigmas: the PnP covariance's largest (its rotation acting over
-    the lever back to ``a``), plus the interpolation's uncertainty, floored."""
+    interpolated share of its motion a -> b. Its covariance (:func:`edge_covariance`), levelled by the
+    keyframes' up directions ``ups`` (candidate, query) when both have one (:func:`level`), floored,
+    then multiplied by ``o.correlated_edges``; the sigmas are the largest of its blocks before that."""
     a_from_b = se3_inverse(br.world_from_a) @ br.world_from_b
     a_from_t = interpolate(a_from_b, br.alpha)
     measured = ref_from_cam @ cam_from_observed @ se3_inverse(a_from_t)
-    cov = np.asarray(covariance, dtype=np.float64)
-    sr = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3]).max()), 0.0))
-    st = math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:]).max()), 0.0))
-    lever = float(np.linalg.norm(a_from_t[:3, 3]))
     # interpolation: none at a keyframe, most in the middle; extrapolation: grows with the distance past a
     u = abs(br.alpha) if br.alpha < 0 else min(br.alpha, 1.0 - br.alpha)
     it = o.interp_share * u * float(np.linalg.norm(a_from_b[:3, 3]))
     ir = o.interp_share * u * float(np.linalg.norm(so3_log(a_from_b[:3, :3])))
-    sigma_rot = max(math.hypot(sr, ir), math.radians(o.sigma_rot_floor_deg))
-    sigma_trans = max(math.sqrt(st**2 + (sr * lever) ** 2 + it**2), o.sigma_trans_floor_m)
-    return NewEdge(ref_key, br.a, Sim3.from_se3(measured), sigma_rot, sigma_trans)
+    path = float(np.linalg.norm(ref_from_cam[:3, 3]))
+    cov = edge_covariance(cam_from_observed, covariance, a_from_t, path, (ir, it), o)
+    if ups is not None and ups[0] is not None and ups[1] is not None and o.level_sigma_deg > 0:
+        measured, cov = level(measured, cov, ups[0], ups[1], math.radians(o.level_sigma_deg))
+    cov = _floored(cov, math.radians(o.sigma_rot_floor_deg), o.sigma_trans_floor_m)
+    # the sigmas are the one observation's (the agreement gate judges each alone)
+    sigma_rot = math.sqrt(float(np.linalg.eigvalsh(cov[:3, :3]).max()))
+    sigma_trans = math.sqrt(float(np.linalg.eigvalsh(cov[3:, 3:]).max()))
+    return NewEdge(ref_key, br.a, Sim3.from_se3(measured), sigma_rot, sigma_trans,
+                   cov * max(o.correlated_edges, 1.0))  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -42,13 +42,16 @@ def world_poses(true_local: np.ndarray, local_from_world: Sim3, world_from: np.n
     return np.array([world_from @ inv.transform_pose(T) for T in true_local])
 
 
-def setup(seed: int = 3) -> tuple[list[Message], list[Message], np.ndarray, np.ndarray]:
-    """Both agents' streams and their true keyframe poses in W."""
+def setup(seed: int = 3, up: bool = False) -> tuple[list[Message], list[Message], np.ndarray, np.ndarray]:
+    """Both agents' streams and their true keyframe poses in W; ``up``: the keyframes carry their IMU up
+    directions (exact; W's and B's z axes are both up)."""
     rng = np.random.default_rng(seed)
     pa, da = make_world(rng, 2500, (-20, 30))
     pb, db = make_world(rng, 2500, (-20, 30))
-    uav, uav_true, _ = agent_stream(rng, pa, da, np.linspace(-6, 8, 10), UAV_FROM_WORLD)
-    ugv, ugv_true, _ = agent_stream(rng, pb, db, np.linspace(-6, 8, 10), UGV_FROM_WORLD, point_id0=50000)
+    tilt = 0.0 if up else None
+    uav, uav_true, _ = agent_stream(rng, pa, da, np.linspace(-6, 8, 10), UAV_FROM_WORLD, up_tilt_deg=tilt)
+    ugv, ugv_true, _ = agent_stream(rng, pb, db, np.linspace(-6, 8, 10), UGV_FROM_WORLD, point_id0=50000,
+                                    up_tilt_deg=tilt)  # fmt: skip
     return (
         uav,
         ugv,
@@ -240,6 +243,45 @@ def test_a_wrong_rendezvous_merge_is_undone_and_the_maps_merge_right(tmp_path: P
         assert states == ["rejected"] * 3 + ["kept"] * 5, states
         assert len(rest(srv, "/maps")["maps"]) == 1
         check_transform(uav_transform(srv))
+        agent.close()
+    finally:
+        srv.stop()
+
+
+def far_observation(uav_w: np.ndarray, ugv_w: np.ndarray, t: float, rng: np.random.Generator) -> Rendezvous:
+    """The UGV's roof board seen from afar: its PnP knows the board's tilt (the UGV's roll and pitch) to
+    1.5 deg, its yaw to 0.2 deg and its position to 2 cm, and every observation of the sighting is off by
+    the same 2 deg of tilt (one viewpoint, slowly changing: the error of one is the error of the next)."""
+    obs = observation(uav_w, ugv_w, t, rng)
+    T_wq = at(ugv_w, t)
+    up_q = T_wq[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # up in the UGV's camera
+    across = np.cross(up_q, T_wq[:3, :3].T @ np.array([1.0, 0.0, 0.0]))
+    across /= np.linalg.norm(across)
+    tilted = obs.cam_from_observed @ se3(so3_exp(np.radians(2.0) * across), np.zeros(3))
+    s_tilt, s_yaw = np.radians(1.5), np.radians(0.2)
+    cov = np.diag([0.0] * 3 + [SIGMA_TRANS**2] * 3)
+    cov[:3, :3] = s_tilt**2 * np.eye(3) + (s_yaw**2 - s_tilt**2) * np.outer(up_q, up_q)
+    return replace(obs, cam_from_observed=tilted, covariance=cov)
+
+
+def test_a_far_sighting_with_a_shared_tilt_error_does_not_tilt_the_ugv(tmp_path: Path) -> None:
+    """Six observations of one sighting, each 2 deg off in tilt where its covariance says tilt is known
+    to 1.5 deg (yaw 0.2 deg): the keyframes' IMU up directions know the two agents' relative tilt, so
+    the merged map's transform is off by far less than the observations' shared 2 deg."""
+    uav, ugv, uav_w, ugv_w = setup(up=True)
+    rng = np.random.default_rng(11)
+    srv = Server(tmp_path / "data", preset("default", scheduler=FAST))
+    try:
+        stream(srv, "ugv1", "ugv", ugv).close()
+        agent = stream(srv, "uav1", "uav", uav)
+        srv.wait_idle(120)
+        obs = [far_observation(uav_w, ugv_w, t, rng) for t in (1.3, 2.4, 3.6, 4.7, 5.8, 6.9)]
+        _, errors = agent.send_all(obs, len(uav) + 1)
+        assert not errors, errors
+        srv.wait_idle(120)
+        assert len(rest(srv, "/maps")["maps"]) == 1, rest(srv, "/rendezvous")
+        err_m, err_deg = check_transform(uav_transform(srv), tol_m=0.1, tol_deg=0.5)
+        print(f"far sighting: {err_m * 100:.1f} cm, {err_deg:.2f} deg from the truth")
         agent.close()
     finally:
         srv.stop()

@@ -6,7 +6,7 @@ import numpy as np
 
 from hivemap.maps.geometry import se3, se3_inverse, so3_exp
 from hivemap.server.backend.options import RendezvousOptions
-from hivemap.server.backend.rendezvous_fit import Oriented, bracket, consensus, edge_of
+from hivemap.server.backend.rendezvous_fit import Oriented, bracket, consensus, edge_of, interpolate
 
 OPTS = RendezvousOptions()
 COV = np.diag([0.003**2] * 3 + [0.02**2] * 3)
@@ -59,3 +59,51 @@ def test_consensus_needs_three_agreeing_observations_and_ignores_a_wrong_one() -
     assert np.linalg.norm(res.target_from_source[:3, 3] - true[:3, 3]) < 0.03
     assert consensus([obs(0.5, wrong=True), *good[:2]], OPTS) is None  # two agree: not enough
     assert consensus([obs(0.0), obs(0.2), obs(0.4)], OPTS) is None  # three within 0.4 s: not spread enough
+
+
+def test_edge_covariance_predicts_its_error_and_the_up_directions_take_the_tilt() -> None:
+    """A carrier 10 m off seen between two of its agent's keyframes, its PnP error drawn from an
+    anisotropic covariance (tilt 1.5 deg, yaw 0.2 deg, 5 cm along the ray): the edge's errors whitened by
+    its covariance are chi-square with 6 degrees of freedom (its sigmas alone cannot say that: tilt and
+    yaw, ray and across it differ); with both keyframes' exact up directions its tilt error is gravity's."""
+    from hivemap.maps.geometry import so3_log
+
+    rng = np.random.default_rng(5)
+    o = RendezvousOptions(observer_drift_deg_per_m=0.0, observer_drift_trans=0.0, interp_share=0.0,
+                          sigma_rot_floor_deg=0.0, sigma_trans_floor_m=0.0, correlated_edges=1.0)  # fmt: skip
+    # the observed agent's motion between its keyframes as the server models it (slerp, linear)
+    wa = track(0.0)
+    wb = wa @ se3(so3_exp(np.array([0.0, 0.0, 0.1])), np.array([1.0, 0.0, 0.0]))
+    kfs = [(0.0, ("ugv", 0), wa), (1.0, ("ugv", 1), wb)]
+    observer = se3(so3_exp(np.array([0.9, 0.1, 0.2])), np.array([-6.0, 2.0, 8.0]))
+    t = 0.5
+    w_t = wa @ interpolate(se3_inverse(wa) @ wb, t)
+    truth_cfo = se3_inverse(observer) @ w_t
+    up_q = w_t[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    ray = truth_cfo[:3, :3].T @ (truth_cfo[:3, 3] / np.linalg.norm(truth_cfo[:3, 3]))  # in the observed frame
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = np.radians(1.5) ** 2 * np.eye(3) + (np.radians(0.2) ** 2 - np.radians(1.5) ** 2) * np.outer(
+        up_q, up_q
+    )
+    cov[3:, 3:] = 0.01**2 * np.eye(3) + (0.05**2 - 0.01**2) * np.outer(ray, ray)
+    br = bracket(kfs, t, OPTS)
+    assert not isinstance(br, str)
+    true_edge = se3_inverse(observer) @ track(0.0)
+    up_c = observer[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    up_a = track(0.0)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    m2, tilt_before, tilt_after = [], [], []
+    L = np.linalg.cholesky(cov)
+    for _ in range(300):
+        x = L @ rng.normal(size=6)
+        cfo = truth_cfo @ se3(so3_exp(x[:3]), x[3:])
+        e = edge_of(("uav", 0), np.eye(4), cfo, cov, br, o)
+        assert e.covariance is not None
+        E = se3_inverse(e.measured.matrix()) @ true_edge
+        r = np.concatenate([so3_log(E[:3, :3]), E[:3, 3]])
+        m2.append(float(r @ np.linalg.solve(e.covariance, r)))
+        lv = edge_of(("uav", 0), np.eye(4), cfo, cov, br, o, (up_c, up_a)).measured.matrix()
+        for M, out in ((e.measured.matrix(), tilt_before), (lv, tilt_after)):
+            out.append(np.degrees(np.arccos(np.clip((M[:3, :3] @ up_a) @ up_c, -1.0, 1.0))))
+    assert 5.0 < np.mean(m2) < 7.0, np.mean(m2)
+    assert np.sqrt(np.mean(np.square(tilt_before))) > 1.5
+    assert np.sqrt(np.mean(np.square(tilt_after))) < 0.4, np.sqrt(np.mean(np.square(tilt_after)))
