@@ -4,7 +4,8 @@ keyframes, about 70% of the observations with a stereo match), and the scale err
 
 Each keypoint has an ORB pyramid level (octave l with share ~ 1.2^-l, l = 0..7) and noise ``NOISE_PX``
 times 1.2^l; consecutive keyframes are joined by odometry between factors at the start poses' relative pose
-with the pose graph's default sigmas (the stereo BA in gtsam, :mod:`hivemap.server.ba_gtsam`).
+with the pose graph's default sigmas (the stereo BA in gtsam, :mod:`hivemap.server.ba_gtsam`); as the
+start map is scaled, they carry its scale error (``--no-odometry``: without them).
 
 Run: ``python bench/global_ba.py [--sizes 500 1000 2000] [--mono] [--scale-error 0.02] [--solver pycolmap]``
 (``--mono``: the same maps without their stereo observations, two held keyframes, for comparison;
@@ -91,14 +92,14 @@ def _scale_error(est: np.ndarray, ref: np.ndarray) -> float:
     return float((d * sign).sum() / (a**2).sum(1).mean() - 1.0)
 
 
-def bench(n: int, mono: bool, scale_error: float, solver: str = "gtsam") -> None:
+def bench(n: int, mono: bool, scale_error: float, solver: str = "gtsam", odometry_edges: bool = True) -> None:
     from hivemap.server.ba_gtsam import OdometryEdge
     from hivemap.server.backend.options import OptimiseOptions
     from hivemap.server.optim import BundleAdjustmentOptions, global_bundle_adjustment
 
     o = OptimiseOptions()
     sr, st = o.pose_graph_sigma_rot, o.pose_graph_sigma_trans
-    odometry = [OdometryEdge(k, k + 1, sr, st) for k in range(n - 1)]
+    odometry = [OdometryEdge(k, k + 1, sr, st) for k in range(n - 1)] if odometry_edges else []
     d = synthetic_map(n, seed=n, scale_error=scale_error)
     ur = np.full_like(d["ur"], np.nan) if mono else d["ur"]
     track = np.bincount(d["obs_pt"])
@@ -130,10 +131,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[500, 1000, 2000])
     ap.add_argument("--mono", action="store_true", help="also without the stereo observations")
     ap.add_argument("--scale-error", type=float, default=0.02, help="the start map's scale error (0.02: 2%%)")
+    ap.add_argument(
+        "--no-odometry", action="store_true", help="no between factors (they carry the start's scale)"
+    )
     ap.add_argument("--solver", choices=["gtsam", "pycolmap"], default="gtsam", help="the stereo BA's solver")
     args = ap.parse_args(argv)
     for n in args.sizes:
-        bench(n, mono=False, scale_error=args.scale_error, solver=args.solver)
+        bench(
+            n,
+            mono=False,
+            scale_error=args.scale_error,
+            solver=args.solver,
+            odometry_edges=not args.no_odometry,
+        )
         if args.mono:
             bench(n, mono=True, scale_error=args.scale_error)
     return 0
