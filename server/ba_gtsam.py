@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -65,7 +66,7 @@ def undistorted(cameras: Sequence[PinholeCamera], camera_index: I64, obs_kf: I64
     return out
 
 
-def _pose3(T: F64) -> object:
+def _pose3(T: F64) -> Any:
     import gtsam
 
     T = np.asarray(T, dtype=np.float64)
@@ -117,9 +118,9 @@ def solve(
     if obs_octave is not None and octave_weights:
         octs = np.clip(np.asarray(obs_octave, dtype=np.int64), 0, 31)
 
-    noise_cache: dict[tuple[int, int], object] = {}
+    noise_cache: dict[tuple[int, int], Any] = {}
 
-    def noise(dim: int, octave: int) -> object:
+    def noise(dim: int, octave: int) -> Any:
         key = (dim, octave)
         if key not in noise_cache:
             base = gtsam.noiseModel.Isotropic.Sigma(dim, float(scale_factor**octave))
@@ -136,15 +137,16 @@ def solve(
     values = gtsam.Values()
     for k in range(n):
         values.insert(X(k), _pose3(poses[k]))
-    for p in np.flatnonzero(in_problem):
-        values.insert(L(int(p)), np.asarray(pts[p], dtype=np.float64))
+    for pi in np.flatnonzero(in_problem):
+        values.insert(L(int(pi)), np.asarray(pts[pi], dtype=np.float64))
     n_stereo = 0
     for o in np.flatnonzero(use):
         k, p, ci = int(obs_kf[o]), int(obs_pt[o]), int(cam_of_obs[o])
+        ks = k_stereo[ci]
         octave = int(octs[o]) if octave_weights else 0
-        if stereo[o]:
+        if stereo[o] and ks is not None:
             meas = gtsam.StereoPoint2(float(uv[o, 0]), float(obs_ur[o]), float(uv[o, 1]))
-            graph.add(gtsam.GenericStereoFactor3D(meas, noise(3, octave), X(k), L(p), k_stereo[ci]))
+            graph.add(gtsam.GenericStereoFactor3D(meas, noise(3, octave), X(k), L(p), ks))
             n_stereo += 1
         else:
             graph.add(
@@ -173,8 +175,8 @@ def solve(
     for k in fixed_kfs:
         out_poses[int(k)] = poses[int(k)]  # exactly as given
     out_pts = pts.copy()
-    for p in np.flatnonzero(in_problem):
-        out_pts[p] = result.atPoint3(L(int(p)))
+    for pi in np.flatnonzero(in_problem):
+        out_pts[pi] = result.atPoint3(L(int(pi)))
     error_after = float(graph.error(result))
     iters = int(opt.iterations())
     return GtsamBAOutput(out_poses, out_pts, in_problem, iters, n_stereo, error_before, error_after)
