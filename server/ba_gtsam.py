@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -91,12 +92,14 @@ def solve(
     relative_error_tol: float = 1e-6,
     scale_factor: float = 1.2,
     octave_weights: bool = True,
+    cpu_budget_s: float = float("inf"),
 ) -> GtsamBAOutput:
     """Refine ``world_from_cam`` (N, 4, 4) and ``points`` (M, 3) from observations ``obs_kf``, ``obs_pt``,
     ``obs_uv`` (K, 2; distorted pixels), ``obs_ur`` (K,; the virtual right camera's u, NaN: mono) and
     ``obs_octave`` (K,; None or ``octave_weights`` False: every sigma 1 px). Observations must already be
     gated (the caller drops outliers). A point seen by fewer than two keyframes is left out (it ties no
-    two poses together). ``fixed_kfs``: held keyframes (at least one)."""
+    two poses together). ``fixed_kfs``: held keyframes (at least one). LM stops after ``max_iterations``,
+    when the error falls by less than ``relative_error_tol``, or once ``cpu_budget_s`` of CPU is spent."""
     import gtsam
     from gtsam.symbol_shorthand import L, X
 
@@ -168,7 +171,17 @@ def solve(
     params.setVerbosityLM("SILENT")
     error_before = float(graph.error(values))
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    result = opt.optimize()
+    # LM step by step, so that a large map stops within its CPU budget (one BA process, one core)
+    t0 = time.process_time()
+    for _ in range(int(max_iterations)):
+        before = opt.error()
+        opt.iterate()
+        after = opt.error()
+        if not after < before * (1.0 - relative_error_tol) or opt.lambda_() > params.getlambdaUpperBound():
+            break
+        if time.process_time() - t0 > cpu_budget_s:
+            break
+    result = opt.values()
     out_poses = poses.copy()
     for k in range(n):
         out_poses[k] = result.atPose3(X(k)).matrix()

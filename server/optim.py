@@ -270,6 +270,8 @@ class BundleAdjustmentOptions:
     stereo_solver: str = "gtsam"
     octave_weights: bool = True  # gtsam: sigma scale_factor ** octave px per observation
     scale_factor: float = 1.2  # the agents' ORB pyramid scale
+    # gtsam: LM stops iterating once this much CPU is spent (a 2000-keyframe map within a minute)
+    cpu_budget_s: float = 40.0
 
 
 @dataclass
@@ -384,7 +386,7 @@ def global_bundle_adjustment(
             cameras, cam_baselines, camera_index, poses, pts, obs_kf, obs_pt, obs_uv, obs_ur_kept, octs,
             fixed_kfs, odometry, max_iterations=options.max_iterations,
             relative_error_tol=options.function_tolerance, scale_factor=options.scale_factor,
-            octave_weights=options.octave_weights,
+            octave_weights=options.octave_weights, cpu_budget_s=options.cpu_budget_s,
         )  # fmt: skip
         return _checked(
             cameras, camera_index, poses, pts, (obs_kf, obs_pt, obs_uv), keep, len(obs_kf_all), err0,
