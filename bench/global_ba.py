@@ -2,9 +2,14 @@
 500 / 1000 / 2000 keyframes shaped like factory01's (about 300 map points seen per keyframe, tracks of 3-10
 keyframes, about 70% of the observations with a stereo match), and the scale error before and after.
 
-Run: ``python bench/global_ba.py [--sizes 500 1000 2000] [--mono] [--scale-error 0.02]`` (``--mono``: the
-same maps without their stereo observations, two held keyframes, for comparison; ``--scale-error``: how
-far the start map's scale is off).
+Each keypoint has an ORB pyramid level (octave l with share ~ 1.2^-l, l = 0..7) and noise ``NOISE_PX``
+times 1.2^l; consecutive keyframes are joined by odometry between factors at the start poses' relative pose
+with the pose graph's default sigmas (the stereo BA in gtsam, :mod:`hivemap.server.ba_gtsam`); as the
+start map is scaled, they carry its scale error (``--no-odometry``: without them).
+
+Run: ``python bench/global_ba.py [--sizes 500 1000 2000] [--mono] [--scale-error 0.02] [--solver pycolmap]``
+(``--mono``: the same maps without their stereo observations, two held keyframes, for comparison;
+``--scale-error``: how far the start map's scale is off; ``--solver``: the stereo BA's solver).
 """
 
 from __future__ import annotations
@@ -61,8 +66,11 @@ def synthetic_map(n: int, seed: int, scale_error: float = 0.02) -> dict[str, np.
         pc = (P[opt[sel]] - truth[k, :3, 3]) @ truth[k, :3, :3]
         uv[sel], _ = CAMERA.project(pc)
         ur[sel] = CAMERA.fx * (pc[:, 0] - BASELINE) / pc[:, 2] + CAMERA.cx
-    uv += rng.normal(0, NOISE_PX, uv.shape)
-    ur += rng.normal(0, NOISE_PX, len(ur))
+    levels = np.arange(8)
+    octave = rng.choice(levels, len(okf), p=1.2**-levels / (1.2**-levels).sum()).astype(np.uint8)
+    sigma = NOISE_PX * 1.2 ** octave.astype(np.float64)
+    uv += rng.normal(0, 1, uv.shape) * sigma[:, None]
+    ur += rng.normal(0, 1, len(ur)) * sigma
     ur[rng.random(len(ur)) > STEREO_SHARE] = np.nan
     bad = rng.random(len(uv)) < OUTLIER_SHARE
     uv[bad] += rng.uniform(-40, 40, (int(bad.sum()), 2))
@@ -72,7 +80,8 @@ def synthetic_map(n: int, seed: int, scale_error: float = 0.02) -> dict[str, np.
     for k in range(1, n):
         init[k] = init[k] @ se3(so3_exp(rng.normal(0, 0.005, 3)), rng.normal(0, 0.03, 3))
     P0 = c + (1 + scale_error) * (P - c) + rng.normal(0, 0.03, P.shape)
-    return {"truth": truth, "init": init, "points": P0, "obs_kf": okf, "obs_pt": opt, "uv": uv, "ur": ur}
+    return {"truth": truth, "init": init, "points": P0, "obs_kf": okf, "obs_pt": opt, "uv": uv, "ur": ur,
+            "octave": octave}  # fmt: skip
 
 
 def _scale_error(est: np.ndarray, ref: np.ndarray) -> float:
@@ -83,17 +92,24 @@ def _scale_error(est: np.ndarray, ref: np.ndarray) -> float:
     return float((d * sign).sum() / (a**2).sum(1).mean() - 1.0)
 
 
-def bench(n: int, mono: bool, scale_error: float) -> None:
+def bench(n: int, mono: bool, scale_error: float, solver: str = "gtsam", odometry_edges: bool = True) -> None:
+    from hivemap.server.ba_gtsam import OdometryEdge
+    from hivemap.server.backend.options import OptimiseOptions
     from hivemap.server.optim import BundleAdjustmentOptions, global_bundle_adjustment
 
+    o = OptimiseOptions()
+    sr, st = o.pose_graph_sigma_rot, o.pose_graph_sigma_trans
+    odometry = [OdometryEdge(k, k + 1, sr, st) for k in range(n - 1)] if odometry_edges else []
     d = synthetic_map(n, seed=n, scale_error=scale_error)
     ur = np.full_like(d["ur"], np.nan) if mono else d["ur"]
     track = np.bincount(d["obs_pt"])
     t0, w0 = time.process_time(), time.perf_counter()
     res = global_bundle_adjustment(
         [CAMERA], np.zeros(n, np.int64), d["init"], d["points"], d["obs_kf"], d["obs_pt"], d["uv"],
-        {0, 1} if mono else {0}, BundleAdjustmentOptions(max_iterations=30, num_threads=1),
-        obs_ur=ur, baselines=[BASELINE],
+        {0, 1} if mono else {0},
+        BundleAdjustmentOptions(max_iterations=30, num_threads=1, stereo_solver=solver),
+        obs_ur=ur, baselines=[BASELINE], obs_octave=d["octave"],
+        odometry=odometry,
     )  # fmt: skip
     cpu, wall = time.process_time() - t0, time.perf_counter() - w0
     truth = d["truth"]
@@ -102,7 +118,7 @@ def bench(n: int, mono: bool, scale_error: float) -> None:
     e0 = np.linalg.norm(d["init"][:, :3, 3] - truth[:, :3, 3], axis=1).mean()
     e1 = np.linalg.norm(res.world_from_cam[:, :3, 3] - truth[:, :3, 3], axis=1).mean()
     n_obs = len(d["obs_kf"])
-    print(f"global BA {n} keyframes ({'mono' if mono else 'stereo'}): {n_obs} observations "
+    print(f"global BA {n} keyframes ({'mono' if mono else 'stereo ' + solver}): {n_obs} observations "
           f"({n_obs / n:.0f} per keyframe, tracks {track.min()}-{track.max()} mean {track.mean():.1f}),"
           f" {int(res.extras.get('n_stereo', 0))} stereo; CPU {cpu:.1f} s (wall {wall:.1f} s, 1 thread), "
           f"{res.iterations} iterations, rmse {res.initial_rmse_px:.2f} -> {res.final_rmse_px:.2f} px, "
@@ -115,9 +131,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[500, 1000, 2000])
     ap.add_argument("--mono", action="store_true", help="also without the stereo observations")
     ap.add_argument("--scale-error", type=float, default=0.02, help="the start map's scale error (0.02: 2%%)")
+    ap.add_argument(
+        "--no-odometry", action="store_true", help="no between factors (they carry the start's scale)"
+    )
+    ap.add_argument("--solver", choices=["gtsam", "pycolmap"], default="gtsam", help="the stereo BA's solver")
     args = ap.parse_args(argv)
     for n in args.sizes:
-        bench(n, mono=False, scale_error=args.scale_error)
+        bench(
+            n,
+            mono=False,
+            scale_error=args.scale_error,
+            solver=args.solver,
+            odometry_edges=not args.no_odometry,
+        )
         if args.mono:
             bench(n, mono=True, scale_error=args.scale_error)
     return 0

@@ -1,4 +1,4 @@
-"""The pycolmap reconstruction :func:`hivemap.server.optim.global_bundle_adjustment` solves.
+"""The pycolmap BA of :func:`hivemap.server.optim.global_bundle_adjustment`: its reconstruction and solve.
 
 Monocular keyframes are one image each (a trivial rig). A stereo keyframe is a rig frame of two
 images: the left camera as it is (distorted pixels), and the virtual rectified right camera the agent's
@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.camera import PinholeCamera
-from hivemap.maps.geometry import se3_inverse
+from hivemap.maps.geometry import se3, se3_inverse
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -148,3 +148,86 @@ def build(
         track = pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in tracks[p]])
         point_ids[p] = rec.add_point3D(points[p], track)
     return BuiltProblem(rec, point_ids, [r.sensor_id for r in right_ids.values()], n_stereo)
+
+
+def solve_pycolmap(
+    cameras: Sequence[PinholeCamera],
+    cam_baselines: Sequence[float | None],
+    camera_index: I64,
+    poses: F64,
+    pts: F64,
+    obs_kf: I64,
+    obs_pt: I64,
+    obs_uv: F64,
+    obs_ur_kept: F64,
+    fixed_kfs: set[int] | frozenset[int],
+    options: Any,
+) -> tuple[F64, F64, NDArray[np.bool_], int, int, bool]:
+    """The gated problem of :func:`hivemap.server.optim.global_bundle_adjustment` (``options``: its
+    ``BundleAdjustmentOptions``) solved by pycolmap: (poses, points, which points were in the problem,
+    iterations, stereo observations, whether position priors held the gauge)."""
+    import pycolmap
+
+    n, m = len(poses), len(pts)
+    built = build(cameras, cam_baselines, camera_index, poses, pts, obs_kf, obs_pt, obs_uv, obs_ur_kept)
+    rec, point_ids = built.rec, built.point_ids
+    stereo = built.n_stereo > 0
+
+    ba_opts = pycolmap.BundleAdjustmentOptions()
+    ba_opts.print_summary = False
+    ba_opts.refine_focal_length = False
+    ba_opts.refine_principal_point = False
+    ba_opts.refine_extra_params = False
+    ba_opts.ceres.solver_options.max_num_iterations = options.max_iterations
+    ba_opts.ceres.solver_options.num_threads = options.num_threads
+    ba_opts.ceres.loss_function_type = pycolmap.LossFunctionType.HUBER
+    ba_opts.ceres.loss_function_scale = options.huber_px
+    ba_opts.ceres.solver_options.function_tolerance = options.function_tolerance
+    # Beyond 1000 images COLMAP switches to ITERATIVE_SCHUR, ~5x slower here than the direct sparse
+    # Schur solver (2000 keyframes: 176 s before this change).
+    ba_opts.ceres.max_num_images_direct_sparse_cpu_solver = 100000
+    ba_opts.refine_sensor_from_rig = False  # the stereo baseline is calibrated: it holds the scale
+    config = pycolmap.BundleAdjustmentConfig()
+    for k in range(n):
+        config.add_image(k + 1)
+        if k in fixed_kfs:
+            config.set_constant_rig_from_world_pose(k + 1)
+        if rec.exists_image(n + k + 1):
+            config.add_image(n + k + 1)
+    for sensor in built.right_sensors:
+        config.set_constant_sensor_from_rig_pose(sensor)
+    # pycolmap's pose-prior BA needs >= 3 priors (DESIGN.md); the priors then fix the gauge. Stereo
+    # observations hold the scale themselves: one held keyframe fixes the remaining 6 DoF.
+    use_priors = options.position_prior_m is not None and n >= 3 and not stereo
+    if len(fixed_kfs) < 2 and not use_priors and not stereo:
+        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    for cam_id in rec.cameras:
+        config.set_constant_cam_intrinsics(cam_id)
+    if use_priors:
+        assert options.position_prior_m is not None
+        sigma2 = float(options.position_prior_m) ** 2
+        priors = []
+        for k in range(n):
+            prior = pycolmap.PosePrior(
+                position=poses[k, :3, 3].copy(),
+                position_covariance=np.eye(3) * sigma2,
+                coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
+            )
+            prior.corr_data_id = rec.image(k + 1).data_id
+            priors.append(prior)
+        prior_opts = pycolmap.PosePriorBundleAdjustmentOptions()
+        prior_opts.prior_position_fallback_stddev = float(options.position_prior_m)
+        adjuster = pycolmap.create_pose_prior_bundle_adjuster(ba_opts, prior_opts, config, priors, rec)
+    else:
+        adjuster = pycolmap.create_default_bundle_adjuster(ba_opts, config, rec)
+    summary = adjuster.solve()
+    out_poses = poses.copy()
+    for k in range(n):
+        cw = np.asarray(rec.image(k + 1).cam_from_world().matrix())
+        out_poses[k] = se3_inverse(se3(cw[:3, :3], cw[:3, 3]))
+    out_pts = pts.copy()
+    for p in range(m):
+        if point_ids[p] >= 0:
+            out_pts[p] = rec.point3D(int(point_ids[p])).xyz
+    iters = int(getattr(getattr(summary, "ceres_summary", summary), "num_successful_steps", 0) or 0)
+    return out_poses, out_pts, point_ids >= 0, iters, built.n_stereo, use_priors

@@ -2,7 +2,8 @@
 
 - :func:`solve_pose_graph_sim3` (and ``_se3``): Sim(3) pose-graph optimisation over keyframe poses (gtsam
   ``BetweenFactorSimilarity3``), as ORB-SLAM's essential-graph optimisation after a loop or merge.
-- :func:`global_bundle_adjustment`: full BA of keyframe poses and points with pycolmap (Ceres).
+- :func:`global_bundle_adjustment`: full BA of keyframe poses and points: gtsam for stereo maps
+  (:mod:`hivemap.server.ba_gtsam`), pycolmap (Ceres) for monocular ones.
 
 Both are independent of the map model so they can run in a background worker on a snapshot.
 """
@@ -19,7 +20,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import Sim3, se3, se3_inverse
-from hivemap.server import ba_build
+from hivemap.server import ba_build, ba_gtsam
 
 log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
@@ -271,6 +272,14 @@ class BundleAdjustmentOptions:
     function_tolerance: float = 1e-6
     # Use the stereo observations (``u_right``) where the keyframes carry them.
     stereo: bool = True
+    # A problem with stereo observations is solved by gtsam (:mod:`hivemap.server.ba_gtsam`: one stereo
+    # factor per observation, sigma per pyramid level, the agents' odometry as between factors), else by
+    # pycolmap ("pycolmap": also the stereo ones, as rigs, without weights or odometry).
+    stereo_solver: str = "gtsam"
+    octave_weights: bool = True  # gtsam: sigma scale_factor ** octave px per observation
+    scale_factor: float = 1.2  # the agents' ORB pyramid scale
+    # gtsam: LM stops iterating once this much CPU is spent (a 2000-keyframe map within a minute)
+    cpu_budget_s: float = 40.0
 
 
 @dataclass
@@ -338,8 +347,11 @@ def global_bundle_adjustment(
     options: BundleAdjustmentOptions = BundleAdjustmentOptions(),
     obs_ur: F64 | None = None,
     baselines: Sequence[float | None] | None = None,
+    obs_octave: NDArray[np.integer] | None = None,
+    odometry: Sequence[ba_gtsam.OdometryEdge] = (),
 ) -> BundleAdjustmentResult:
-    """Jointly refine keyframe poses and points (pycolmap / Ceres), intrinsics held constant.
+    """Jointly refine keyframe poses and points (pycolmap / Ceres, or gtsam for stereo problems),
+    intrinsics held constant.
 
     cameras: the distinct camera models; camera_index (N,) picks one per keyframe.
     world_from_cam (N, 4, 4); points (M, 3); observations as parallel arrays obs_kf (K,), obs_pt (K,),
@@ -348,9 +360,10 @@ def global_bundle_adjustment(
     pose fixes only 6 DoF), unless there are stereo observations.
     ``obs_ur`` (K,): each observation's ``u_right`` in its keyframe's virtual rectified right camera
     (NaN: mono) and ``baselines``: per camera its stereo baseline (m) or None; with them the BA is a
-    stereo rig BA (:mod:`hivemap.server.ba_build`) whose scale is held by the baseline.
+    stereo BA whose scale is held by the baseline: gtsam (:mod:`hivemap.server.ba_gtsam`, with
+    ``obs_octave`` (K,) the keypoints' pyramid levels and ``odometry`` between factors) unless
+    ``options.stereo_solver`` is "pycolmap" (a rig BA, :mod:`hivemap.server.ba_build`).
     """
-    import pycolmap
 
     poses = np.asarray(world_from_cam, dtype=np.float64)
     pts = np.asarray(points, dtype=np.float64)
@@ -375,82 +388,61 @@ def global_bundle_adjustment(
         )
         # a wrong stereo match is dropped alone; its left observation may still be right
         obs_ur_kept[~(err_r <= options.max_initial_error_px)] = np.nan
-    built = ba_build.build(
-        cameras, cam_baselines, camera_index, poses, pts, obs_kf, obs_pt, obs_uv, obs_ur_kept
-    )
-    rec, point_ids = built.rec, built.point_ids
-    stereo = built.n_stereo > 0
+    if np.isfinite(obs_ur_kept).any() and options.stereo_solver == "gtsam":
+        octs = None if obs_octave is None else np.asarray(obs_octave)[keep]
+        g = ba_gtsam.solve(
+            cameras, cam_baselines, camera_index, poses, pts, obs_kf, obs_pt, obs_uv, obs_ur_kept, octs,
+            fixed_kfs, odometry, max_iterations=options.max_iterations,
+            relative_error_tol=options.function_tolerance, scale_factor=options.scale_factor,
+            octave_weights=options.octave_weights, cpu_budget_s=options.cpu_budget_s,
+        )  # fmt: skip
+        return _checked(
+            cameras, camera_index, poses, pts, (obs_kf, obs_pt, obs_uv), keep, len(obs_kf_all), err0,
+            (g.world_from_cam, g.points, g.in_problem, g.iterations), {"n_stereo": float(g.n_stereo)},
+            options, use_priors=False,
+        )  # fmt: skip
+    out_poses, out_pts, in_problem, iters, n_stereo, use_priors = ba_build.solve_pycolmap(
+        cameras, cam_baselines, camera_index, poses, pts, obs_kf, obs_pt, obs_uv, obs_ur_kept, fixed_kfs,
+        options,
+    )  # fmt: skip
+    return _checked(
+        cameras, camera_index, poses, pts, (obs_kf, obs_pt, obs_uv), keep, len(obs_kf_all), err0,
+        (out_poses, out_pts, in_problem, iters), {"n_stereo": float(n_stereo)}, options, use_priors,
+    )  # fmt: skip
 
-    ba_opts = pycolmap.BundleAdjustmentOptions()
-    ba_opts.print_summary = False
-    ba_opts.refine_focal_length = False
-    ba_opts.refine_principal_point = False
-    ba_opts.refine_extra_params = False
-    ba_opts.ceres.solver_options.max_num_iterations = options.max_iterations
-    ba_opts.ceres.solver_options.num_threads = options.num_threads
-    ba_opts.ceres.loss_function_type = pycolmap.LossFunctionType.HUBER
-    ba_opts.ceres.loss_function_scale = options.huber_px
-    ba_opts.ceres.solver_options.function_tolerance = options.function_tolerance
-    # Beyond 1000 images COLMAP switches to ITERATIVE_SCHUR, ~5x slower here than the direct sparse
-    # Schur solver (2000 keyframes: 176 s before this change).
-    ba_opts.ceres.max_num_images_direct_sparse_cpu_solver = 100000
-    ba_opts.refine_sensor_from_rig = False  # the stereo baseline is calibrated: it holds the scale
-    config = pycolmap.BundleAdjustmentConfig()
-    for k in range(n):
-        config.add_image(k + 1)
-        if k in fixed_kfs:
-            config.set_constant_rig_from_world_pose(k + 1)
-        if rec.exists_image(n + k + 1):
-            config.add_image(n + k + 1)
-    for sensor in built.right_sensors:
-        config.set_constant_sensor_from_rig_pose(sensor)
-    # pycolmap's pose-prior BA needs >= 3 priors (DESIGN.md); the priors then fix the gauge. Stereo
-    # observations hold the scale themselves: one held keyframe fixes the remaining 6 DoF.
-    use_priors = options.position_prior_m is not None and n >= 3 and not stereo
-    if len(fixed_kfs) < 2 and not use_priors and not stereo:
-        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    for cam_id in rec.cameras:
-        config.set_constant_cam_intrinsics(cam_id)
-    if use_priors:
-        assert options.position_prior_m is not None
-        sigma2 = float(options.position_prior_m) ** 2
-        priors = []
-        for k in range(n):
-            prior = pycolmap.PosePrior(
-                position=poses[k, :3, 3].copy(),
-                position_covariance=np.eye(3) * sigma2,
-                coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
-            )
-            prior.corr_data_id = rec.image(k + 1).data_id
-            priors.append(prior)
-        prior_opts = pycolmap.PosePriorBundleAdjustmentOptions()
-        prior_opts.prior_position_fallback_stddev = float(options.position_prior_m)
-        adjuster = pycolmap.create_pose_prior_bundle_adjuster(ba_opts, prior_opts, config, priors, rec)
-    else:
-        adjuster = pycolmap.create_default_bundle_adjuster(ba_opts, config, rec)
-    summary = adjuster.solve()
-    out_poses = poses.copy()
-    for k in range(n):
-        cw = np.asarray(rec.image(k + 1).cam_from_world().matrix())
-        out_poses[k] = se3_inverse(se3(cw[:3, :3], cw[:3, 3]))
-    out_pts = pts.copy()
-    for p in range(m):
-        if point_ids[p] >= 0:
-            out_pts[p] = rec.point3D(int(point_ids[p])).xyz
-    iters = int(getattr(getattr(summary, "ceres_summary", summary), "num_successful_steps", 0) or 0)
-    # Points that ended far from their observations keep their old position.
+
+def _checked(
+    cameras: list[PinholeCamera],
+    camera_index: NDArray[np.int64],
+    poses: F64,
+    pts: F64,
+    obs: tuple[NDArray[np.int64], NDArray[np.int64], F64],
+    keep: NDArray[np.int64],
+    n_obs_all: int,
+    err0: F64,
+    solved: tuple[F64, F64, NDArray[np.bool_], int],
+    extras: dict[str, float],
+    options: BundleAdjustmentOptions,
+    use_priors: bool,
+) -> BundleAdjustmentResult:
+    """The result of a solve, checked: points that ended far from their observations keep their old
+    position; a result that is worse than its input, or kept under half the observations, is refused."""
+    obs_kf, obs_pt, obs_uv = obs
+    out_poses, out_pts, in_problem, iters = solved
+    m = len(pts)
+    out_pts = out_pts.copy()
     err1, depth1 = reprojection_errors(cameras, camera_index, out_poses, out_pts, obs_kf, obs_pt, obs_uv)
     bad = np.zeros(m, dtype=bool)
     np.logical_or.at(bad, obs_pt, ~(err1 <= options.max_final_error_px) | (depth1 < options.min_depth_m))
-    point_ok = (point_ids >= 0) & ~bad
+    point_ok = in_problem & ~bad
     out_pts[~point_ok] = pts[~point_ok]
     good_obs = point_ok[obs_pt]
     initial = float(np.sqrt(np.mean(err0[keep][good_obs] ** 2))) if good_obs.any() else float("nan")
     final = float(np.sqrt(np.mean(err1[good_obs] ** 2))) if good_obs.any() else float("nan")
-    obs_inlier = np.zeros(len(obs_kf_all), dtype=bool)
+    obs_inlier = np.zeros(n_obs_all, dtype=bool)
     obs_inlier[keep[good_obs]] = True
     ok = bool(np.isfinite(final) and np.isfinite(out_poses).all() and final <= max(initial, 0.0) + 0.5)
-    ok = ok and good_obs.sum() >= 0.5 * len(obs_kf_all)  # most of the problem survived
+    ok = ok and good_obs.sum() >= 0.5 * n_obs_all  # most of the problem survived
     if ok and use_priors:
         # pycolmap drops the priors with only a log line when it cannot align them: then nothing held the
         # metric scale; refuse a result whose overall scale moved by more than 1%
@@ -461,12 +453,11 @@ def global_bundle_adjustment(
     if not ok:
         log.warning(
             "global BA rejected: rmse %.3g -> %.3g px, %d of %d observations kept", initial, final,
-            int(good_obs.sum()), len(obs_kf_all),
+            int(good_obs.sum()), n_obs_all,
         )  # fmt: skip
         return BundleAdjustmentResult(
             poses.copy(), pts.copy(), initial, final, iters, {}, False, obs_inlier, point_ok
         )
-    extras = {"n_stereo": float(built.n_stereo)}
     return BundleAdjustmentResult(
         out_poses, out_pts, initial, final, iters, extras, True, obs_inlier, point_ok
     )

@@ -261,7 +261,8 @@ def pose_graph(
 @dataclass
 class BAProblem:
     """``obs_ur``: each observation's ``u_right`` (NaN: mono), ``baselines``: per camera its stereo
-    baseline (m) or None (``Keyframe.u_right``, ``Keyframe.stereo_baseline``)."""
+    baseline (m) or None (``Keyframe.u_right``, ``Keyframe.stereo_baseline``); ``obs_octave`` and
+    ``odometry``: the stereo BA's weights and between factors (:mod:`hivemap.server.ba_gtsam`)."""
 
     cameras: list[Any]
     camera_index: NDArray[np.int64]
@@ -272,14 +273,31 @@ class BAProblem:
     obs_uv: F64
     obs_ur: F64 = field(default_factory=lambda: np.zeros(0))
     baselines: list[float | None] = field(default_factory=list)
+    obs_octave: NDArray[np.uint8] | None = None  # each observation's keypoint pyramid level
+    # each agent's consecutive keyframes (i, j, sigma_rot rad, sigma_trans m): the pose graph's odometry
+    odometry: list[tuple[int, int, float, float]] = field(default_factory=list)
 
     @property
     def n_stereo(self) -> int:
         return int(np.isfinite(self.obs_ur).sum())
 
 
-def ba_problem(m: Any, keys: list[KfKey]) -> BAProblem:
-    """Copy what the BA needs out of the map (on the loop, quick)."""
+def odometry_edges(m: Any, keys: list[KfKey], o: OptimiseOptions) -> list[tuple[int, int, float, float]]:
+    """Each agent's consecutive keyframes in time with the pose graph's sigmas for that stretch
+    (:func:`odometry_sigmas`): (i, j, sigma_rot rad, sigma_trans m), indices into ``keys``."""
+    index = {k: i for i, k in enumerate(keys)}
+    chains = Chains(m, keys)
+    out = []
+    for ks in chains.order.values():
+        for a, b in zip(ks, ks[1:], strict=False):
+            sr, st, _ = odometry_sigmas(chains.between(a, b), o)
+            out.append((index[a], index[b], sr, st))
+    return out
+
+
+def ba_problem(m: Any, keys: list[KfKey], o: OptimiseOptions | None = None) -> BAProblem:
+    """Copy what the BA needs out of the map (on the loop, quick); with ``o``, the agents' odometry
+    between consecutive keyframes too (:func:`odometry_edges`)."""
     cams: dict[Any, int] = {}
     cam_list: list[Any] = []
     baselines: list[float | None] = []
@@ -290,6 +308,7 @@ def ba_problem(m: Any, keys: list[KfKey]) -> BAProblem:
     obs_pt: list[Any] = []
     obs_uv: list[Any] = []
     obs_ur: list[Any] = []
+    obs_oct: list[Any] = []
     for i, k in enumerate(keys):
         kf = m.keyframes[k]
         ck = (id(kf.camera), kf.stereo_baseline)
@@ -314,6 +333,7 @@ def ba_problem(m: Any, keys: list[KfKey]) -> BAProblem:
         obs_uv.append(kf.keypoints[idx_kp].reshape(-1, 2))
         ur = kf.u_right[idx_kp] if kf.u_right is not None else np.full(len(idx_kp), np.nan)
         obs_ur.append(np.asarray(ur, dtype=np.float64))
+        obs_oct.append(kf.octaves[idx_kp])
     pts = np.array([m.points[pk].xyz for pk in pkeys], dtype=np.float64).reshape(-1, 3)
 
     def cat(parts: list[Any], dtype: Any, shape: tuple[int, ...]) -> Any:
@@ -322,15 +342,19 @@ def ba_problem(m: Any, keys: list[KfKey]) -> BAProblem:
     return BAProblem(
         cam_list, cam_idx, pkeys, pts, cat(obs_kf, np.int64, (0,)), cat(obs_pt, np.int64, (0,)),
         cat(obs_uv, np.float64, (0, 2)), cat(obs_ur, np.float64, (0,)), baselines,
+        cat(obs_oct, np.uint8, (0,)), odometry_edges(m, keys, o) if o is not None else [],
     )  # fmt: skip
 
 
-def run_ba(poses: F64, p: BAProblem, fixed: list[int], max_iterations: int) -> Any:
+def run_ba(poses: F64, p: BAProblem, fixed: list[int], max_iterations: int, solver: str = "gtsam") -> Any:
+    """BA process: :func:`hivemap.server.optim.global_bundle_adjustment` of ``p`` from ``poses``."""
+    from hivemap.server.ba_gtsam import OdometryEdge
     from hivemap.server.optim import BundleAdjustmentOptions, global_bundle_adjustment
 
     return global_bundle_adjustment(
         p.cameras, p.camera_index, poses, p.points, p.obs_kf, p.obs_pt, p.obs_uv, set(fixed),
-        BundleAdjustmentOptions(max_iterations=max_iterations), obs_ur=p.obs_ur, baselines=p.baselines,
+        BundleAdjustmentOptions(max_iterations=max_iterations, stereo_solver=solver), obs_ur=p.obs_ur,
+        baselines=p.baselines, obs_octave=p.obs_octave, odometry=[OdometryEdge(*e) for e in p.odometry],
     )  # fmt: skip
 
 

@@ -356,7 +356,7 @@ class Pipeline:
         """Run and apply global BA; False if the map changed meanwhile (the result is dropped)."""
         map_id = m.id
         snap = self._snapshot(m)
-        problem = optimise.ba_problem(m, snap.keys)
+        problem = optimise.ba_problem(m, snap.keys, self.options.optimise)
         if self.options.fix_scale and problem.n_stereo < STEREO_BA_MIN_SHARE * len(problem.obs_kf):
             # monocular residuals alone let a metric map's scale drift: no BA without the stereo ones
             self.server.events.add("global_ba", f"map {map_id}: global BA skipped (metric map, "
