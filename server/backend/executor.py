@@ -101,7 +101,12 @@ class ProcessVerifier:
         i = self._pick()
         # packed on the event loop right before the submit, so the worker sees jobs in packing order
         shipped = self._shippers[i].pack(job)
-        return await self._submit(i, run_shipped, shipped, self._cache)
+        try:
+            return await self._submit(i, run_shipped, shipped, self._cache)
+        except Exception:
+            # a job that failed in the worker may have left its cache out of step with the mirror
+            self._shippers[i].reset()
+            raise
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
         return await self._submit(self._pick(), fn, *args)

@@ -42,6 +42,7 @@ class ShippedJob:
 
     job: QueryJob
     vectors_held: set[KfKey]
+    reset: bool = False  # the worker empties its cache first (the packer forgot what it holds)
 
 
 class _Lru:
@@ -69,9 +70,13 @@ class Shipper:
     def __init__(self, capacity: int) -> None:
         self.capacity = max(1, int(capacity))
         self._held: OrderedDict[KfKey, bool] = OrderedDict()
+        self._reset = False
 
     def reset(self) -> None:
+        """Forget what the worker holds (it died, or a job failed there): the next job tells it to
+        empty its cache too."""
         self._held.clear()
+        self._reset = True
 
     def pack(self, job: QueryJob) -> ShippedJob:
         """``job`` with the features the worker holds left out (``job`` itself is not changed: the
@@ -100,7 +105,8 @@ class Shipper:
                 while len(held) > self.capacity:
                     held.popitem(last=False)
             slices.append(replace(s, keyframes=kfs))
-        return ShippedJob(replace(job, slices=slices, features=features), vectors_held)
+        reset, self._reset = self._reset, False
+        return ShippedJob(replace(job, slices=slices, features=features), vectors_held, reset)
 
 
 # the worker's side: one cache per worker process
@@ -111,7 +117,7 @@ def unpack(shipped: ShippedJob, capacity: int) -> QueryJob:
     """The job as it was packed, its features from this worker's cache, which is updated keyframe by
     keyframe in the packer's order (so a keyframe shipped bare is held when it is read)."""
     global _CACHE
-    if _CACHE is None or _CACHE.capacity != max(1, int(capacity)):
+    if _CACHE is None or _CACHE.capacity != max(1, int(capacity)) or shipped.reset:
         _CACHE = _Lru(capacity)
     cache = _CACHE
     job = shipped.job

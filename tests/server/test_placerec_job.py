@@ -82,6 +82,29 @@ def test_jobs_shipped_without_the_features_a_worker_holds_report_what_whole_jobs
         assert sum(b for _, b in later) < 0.6 * sum(a for a, _ in later), sizes
 
 
+def test_a_reset_packer_tells_its_worker_to_forget_what_it_holds(scene) -> None:  # noqa: F811
+    from hivemap.server.placerec import shipping
+
+    maps = {0: scene["A"], 1: scene["B"], 2: scene["C"], 3: scene["D"]}
+    pr = _recognizer(maps)
+    jobs = [j for k in sorted(maps[0].keyframes)[2:8] if (j := pr.prepare(maps, 0, k, loop=False)[1])]
+    jobs = [j for j in jobs if j.candidates]
+    assert len(jobs) >= 2
+    shipper = Shipper(3000)
+    whole = _summary(run_job(jobs[1]))
+    shipping.unpack(shipper.pack(jobs[0]), 3000)  # in this process, as the worker would
+    # the worker's cache out of step (a failed job): a reset packer ships everything and says so
+    assert shipping._CACHE is not None
+    shipping._CACHE.items.clear()
+    shipping._CACHE.touch(("stale", 0), shipping.Bundle((), None))  # what the mirror no longer knows of
+    shipper.reset()
+    again = shipper.pack(jobs[1])
+    assert again.reset and _summary(run_job(shipping.unpack(again, 3000))) == whole
+    # the worker forgot the entry its packer does not know of (it would evict out of step)
+    assert ("stale", 0) not in shipping._CACHE.items
+    assert not shipper.pack(jobs[1]).reset
+
+
 def test_a_backlog_skips_keyframes_whose_place_their_agent_just_queried() -> None:
     # a track of agent a: each keyframe's best covisible keyframes are its two predecessors
     def best(key: tuple[str, int], n: int) -> list[tuple[str, int]]:
