@@ -14,13 +14,14 @@ from __future__ import annotations
 import copy
 from collections import OrderedDict
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from hivemap.maps.vocabulary import FeatureVector
 from hivemap.server.placerec.job import QueryJob
 from hivemap.server.placerec.types import CandidateReport
 
 KfKey = tuple[str, int]
+V = TypeVar("V")
 
 # what a keyframe copy in a job holds that never changes (its pose and point references do)
 _FEATURES = ("camera", "keypoints", "octaves", "descriptors", "u_right", "stereo_baseline")
@@ -45,19 +46,22 @@ class ShippedJob:
     reset: bool = False  # the worker empties its cache first (the packer forgot what it holds)
 
 
-class _Lru:
-    """Keys in least-recently-used order, at most ``capacity``: the same on both sides."""
+class _Lru(Generic[V]):
+    """Keys in least-recently-used order, at most ``capacity``: one class for the worker's cache and
+    the packer's mirror of it, so both evict alike."""
 
     def __init__(self, capacity: int) -> None:
         self.capacity = max(1, int(capacity))
-        self.items: OrderedDict[KfKey, Bundle | None] = OrderedDict()
+        self.items: OrderedDict[KfKey, V] = OrderedDict()
 
-    def touch(self, key: KfKey, value: Bundle | None = None) -> None:
+    def touch(self, key: KfKey, value: V | None = None) -> None:
+        """``key`` becomes the most recent, with ``value`` when given (a new key needs one)."""
         if key in self.items:
             self.items.move_to_end(key)
             if value is not None:
                 self.items[key] = value
         else:
+            assert value is not None, key
             self.items[key] = value
             while len(self.items) > self.capacity:
                 self.items.popitem(last=False)
@@ -68,20 +72,19 @@ class Shipper:
     whether with its direct-index vector)."""
 
     def __init__(self, capacity: int) -> None:
-        self.capacity = max(1, int(capacity))
-        self._held: OrderedDict[KfKey, bool] = OrderedDict()
+        self._held: _Lru[bool] = _Lru(capacity)
         self._reset = False
 
     def reset(self) -> None:
         """Forget what the worker holds (it died, or a job failed there): the next job tells it to
         empty its cache too."""
-        self._held.clear()
+        self._held.items.clear()
         self._reset = True
 
     def pack(self, job: QueryJob) -> ShippedJob:
         """``job`` with the features the worker holds left out (``job`` itself is not changed: the
         keyframe copies shipped bare are copied again)."""
-        held = self._held
+        held = self._held.items
         features = dict(job.features)
         vectors_held: set[KfKey] = set()
         slices = []
@@ -93,7 +96,7 @@ class Shipper:
                 if with_vector is None or (not with_vector and key in job.features):
                     # not held (first time, or evicted), or held without the vector this job has
                     kfs.append(kf)
-                    held[key] = key in job.features or bool(with_vector)
+                    self._held.touch(key, key in job.features)
                 else:
                     c = copy.copy(kf)
                     for a in _FEATURES:
@@ -101,16 +104,14 @@ class Shipper:
                     kfs.append(c)
                     if with_vector and features.pop(key, None) is not None:
                         vectors_held.add(key)
-                held.move_to_end(key)
-                while len(held) > self.capacity:
-                    held.popitem(last=False)
+                    self._held.touch(key)
             slices.append(replace(s, keyframes=kfs))
         reset, self._reset = self._reset, False
         return ShippedJob(replace(job, slices=slices, features=features), vectors_held, reset)
 
 
 # the worker's side: one cache per worker process
-_CACHE: _Lru | None = None
+_CACHE: _Lru[Bundle] | None = None
 
 
 def unpack(shipped: ShippedJob, capacity: int) -> QueryJob:
