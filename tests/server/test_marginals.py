@@ -102,6 +102,9 @@ def test_the_loop_shrinks_the_marginal_and_the_gauge_is_exact() -> None:
     with_loop = pose_marginals(true, edges, {0}).covariances
     chain = pose_marginals(true, edges[: N - 1], {0}).covariances
     assert np.all(with_loop[0] == 0.0)
+    # the few-poses path (eliminated last) gives the same covariance as the whole tree's
+    few = pose_marginals(true, edges, {0}, indices=[N - 1, 7]).covariances
+    np.testing.assert_allclose(few, with_loop[[N - 1, 7]], rtol=1e-9, atol=1e-15)
     # along the open chain the uncertainty grows; the loop to keyframe 3 cuts the last pose's
     assert np.all(np.diff([np.trace(c[3:, 3:]) for c in chain]) > 0)
     assert np.trace(with_loop[-1][3:, 3:]) < 0.5 * np.trace(chain[-1][3:, 3:])
