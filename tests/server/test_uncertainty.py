@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import httpx
 import numpy as np
@@ -16,6 +17,7 @@ from agent_client import SyncAgent
 from srv_helpers import TOKENS
 from test_backend import UAV_FROM_WORLD, Server
 
+from hivemap.eval.uncertainty import covariance_coverage
 from hivemap.protocol import Correction, Message, decode_versioned, encode
 from hivemap.server.backend_synth import UGV_FROM_WORLD, agent_stream, make_world
 
@@ -66,8 +68,8 @@ def spd(c: np.ndarray) -> bool:
 def test_agents_and_corrections_carry_their_latest_pose_covariance(srv: Server) -> None:
     rng = np.random.default_rng(1)
     pts, desc = make_world(rng, 2500, (-20, 30))
-    ugv_msgs, _, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD)
-    uav_msgs, _, _ = agent_stream(rng, pts, desc, np.linspace(-2, 12, 10), UAV_FROM_WORLD)
+    ugv_msgs, ugv_true, _ = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD)
+    uav_msgs, uav_true, _ = agent_stream(rng, pts, desc, np.linspace(-2, 12, 10), UAV_FROM_WORLD)
     ugv = VersionedAgent(srv.ws_url, "ugv1", TOKENS["ugv1"], kind="ugv", version=4)
     uav = VersionedAgent(srv.ws_url, "uav1", TOKENS["uav1"], kind="uav", version=3)
     try:
@@ -118,3 +120,10 @@ def test_agents_and_corrections_carry_their_latest_pose_covariance(srv: Server) 
     page = httpx.get(f"{base}/maps/{map_id}/uncertainty", params={"offset": 15, "limit": 100}).json()
     assert len(page["keyframes"]) == 5 and page["total"] == 20
     assert httpx.get(f"{base}/maps/999/uncertainty").status_code == 404
+    # the eval's calibration figure over the same REST (true poses in the world frame; the agents sent
+    # exact poses, so every keyframe is well inside its ellipsoid)
+    agents = (("ugv1", UGV_FROM_WORLD, ugv_true), ("uav1", UAV_FROM_WORLD, uav_true))
+    gt = {a: SimpleNamespace(timestamps=np.arange(10.0), poses_se3=[F.inverse().transform_pose(T) for T in t])
+          for a, F, t in agents}  # fmt: skip
+    cover = covariance_coverage(base, [{"id": map_id}], gt)[str(map_id)]
+    assert cover is not None and cover["n"] == 19 and cover["inside"] == 1.0, cover
