@@ -322,6 +322,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
 
     from hivemap.eval.globalmap import loop_errors, team_by_map
     from hivemap.eval.trajectory import groundtruth_trajectory
+    from hivemap.eval.uncertainty import covariance_coverage
 
     port = free_port()
     url = f"http://127.0.0.1:{port}"
@@ -406,6 +407,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
                 res.server_ate_rmse, res.server_ate_mean, res.server_n = srv.ate_rmse, srv.ate_mean, srv.n
         return {
             "agents": [asdict(r) for r in results.values()],
+            "uncertainty": covariance_coverage(url, maps, gt_cam),
             "loop_errors": loop_errors(events, gt_cam),
             "team": team_by_map(
                 mode_dir / "server", [(aid, results[aid].run.get("map_id")) for aid, _ in agents]

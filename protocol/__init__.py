@@ -20,7 +20,7 @@ Identity rules (missions and sessions). Data is keyed by (agent id, mission, ses
 * Corrections name the session they correct as the agent numbered it, and reach only that mission.
 """
 
-from hivemap.protocol.codec import decode, encode
+from hivemap.protocol.codec import decode, decode_versioned, downgrade, encode
 from hivemap.protocol.errors import FieldError, FrameTooLarge, ProtocolError, UnknownTypeError, VersionError
 from hivemap.protocol.limits import PROTOCOL_VERSION, Limits
 from hivemap.protocol.messages import (
@@ -59,5 +59,7 @@ __all__ = [
     "VersionError",
     "Welcome",
     "decode",
+    "decode_versioned",
+    "downgrade",
     "encode",
 ]

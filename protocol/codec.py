@@ -1,6 +1,6 @@
-"""msgpack codec for protocol v3 (reads v1 and v2) with validation on decode.
+"""msgpack codec for protocol v4 (reads v1-v3, writes any of them) with validation on decode.
 
-A frame is one msgpack map ``{"v": 3, "type": str, "seq": int, "body": {...}}``. numpy arrays travel
+A frame is one msgpack map ``{"v": 4, "type": str, "seq": int, "body": {...}}``. numpy arrays travel
 as msgpack ext type 1: ``dtype code (1 byte) | ndim (1 byte) | shape (ndim x uint32 LE) | raw bytes``,
 so encoding is a memcpy and decoding is ``np.frombuffer`` (read-only, no copy). Every decoded frame is
 validated: version, type, field names, types, dtypes, shapes, sizes against :class:`Limits`,
@@ -13,8 +13,8 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable
-from dataclasses import MISSING, fields
-from typing import Any
+from dataclasses import MISSING, fields, replace
+from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
@@ -28,6 +28,7 @@ from hivemap.protocol.fields import (
     as_int,
     as_opt_str,
     as_str,
+    check_psd,
     check_rigid,
     check_same_rows,
     check_similarity,
@@ -84,10 +85,42 @@ def _default(obj: Any) -> Any:
     raise TypeError(f"cannot encode {type(obj).__name__}")
 
 
-def encode(msg: Message, seq: int) -> bytes:
-    """Encode one message as a frame of the current protocol version."""
-    body = {f.name: getattr(msg, f.name) for f in fields(msg)}
-    frame = {"v": PROTOCOL_VERSION, "type": msg.TYPE, "seq": int(seq), "body": body}
+def _newer_fields(mtype: str, version: int) -> set[str]:
+    """The fields of message type ``mtype`` that a frame of ``version`` cannot carry."""
+    return {f for since, table in _FIELDS_SINCE.items() if since > version for f in table.get(mtype, ())}
+
+
+M = TypeVar("M", bound=Message)
+
+
+def downgrade(msg: M, version: int) -> M:
+    """``msg`` with the fields newer than ``version`` back at their defaults (what a reader of that
+    version cannot take: an optional field it never knew), so that ``encode(.., version=version)`` can
+    write it."""
+    newer = _newer_fields(msg.TYPE, version)
+    if not newer:
+        return msg
+    defaults = {f.name: f.default for f in fields(msg) if f.name in newer}
+    return replace(msg, **defaults)  # type: ignore[type-var]
+
+
+def encode(msg: Message, seq: int, version: int = PROTOCOL_VERSION) -> bytes:
+    """Encode one message as a frame of protocol ``version`` (default the current one). An older version
+    leaves out the fields it does not know; they must be at their defaults (:func:`downgrade`)."""
+    if version not in SUPPORTED_VERSIONS:
+        raise ValueError(f"protocol version {version} not supported")
+    if version < _SINCE.get(msg.TYPE, 1):
+        raise ValueError(f"message type {msg.TYPE!r} needs protocol v{_SINCE[msg.TYPE]}")
+    newer = _newer_fields(msg.TYPE, version)
+    body = {}
+    for f in fields(msg):
+        value = getattr(msg, f.name)
+        if f.name in newer:
+            if value is not f.default:
+                raise ValueError(f"{msg.TYPE}.{f.name} cannot travel in protocol v{version}")
+            continue
+        body[f.name] = value
+    frame = {"v": version, "type": msg.TYPE, "seq": int(seq), "body": body}
     return msgpack.packb(frame, default=_default, use_bin_type=True)
 
 
@@ -320,6 +353,14 @@ def _v_correction(b: dict[str, Any], lim: Limits) -> Correction:
     poses = as_array(b["world_from_cam"], "body.world_from_cam", "<f8", (None, 4, 4), lim.max_poses_per_msg)
     check_same_rows("body.kf_ids", kf_ids, "body.world_from_cam", poses)
     check_rigid(poses, "body.world_from_cam")
+    cov, cov_kf = b.get("pose_covariance"), b.get("covariance_kf_id")
+    if (cov is None) != (cov_kf is None):
+        missing = "body.covariance_kf_id" if cov_kf is None else "body.pose_covariance"
+        raise FieldError("pose_covariance and covariance_kf_id go together", missing)
+    if cov is not None:
+        cov = as_array(cov, "body.pose_covariance", "<f8", (6, 6))
+        check_psd(cov, "body.pose_covariance")
+        cov_kf = as_int(cov_kf, "body.covariance_kf_id", 0)
     return Correction(
         map_id=as_int(b["map_id"], "body.map_id", 0),
         global_from_local=g,
@@ -327,6 +368,8 @@ def _v_correction(b: dict[str, Any], lim: Limits) -> Correction:
         world_from_cam=poses,
         session=_session(b),
         global_frame=_global_frame(b.get("global_frame", "map")),
+        pose_covariance=cov,
+        covariance_kf_id=cov_kf,
     )
 
 
@@ -364,8 +407,12 @@ _VALIDATORS: dict[str, Callable[[dict[str, Any], Limits], Message]] = {
     "bye": _v_bye,
 }
 _FIELDS = {name: {f.name for f in fields(cls)} for name, cls in MESSAGE_TYPES.items()}
-# fields a v1 frame cannot have (its reader takes their defaults: a v1 keyframe is all mono, tracked well)
-_V2_FIELDS = {"hello": {"stereo_baseline"}, "keyframe": {"u_right", "odom_sigma"}}
+# per protocol version, the fields it added, which an older frame cannot have (its reader takes their
+# defaults: a v1 keyframe is all mono, tracked well; a v3 correction carries no covariance)
+_FIELDS_SINCE: dict[int, dict[str, set[str]]] = {
+    2: {"hello": {"stereo_baseline"}, "keyframe": {"u_right", "odom_sigma"}},
+    4: {"correction": {"pose_covariance", "covariance_kf_id"}},
+}
 # message types a frame of an older version cannot carry
 _SINCE = {"rendezvous": 3}
 _REQUIRED = {
@@ -376,6 +423,12 @@ _REQUIRED = {
 
 def decode(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, Message]:
     """Decode and validate one frame -> (seq, message). Raises only :class:`ProtocolError`."""
+    _, seq, msg = decode_versioned(frame, limits)
+    return seq, msg
+
+
+def decode_versioned(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, int, Message]:
+    """:func:`decode`, also giving the frame's protocol version: (version, seq, message)."""
     if not isinstance(frame, bytes | bytearray | memoryview):
         raise ProtocolError(f"frame must be bytes, got {type(frame).__name__}", "frame")
     if len(frame) > limits.max_frame_bytes:
@@ -415,7 +468,7 @@ def decode(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, Message]
     if not isinstance(body, dict):
         raise FieldError(f"expected a map, got {type(body).__name__}", "body")
     keys = set(body)
-    unknown = keys - (_FIELDS[mtype] if version >= 2 else _FIELDS[mtype] - _V2_FIELDS.get(mtype, set()))
+    unknown = keys - (_FIELDS[mtype] - _newer_fields(mtype, version))
     if unknown:
         raise FieldError(
             f"unknown field(s) {sorted(map(str, unknown))}", f"body.{sorted(map(str, unknown))[0]}"
@@ -424,7 +477,7 @@ def decode(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, Message]
     if missing:
         raise FieldError("missing", f"body.{sorted(missing)[0]}")
     try:
-        return seq, _VALIDATORS[mtype](body, limits)
+        return version, seq, _VALIDATORS[mtype](body, limits)
     except ProtocolError:
         raise
     except Exception as e:  # defensive: a validator bug must still surface as a protocol error

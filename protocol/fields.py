@@ -126,6 +126,16 @@ def is_spd3(c: list[list[float]]) -> bool:
     return c[0][0] > 0 and m2 > 0 and m3 > 0
 
 
+def check_psd(c: np.ndarray, path: str) -> None:
+    """A covariance: symmetric (to 1e-9 relative) and positive semi-definite (its smallest eigenvalue not
+    below -1e-9 times its largest; a held keyframe's is exactly zero)."""
+    scale = float(np.abs(c).max()) if c.size else 0.0
+    if np.abs(c - c.T).max(initial=0.0) > 1e-9 * scale:
+        raise FieldError("covariance must be symmetric", path)
+    if scale > 0 and float(np.linalg.eigvalsh(c).min()) < -1e-9 * scale:
+        raise FieldError("covariance must be positive semi-definite", path)
+
+
 def check_same_rows(path_a: str, a: np.ndarray, path_b: str, b: np.ndarray) -> None:
     if a.shape[0] != b.shape[0]:
         raise FieldError(f"{b.shape[0]} rows but {path_a} has {a.shape[0]}", path_b)

@@ -7,8 +7,11 @@ from dataclasses import dataclass
 # 2: keyframes carry ``u_right`` and ``odom_sigma``, hellos ``stereo_baseline``. A v1 frame still reads
 # (all keypoints mono, every keyframe tracked well).
 # 3: the ``rendezvous`` message (an agent saw another agent's marker carrier). v1 and v2 frames still read.
-PROTOCOL_VERSION = 3
-SUPPORTED_VERSIONS = (1, 2, 3)
+# 4: corrections carry ``pose_covariance`` and ``covariance_kf_id``. v1-v3 frames still read, and a frame
+# to a peer that said hello in an older version is written in that version, without the newer fields
+# (``encode(..., version=)``, ``downgrade``), so older agents keep working.
+PROTOCOL_VERSION = 4
+SUPPORTED_VERSIONS = (1, 2, 3, 4)
 
 
 @dataclass(frozen=True)

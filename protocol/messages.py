@@ -1,4 +1,4 @@
-"""Protocol v3 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
+"""Protocol v4 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
 
 Arrays are numpy arrays with fixed dtypes; shapes are given per field. Poses are 4x4 float64
 ``world_from_cam`` in the sender's frame (the agent's VIO frame for agent -> server messages, the
@@ -148,7 +148,13 @@ class Ack:
 @dataclass(frozen=True)
 class Correction:
     """Server -> agent. ``global_from_local`` f64 (4,4) Sim(3) matrix ``[[sR, t], [0, 1]]``; corrected
-    poses of the agent's changed keyframes in the global frame: kf_ids i64 (K,), world_from_cam (K,4,4)."""
+    poses of the agent's changed keyframes in the global frame: kf_ids i64 (K,), world_from_cam (K,4,4).
+
+    Optional (protocol v4), together: ``pose_covariance`` f64 (6,6), the marginal covariance of keyframe
+    ``covariance_kf_id`` (the agent's latest in the server's map) from the server's pose graph, in the
+    global frame: of ``[dtheta (rad), dp (m)]`` with ``R = Exp(dtheta) R_hat`` and ``p = p_hat + dp`` (the
+    camera centre), both in the global frame (its lower-right 3x3 block is the position covariance).
+    Symmetric positive semi-definite; relative to the map's gauge (its reference keyframe is exact)."""
 
     TYPE: ClassVar[str] = "correction"
     map_id: int
@@ -159,6 +165,8 @@ class Correction:
     # "map": the global frame is the merged map's own frame; "enu": the server's GNSS stage has put the
     # map into the ENU frame the agents' GNSS fixes are in, so the poses are absolute ENU poses.
     global_frame: str = "map"
+    pose_covariance: NDArray[np.float64] | None = None
+    covariance_kf_id: int | None = None
 
 
 @dataclass(frozen=True)

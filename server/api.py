@@ -11,7 +11,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import PlainTextResponse, RedirectResponse, StreamingResponse
 
-from hivemap.server import schemas, views
+from hivemap.server import schemas, views, views_uncertainty
 from hivemap.server.core import HiveServer
 from hivemap.server.metrics import CONTENT_TYPE
 
@@ -124,6 +124,24 @@ async def map_keyframes(
 ) -> schemas.KeyframeList:
     """Keyframes of a map (pose, number of keypoints and linked points), ordered by (agent, id), paged."""
     return views.keyframes(server, map_id, offset, limit)
+
+
+@router.get(
+    "/maps/{map_id}/uncertainty",
+    response_model=schemas.MapUncertainty,
+    responses=NOT_FOUND,
+    tags=["maps"],
+)
+async def map_uncertainty(
+    server: Server,
+    map_id: MapId,
+    offset: Annotated[int, Query(ge=0, le=10_000_000)] = 0,
+    limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
+) -> schemas.MapUncertainty:
+    """Every keyframe's marginal covariance from the map's pose graph (3x3 position and 6x6 pose, map
+    frame; ``convention`` says how the 6x6 is parameterised), from the last solve (at most about once a
+    second), ordered by (agent, id), paged."""
+    return views_uncertainty.map_uncertainty(server, views.get_map(server, map_id), offset, limit)
 
 
 @router.get(

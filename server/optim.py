@@ -225,12 +225,28 @@ def solve_pose_graph_se3(
 ) -> PoseGraphResult:
     """:func:`solve_pose_graph_sim3` for metric maps: SE(3) poses and edges (gtsam Pose3; the edges'
     scale and ``sigma_logscale`` are ignored). Poses come back as Sim3 with scale 1."""
+    n = len(world_from_cam)
+    if n == 0:
+        return PoseGraphResult([], [True] * len(edges), [0.0] * len(edges))
+    graph, initial = se3_graph(world_from_cam, edges, fixed, options, loose)
+    result, inlier, chi2 = _solve(graph, initial, len(fixed) + len(loose), edges, options)
+    return PoseGraphResult([Sim3.from_se3(result.atPose3(k).matrix()) for k in range(n)], inlier, chi2)
+
+
+def se3_graph(
+    world_from_cam: F64,
+    edges: list[PoseGraphEdge],
+    fixed: set[int] | frozenset[int],
+    options: PoseGraphOptions = PoseGraphOptions(),
+    loose: Sequence[int] = (),
+) -> tuple[Any, Any]:
+    """The SE(3) pose graph of :func:`solve_pose_graph_se3` and its initial values (gtsam
+    ``NonlinearFactorGraph``, ``Values`` keyed 0..N-1): the ``fixed`` equalities first, then the ``loose``
+    priors, then one factor per edge (what :mod:`hivemap.server.marginals` linearises too)."""
     import gtsam
 
     poses = np.asarray(world_from_cam, dtype=np.float64)
     n = len(poses)
-    if n == 0:
-        return PoseGraphResult([], [True] * len(edges), [0.0] * len(edges))
     _check_graph("solve_pose_graph_se3", n, edges, fixed)
     graph = gtsam.NonlinearFactorGraph()
     initial = gtsam.Values()
@@ -244,8 +260,7 @@ def solve_pose_graph_se3(
         noise = _edge_noise(e, [e.sigma_trans] * 3, options)
         rel = se3(e.i_from_j.R, e.i_from_j.t)
         graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(rel), noise))
-    result, inlier, chi2 = _solve(graph, initial, len(fixed) + len(loose), edges, options)
-    return PoseGraphResult([Sim3.from_se3(result.atPose3(k).matrix()) for k in range(n)], inlier, chi2)
+    return graph, initial
 
 
 def relative_sim3(world_from_i: F64, world_from_j: F64) -> Sim3:

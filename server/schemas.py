@@ -71,6 +71,20 @@ class MissionInfo(BaseModel):
     last_seq: int = Field(description="highest seq of this mission durably stored")
 
 
+class PoseUncertainty(BaseModel):
+    """The marginal covariance of one keyframe pose from the server's pose graph, in the map frame
+    (``hivemap.server.marginals``; ``convention`` says how the 6x6 is parameterised)."""
+
+    agent_id: str = Field(description="the keyframe's agent session (folded id: agent, or agent#session)")
+    kf_id: int
+    map_id: int
+    position: list[float] = Field(description="the camera centre now, map frame (m)")
+    position_cov: list[list[float]] = Field(description="3x3 covariance of the camera centre, map frame, m^2")
+    pose_cov: list[list[float]] = Field(description="6x6 covariance of [dtheta (rad), dp (m)], map frame")
+    computed_at: float = Field(description="unix time of the solve")
+    convention: str
+
+
 class AgentInfo(BaseModel):
     agent_id: str
     kind: str | None
@@ -90,6 +104,9 @@ class AgentInfo(BaseModel):
     mission: str | None = Field(default=None, description="mission of the agent's latest hello")
     missions: list[MissionInfo] = Field(default_factory=list)
     sessions: list[SessionInfo] = Field(default_factory=list, description="every agent map, all missions")
+    uncertainty: PoseUncertainty | None = Field(
+        default=None, description="covariance of the current session's latest keyframe (back-end on)"
+    )
 
 
 class AgentList(BaseModel):
@@ -148,6 +165,19 @@ class KeyframeList(BaseModel):
     total: int
     offset: int
     keyframes: list[KeyframeInfo]
+
+
+class MapUncertainty(BaseModel):
+    """Every keyframe's marginal covariance of a map (``/maps/{id}/uncertainty``), paged like
+    ``/maps/{id}/keyframes``; ``computed_at`` None (and no keyframes) until the first solve."""
+
+    map_id: int
+    computed_at: float | None
+    cpu_s: float | None = Field(description="CPU time of that solve (s)")
+    total: int
+    offset: int
+    convention: str
+    keyframes: list[PoseUncertainty]
 
 
 class EventInfo(BaseModel):

@@ -15,6 +15,7 @@ from hivemap.maps.geometry import quat_wxyz_from_rotmat
 from hivemap.server import schemas
 from hivemap.server.core import AgentMap, AgentState, HiveServer
 from hivemap.server.metrics import MetricsWriter
+from hivemap.server.views_uncertainty import agent_uncertainty
 
 
 class NotFound(LookupError):
@@ -67,6 +68,7 @@ def agent_info(server: HiveServer, agent: AgentState) -> schemas.AgentInfo:
             schemas.MissionInfo(mission=ms.mission, last_seq=ms.last_seq) for ms in agent.missions.values()
         ],
         sessions=[_session_info(server, a) for _, a in sorted(agent.maps.items())],
+        uncertainty=agent_uncertainty(server, am.folded) if am is not None else None,
     )
 
 

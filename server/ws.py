@@ -35,10 +35,12 @@ from hivemap.protocol import (
     ProtocolError,
     UnknownTypeError,
     VersionError,
-    decode,
+    decode_versioned,
+    downgrade,
     encode,
 )
 from hivemap.protocol import Error as ErrorMsg
+from hivemap.protocol.limits import PROTOCOL_VERSION
 from hivemap.server.core import AgentState, HiveServer, Rejected
 
 logger = logging.getLogger(__name__)
@@ -79,6 +81,8 @@ class AgentConnection:
         self.limits = Limits(max_frame_bytes=s.max_frame_bytes)
         self._outbox: asyncio.Queue[Any] = asyncio.Queue(maxsize=s.outbox_max)
         self._out_seq = 0
+        # the protocol version of the agent's hello: what it is sent in (an older agent gets frames it reads)
+        self.peer_version = PROTOCOL_VERSION
         self._closing = False
         self._overflow = False
         self._task: asyncio.Task[Any] | None = None
@@ -126,7 +130,7 @@ class AgentConnection:
                     await self.ws.close(item.code, item.reason)
                     return
                 self._out_seq += 1
-                frame = encode(item, self._out_seq)
+                frame = encode(downgrade(item, self.peer_version), self._out_seq, self.peer_version)
                 await self.ws.send_bytes(frame)
                 agent = self.agent
                 if agent is not None and not self.replaced:
@@ -204,7 +208,7 @@ class AgentConnection:
         if agent is not None:
             agent.bandwidth.received(len(data))
         try:
-            seq, msg = decode(data, self.limits)
+            version, seq, msg = decode_versioned(data, self.limits)
         except ProtocolError as exc:
             self.server.rejected_frames += 1
             if agent is not None:
@@ -212,6 +216,8 @@ class AgentConnection:
             self._reply_error(_error_code(exc), str(exc), exc.field, None)
             return
         if self.agent_id is None:
+            if isinstance(msg, Hello):
+                self.peer_version = version
             await self._on_hello(seq, msg)
             if self.agent is not None:
                 self.agent.bandwidth.received(len(data))

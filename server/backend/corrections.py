@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -144,9 +145,12 @@ async def send_corrections(
     enu: bool,
     correction_bytes: dict[str, int],
     latencies: list[float],
+    covariance_of: Callable[[str], Any] | None = None,
 ) -> None:
     """Send every agent of map ``map_id`` its correction (``before``: the local poses before the change,
-    empty when no keyframe moved locally); counts bytes and latencies from ``t_det``."""
+    empty when no keyframe moved locally); counts bytes and latencies from ``t_det``. ``covariance_of``:
+    an agent's latest keyframe's :class:`~.uncertainty.PoseCovariance` (or None), which its correction
+    carries when it is of this map."""
     m = server.stack.maps.get(map_id)
     if m is None:
         return
@@ -158,9 +162,14 @@ async def send_corrections(
         chosen = chosen_keyframes(m, folded, before, after, o, enu)
         ids = np.array([k[1] for k in chosen], dtype=np.int64)
         poses = np.array([m.keyframes[k].world_from_cam for k in chosen], dtype=np.float64).reshape(-1, 4, 4)
+        cov = covariance_of(folded) if covariance_of is not None else None
+        if cov is not None and (cov.map_id != map_id or cov.key not in m.keyframes):
+            cov = None
         corr = Correction(map_id=map_id, global_from_local=am.global_from_vio.matrix(), kf_ids=ids,
                           world_from_cam=poses, session=am.session,
-                          global_frame="enu" if enu else "map")  # fmt: skip
+                          global_frame="enu" if enu else "map",
+                          pose_covariance=None if cov is None else cov.covariance,
+                          covariance_kf_id=None if cov is None else cov.key[1])  # fmt: skip
         nbytes = len(encode(corr, 0))
         correction_bytes[am.agent_id] = correction_bytes.get(am.agent_id, 0) + nbytes
         try:

@@ -229,7 +229,32 @@ def pose_graph(
     graph let scale creep in at each of the dozens of loop closures of a factory run until poses
     overflowed, and holding its scale with a tiny log-scale sigma made it ill-conditioned (rotations
     came out scaled by ~100)."""
-    from hivemap.server.optim import PoseGraphEdge, relative_sim3, solve_pose_graph_se3, solve_pose_graph_sim3
+    from hivemap.server.optim import solve_pose_graph_se3, solve_pose_graph_sim3
+
+    edges = pose_graph_edges(
+        poses, graph_edges, new_edges, sigmas=sigmas, sigma_yaw=sigma_yaw, ups=ups, graph_sigmas=graph_sigmas,
+        covariances=covariances,
+    )  # fmt: skip
+    opts = options or PoseGraphOptions()
+    if metric:
+        return solve_pose_graph_se3(initial, edges, set(fixed), opts, loose)
+    return solve_pose_graph_sim3(initial, edges, set(fixed), opts, loose)
+
+
+def pose_graph_edges(
+    poses: F64,
+    graph_edges: list[tuple[int, int]],
+    new_edges: list[tuple[int, int, Sim3, float, float]],
+    *,
+    sigmas: tuple[float, float],
+    sigma_yaw: float | None = None,
+    ups: F64 | None = None,
+    graph_sigmas: Sequence[tuple[float, float, float]] | None = None,
+    covariances: Sequence[F64 | None] = (),
+) -> list[Any]:
+    """The :class:`~hivemap.server.optim.PoseGraphEdge` list of :func:`pose_graph` (its arguments): the
+    graph's edges first, holding the relative poses of ``poses``, then the robust new edges."""
+    from hivemap.server.optim import PoseGraphEdge, relative_sim3
 
     def up(j: int) -> tuple[float, float, float] | None:
         if sigma_yaw is None or ups is None or not np.all(np.isfinite(ups[j])):
@@ -252,10 +277,17 @@ def pose_graph(
     covs = list(covariances) + [None] * (len(new_edges) - len(covariances))
     edges += [PoseGraphEdge(i, j, s, sr, st, robust=True, covariance=c)
               for (i, j, s, sr, st), c in zip(new_edges, covs, strict=True)]  # fmt: skip
-    opts = options or PoseGraphOptions()
-    if metric:
-        return solve_pose_graph_se3(initial, edges, set(fixed), opts, loose)
-    return solve_pose_graph_sim3(initial, edges, set(fixed), opts, loose)
+    return edges
+
+
+def problem_edges(p: PoseGraphProblem, poses: F64, o: OptimiseOptions) -> list[Any]:
+    """:func:`pose_graph_edges` of a :class:`PoseGraphProblem` with the options' sigmas (what
+    :func:`solve_pose_graph` solves)."""
+    return pose_graph_edges(
+        poses, p.graph_edges, p.new_edges, sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
+        sigma_yaw=o.pose_graph_sigma_yaw if o.pose_graph_sigma_yaw > 0 else None, ups=p.ups,
+        graph_sigmas=p.graph_sigmas, covariances=p.new_edge_covs,
+    )  # fmt: skip
 
 
 @dataclass

@@ -2,7 +2,8 @@
 
 The server's TOML sets them under ``[backend]`` (``enabled``, ``preset``, ``fix_scale``) and one table per
 stage (``[backend.scheduler]``, ``[backend.placerec]``, ``[backend.accept]``, ``[backend.fit]``,
-``[backend.optimise]``, ``[backend.gnss]``, ``[backend.gnss.stage]``, ``[backend.corrections]``). A preset
+``[backend.optimise]``, ``[backend.gnss]``, ``[backend.gnss.stage]``, ``[backend.corrections]``,
+``[backend.uncertainty]``). A preset
 (:data:`PRESETS`) gives the starting values; the tables override single fields. Why each default is what
 it is: ``docs/decisions.md``.
 """
@@ -207,6 +208,19 @@ class RendezvousOptions:
 
 
 @dataclass(frozen=True)
+class UncertaintyOptions:
+    """Marginal covariances of the keyframes (:mod:`hivemap.server.backend.uncertainty`)."""
+
+    enabled: bool = True
+    # every keyframe's covariance of a map: at most once per this long ...
+    min_interval_s: float = 1.0
+    # ... and no sooner after the last than its CPU time / this share of a core
+    max_duty: float = 0.2
+    # maps with more keyframes get none (the cost of one solve: docs/decisions.md)
+    max_keyframes: int = 20000
+
+
+@dataclass(frozen=True)
 class BackendOptions:
     """Every back-end option; ``preset`` names the preset the values started from."""
 
@@ -223,6 +237,7 @@ class BackendOptions:
     gnss: GnssOptions = GnssOptions()
     corrections: CorrectionOptions = CorrectionOptions()
     rendezvous: RendezvousOptions = RendezvousOptions()
+    uncertainty: UncertaintyOptions = UncertaintyOptions()
 
 
 PRESETS: dict[str, BackendOptions] = {
@@ -340,6 +355,7 @@ __all__ = [
     "RendezvousOptions",
     "SchedulerOptions",
     "Thresholds",
+    "UncertaintyOptions",
     "from_table",
     "preset",
     "to_table",

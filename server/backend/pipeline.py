@@ -35,6 +35,7 @@ from hivemap.server.backend.executor import Verifier
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.backend.startprior import StartPrior
+from hivemap.server.backend.uncertainty import Uncertainty
 from hivemap.server.convert import split_folded
 from hivemap.server.persist import GraphSnapshot
 from hivemap.server.placerec import Detection, PlaceRecognizer
@@ -106,6 +107,7 @@ class Pipeline:
         self.correction_latencies: list[float] = []
         self.ba_runs: list[dict[str, Any]] = []
         self.selfcheck: dict[int, dict[str, Any]] = {}  # map -> its last self-check (/maps/{id})
+        self.uncertainty = Uncertainty(self, self.options.uncertainty)
 
     @property
     def verifier(self) -> Verifier:
@@ -173,10 +175,13 @@ class Pipeline:
         )
 
     async def _send_corrections(self, map_id: int, before: dict[KfKey, F64], t_det: float) -> None:
+        # the corrections carry each agent's latest keyframe's covariance in the map as it is now
+        await self.uncertainty.latest_now(map_id)
         await corrections.send_corrections(
             self.server, map_id, before, t_det, self.options.corrections, map_id in self._enu_maps,
-            self.correction_bytes, self.correction_latencies,
+            self.correction_bytes, self.correction_latencies, self.uncertainty.of_agent,
         )  # fmt: skip
+        self.uncertainty.request(map_id)
 
     async def _apply_merge(
         self, target: int, source: int, target_from_source: Sim3, pairs: list[Any], by: str | None = None

@@ -110,8 +110,9 @@ class Backend(Pipeline):
             self._worker.cancel()
         for t in [*self._tasks, *self._inflight]:
             t.cancel()
+        covs = self.uncertainty.stop()
         await asyncio.gather(
-            *(t for t in [self._worker, *self._tasks, *self._inflight] if t is not None),
+            *(t for t in [self._worker, *self._tasks, *self._inflight, *covs] if t is not None),
             return_exceptions=True,
         )
         if self._verifier is not None:
@@ -155,6 +156,7 @@ class Backend(Pipeline):
         dropped = self.queue.push(key)
         if dropped is not None:
             self.server.events.add("placerec", f"query queue full: {dropped} dropped")
+        self.uncertainty.request(map_id)
         self._wake.set()
         # GNSS stage also without a merge or loop: every ``GNSS_EVERY_KFS`` keyframes with a fix in a map
         m = self.server.stack.maps.get(map_id)

@@ -32,6 +32,8 @@ from hivemap.protocol import (
     VersionError,
     Welcome,
     decode,
+    decode_versioned,
+    downgrade,
     encode,
 )
 
@@ -264,7 +266,7 @@ def test_limits_are_enforced() -> None:
 def test_envelope_errors() -> None:
     frame = encode(Ack(5), 9)
     with pytest.raises(VersionError):
-        decode(_tamper(frame, v=4))
+        decode(_tamper(frame, v=5))
     with pytest.raises(UnknownTypeError):
         decode(_tamper(frame, type="teleport"))
     with pytest.raises(FieldError) as e:
@@ -454,3 +456,64 @@ def test_bad_rendezvous_fields_are_named(changes: dict[str, Any], field: str) ->
     with pytest.raises(FieldError) as e:
         decode(encode(_rendezvous(**changes), 1))
     assert e.value.field == field
+
+
+def _cov6() -> np.ndarray:
+    A = np.random.default_rng(3).normal(size=(6, 6))
+    return A @ A.T * 1e-3
+
+
+def test_a_correction_carries_a_pose_covariance() -> None:
+    """Protocol v4: the covariance of the agent's latest keyframe rides on the correction, checked as
+    a covariance (symmetric, positive semi-definite, finite; zero is one: a held keyframe's)."""
+    corr = Correction(
+        1, np.eye(4), np.arange(1), np.eye(4)[None], pose_covariance=_cov6(), covariance_kf_id=7
+    )
+    _, got = decode(encode(corr, 3))
+    assert isinstance(got, Correction) and got.covariance_kf_id == 7
+    assert got.pose_covariance is not None
+    np.testing.assert_array_equal(got.pose_covariance, corr.pose_covariance)
+    _, zero = decode(encode(replace(corr, pose_covariance=np.zeros((6, 6))), 3))
+    assert isinstance(zero, Correction) and zero.pose_covariance is not None
+    _, plain = decode(encode(Correction(1, np.eye(4), np.arange(1), np.eye(4)[None]), 3))
+    assert isinstance(plain, Correction) and plain.pose_covariance is None and plain.covariance_kf_id is None
+    skew = _cov6()
+    skew[0, 1] += 1e-4
+    neg = _cov6() - 0.01 * np.eye(6) * np.linalg.eigvalsh(_cov6()).max()
+    nan = _cov6()
+    nan[2, 2] = np.nan
+    for bad, field, why in [
+        (replace(corr, pose_covariance=skew), "body.pose_covariance", "symmetric"),
+        (replace(corr, pose_covariance=neg), "body.pose_covariance", "semi-definite"),
+        (replace(corr, pose_covariance=nan), "body.pose_covariance", "NaN"),
+        (replace(corr, pose_covariance=_cov6()[:3, :3].copy()), "body.pose_covariance", "shape"),
+        (replace(corr, covariance_kf_id=None), "body.covariance_kf_id", "together"),
+        (replace(corr, pose_covariance=None), "body.pose_covariance", "together"),
+        (replace(corr, covariance_kf_id=-1), "body.covariance_kf_id", "outside"),
+    ]:
+        with pytest.raises(FieldError) as e:
+            decode(encode(bad, 3))
+        assert e.value.field == field and why in str(e.value), (field, str(e.value))
+
+
+def test_older_readers_get_frames_of_their_version() -> None:
+    """A v3 frame cannot carry the v4 fields (refused, naming one); a v4 correction downgraded for a v3
+    peer is written as v3 without them, which a reader of v3 takes; setting them at v3 is an error."""
+    corr = Correction(
+        1, np.eye(4), np.arange(1), np.eye(4)[None], pose_covariance=_cov6(), covariance_kf_id=7
+    )
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(encode(corr, 3), v=3))
+    assert e.value.field in {"body.pose_covariance", "body.covariance_kf_id"}
+    with pytest.raises(ValueError):
+        encode(corr, 3, version=3)
+    old = encode(downgrade(corr, 3), 3, version=3)
+    obj = msgpack.unpackb(old, raw=False)
+    assert obj["v"] == 3 and not {"pose_covariance", "covariance_kf_id"} & set(obj["body"])
+    version, _, got = decode_versioned(old)
+    assert version == 3 and isinstance(got, Correction) and got.pose_covariance is None
+    np.testing.assert_array_equal(got.world_from_cam, corr.world_from_cam)
+    assert downgrade(corr, 4) is corr
+    # a v1 peer: the rendezvous message does not exist for it
+    with pytest.raises(ValueError):
+        encode(_rendezvous(), 1, version=2)

@@ -48,7 +48,8 @@ const agentGroup = new THREE.Group();
 const frustumGroup = new THREE.Group();
 const edgeGroup = new THREE.Group();
 const gtGroup = new THREE.Group();
-scene.add(pointGroup, trajGroup, agentGroup, frustumGroup, edgeGroup, gtGroup);
+const ellipseGroup = new THREE.Group();
+scene.add(pointGroup, trajGroup, agentGroup, frustumGroup, edgeGroup, gtGroup, ellipseGroup);
 
 // FNV-1a, 32 bit, over the UTF-8 bytes of the id
 export function hashId(id) {
@@ -61,6 +62,30 @@ function colorOf(agentId) {
   const base = String(agentId).split("#")[0];
   if (!(base in state.colors)) state.colors[base] = PALETTE[hashId(base) % PALETTE.length];
   return state.colors[base];
+}
+
+// The horizontal (x, y; hivemap frames are z-up) n-sigma ellipse of a 3x3 position covariance: semi-axes
+// and the major axis' angle from x, from the eigen-decomposition of its x-y block (closed form for 2x2).
+export function horizontalEllipse(cov, nSigma = 2) {
+  const a = cov[0][0], b = 0.5 * (cov[0][1] + cov[1][0]), c = cov[1][1];
+  const mean = 0.5 * (a + c), half = Math.hypot(0.5 * (a - c), b);
+  const l1 = Math.max(mean + half, 0), l2 = Math.max(mean - half, 0);
+  return { major: nSigma * Math.sqrt(l1), minor: nSigma * Math.sqrt(l2), angle: 0.5 * Math.atan2(2 * b, a - c) };
+}
+
+function ellipseLine(u, color) {
+  const e = horizontalEllipse(u.position_cov, 2);
+  const [x0, y0, z0] = u.position;
+  const n = 64, pos = new Float32Array(3 * n), ca = Math.cos(e.angle), sa = Math.sin(e.angle);
+  for (let i = 0; i < n; i++) {
+    const t = (2 * Math.PI * i) / n, px = e.major * Math.cos(t), py = e.minor * Math.sin(t);
+    pos.set([x0 + ca * px - sa * py, y0 + sa * px + ca * py, z0], 3 * i);
+  }
+  const geom = new THREE.BufferGeometry();
+  geom.setAttribute("position", new THREE.BufferAttribute(pos, 3));
+  const line = new THREE.LineLoop(geom, new THREE.LineBasicMaterial({ color }));
+  line.userData = { agentId: u.agent_id, major: e.major, minor: e.minor };
+  return line;
 }
 
 function resize() {
@@ -306,13 +331,16 @@ async function refreshTrajectories() {
     catch { continue; }
   }
   // redrawn (and the frame rendered) only when a trajectory changed
-  const key = JSON.stringify(fetched.map(([a, traj]) => [a.agent_id, traj.poses || traj]));
+  const key = JSON.stringify(fetched.map(([a, traj]) => [a.agent_id, traj.poses || traj, a.uncertainty ?? null]));
   if (key === state.trajKey) return;
   state.trajKey = key;
   requestRender();
   trajGroup.clear();
   agentGroup.clear();
+  ellipseGroup.clear();
   for (const [a, traj] of fetched) {
+    // the 2-sigma position ellipse of the agent's latest keyframe (the back-end's pose-graph marginal)
+    if (a.uncertainty) ellipseGroup.add(ellipseLine(a.uncertainty, colorOf(a.agent_id)));
     const poses = traj.poses || traj;
     if (!poses.length) continue;
     const pos = new Float32Array(poses.length * 3);
@@ -326,6 +354,8 @@ async function refreshTrajectories() {
     agentGroup.add(head);
   }
   document.body.dataset.agentsDrawn = String(agentGroup.children.length);
+  document.body.dataset.ellipses = JSON.stringify(Object.fromEntries(
+    ellipseGroup.children.map((l) => [l.userData.agentId, [l.userData.major, l.userData.minor]])));
   document.body.dataset.colors = JSON.stringify(Object.fromEntries(
     state.agents.map((a) => [a.agent_id, "#" + colorOf(a.agent_id).toString(16).padStart(6, "0")])));
 }

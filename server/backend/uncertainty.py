@@ -1,0 +1,195 @@
+"""Marginal covariances of the agents' latest keyframes and of every keyframe, from the map's pose graph
+(:mod:`hivemap.server.marginals`; its docstring gives the map-frame convention), kept for REST and for
+the corrections.
+
+The graph is the one the pipeline's pose-graph step solves (:func:`.optimise.pose_graph_problem`: the
+essential graph plus the map's kept loop, merge and rendezvous edges, the same gauge), linearised at the
+map's poses now; never on the event loop. Two kinds:
+
+* every keyframe of a map, after new keyframes or an optimisation: at most once per
+  ``min_interval_s`` per map, and no sooner after the last than its CPU time / ``max_duty``, so a large
+  map costs a bounded share of a core; where the verification jobs run (:meth:`~.executor.Verifier.call`);
+* the latest keyframe of each agent of a map, just before its corrections go out
+  (:meth:`Uncertainty.latest_now`), so a correction carries the covariance of the poses it sends; these
+  follow the optimisations, merges and undos, which are one at a time per map; in the optimisation thread
+  (only the factorisation and a few recoveries: quick, and not queued behind verification jobs).
+
+The covariances hold only what the pose graph holds: GNSS fixes (the GNSS stage is a separate solve) do
+not shrink them, and they are as calibrated as the edges' sigmas are (``docs/decisions.md``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.server.backend import optimise
+from hivemap.server.backend.options import OptimiseOptions, UncertaintyOptions
+from hivemap.server.marginals import MarginalsResult, pose_marginals
+from hivemap.server.optim import PoseGraphOptions
+
+logger = logging.getLogger(__name__)
+
+KfKey = tuple[str, int]
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PoseCovariance:
+    """One keyframe's (6, 6) map-frame covariance (:mod:`hivemap.server.marginals`), computed at unix
+    time ``computed_at`` on map ``map_id``'s graph of ``n_keyframes``."""
+
+    map_id: int
+    key: KfKey
+    covariance: F64
+    computed_at: float
+    n_keyframes: int
+
+
+@dataclass(frozen=True)
+class MapCovariances:
+    """Every keyframe's covariance of one map at ``computed_at`` (``keys`` and ``covariances`` parallel)."""
+
+    map_id: int
+    keys: list[KfKey]
+    covariances: F64
+    computed_at: float
+    cpu_s: float
+
+
+def compute(
+    problem: optimise.PoseGraphProblem, poses: F64, o: OptimiseOptions, indices: list[int] | None
+) -> MarginalsResult:
+    """Worker: the marginals of ``problem``'s pose graph at its initial poses (module-level: picklable)."""
+    edges = optimise.problem_edges(problem, poses, o)
+    opts = PoseGraphOptions(gnc=o.gnc, gnc_inlier_probability=o.gnc_inlier_probability)
+    return pose_marginals(problem.initial, edges, set(problem.fixed), opts, problem.loose, indices)
+
+
+def latest_keys(m: Any) -> dict[str, KfKey]:
+    """Each agent's latest keyframe in map ``m`` (by timestamp, then id)."""
+    out: dict[str, tuple[float, int]] = {}
+    for k, kf in m.keyframes.items():
+        cur = out.get(k[0])
+        if cur is None or (kf.timestamp, k[1]) > cur:
+            out[k[0]] = (kf.timestamp, k[1])
+    return {a: (a, kid) for a, (_, kid) in out.items()}
+
+
+class Uncertainty:
+    """The back-end's covariances (module docstring); ``bk`` is the :class:`~.pipeline.Pipeline`."""
+
+    def __init__(self, bk: Any, options: UncertaintyOptions) -> None:
+        self.bk = bk
+        self.options = options
+        self.maps: dict[int, MapCovariances] = {}
+        self.agents: dict[str, PoseCovariance] = {}  # folded agent id -> its latest keyframe's
+        self.runs: list[dict[str, float]] = []  # per solve: n_keyframes, n_wanted, cpu_s, wall_s
+        self._tasks: dict[int, asyncio.Task[None]] = {}
+        self._again: set[int] = set()
+        self._next_at: dict[int, float] = {}  # map -> monotonic time the next full solve may start
+        self._failed: set[int] = set()  # maps whose last solve failed (logged once)
+
+    # -- results ------------------------------------------------------------------------------------
+    def of_agent(self, folded: str) -> PoseCovariance | None:
+        return self.agents.get(folded)
+
+    def of_map(self, map_id: int) -> MapCovariances | None:
+        res = self.maps.get(map_id)
+        return res if res is not None and map_id in self.bk.server.stack.maps else None
+
+    # -- scheduling ---------------------------------------------------------------------------------
+    def request(self, map_id: int) -> None:
+        """Every keyframe's covariance of the map again, as soon as its rate allows."""
+        if not self.options.enabled:
+            return
+        if map_id in self._tasks:
+            self._again.add(map_id)
+            return
+        task = asyncio.create_task(self._run(map_id), name=f"hive-uncertainty-{map_id}")
+        self._tasks[map_id] = task
+        task.add_done_callback(partial(self._done, map_id))
+
+    def _done(self, map_id: int, _task: asyncio.Task[None]) -> None:
+        self._tasks.pop(map_id, None)
+
+    async def _run(self, map_id: int) -> None:
+        while True:
+            self._again.discard(map_id)
+            wait = self._next_at.get(map_id, 0.0) - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            t0 = time.monotonic()
+            try:
+                res = await self._solve(map_id, full=True)
+            except Exception:  # a bug here must not end the map's covariances silently
+                logger.exception("covariances of map %d failed", map_id)
+                res = None
+            cpu = res.cpu_s if res is not None else 0.0
+            o = self.options
+            self._next_at[map_id] = t0 + max(o.min_interval_s, cpu / max(o.max_duty, 1e-3))
+            if map_id not in self._again or map_id not in self.bk.server.stack.maps:
+                return
+
+    async def latest_now(self, map_id: int) -> None:
+        """The map's agents' latest keyframes' covariances now (before corrections go out)."""
+        if self.options.enabled:
+            await self._solve(map_id, full=False)
+
+    def stop(self) -> list[asyncio.Task[None]]:
+        """Cancel the pending solves; returns their tasks (to await)."""
+        tasks = list(self._tasks.values())
+        for t in tasks:
+            t.cancel()
+        return tasks
+
+    # -- one solve ----------------------------------------------------------------------------------
+    async def _solve(self, map_id: int, full: bool) -> MarginalsResult | None:
+        bk = self.bk
+        m = bk.server.stack.maps.get(map_id)
+        if m is None or not 2 <= len(m.keyframes) <= self.options.max_keyframes or bk._verifier is None:
+            return None
+        o = bk.options.optimise
+        snap = bk._snapshot(m)
+        index = {k: i for i, k in enumerate(snap.keys)}
+        fixed = optimise.anchor(m, snap.keys, bk._agent_kind, 1)
+        judged = bk.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
+        kept = [ev.edge for ev in judged if not ev.rejected]  # the edges the last pose graph kept
+        apart = bk.evidence.apart(map_id) if o.gnc else []
+        problem = optimise.pose_graph_problem(m, snap, kept, None, fixed, o, apart)
+        latest = latest_keys(m)
+        wanted = None if full else sorted(index[k] for k in latest.values())
+        t0 = time.monotonic()
+        try:
+            if full:
+                res: MarginalsResult = await bk.verifier.call(compute, problem, snap.poses, o, wanted)
+            else:  # the optimisation thread: corrections wait for it, and verification jobs may queue
+                res = await asyncio.get_running_loop().run_in_executor(
+                    bk._opt_exec, compute, problem, snap.poses, o, wanted
+                )
+        except RuntimeError as exc:
+            if map_id not in self._failed:
+                logger.warning("map %d: no covariances (%s)", map_id, exc)
+            self._failed.add(map_id)
+            return None
+        self._failed.discard(map_id)
+        wall = time.monotonic() - t0
+        self.runs.append({"n_keyframes": float(len(snap.keys)), "n_wanted": float(len(res.indices)),
+                          "cpu_s": res.cpu_s, "wall_s": wall})  # fmt: skip
+        if bk._current(snap) is None:
+            return res  # the map changed frame meanwhile: these covariances are of the old one
+        now = time.time()
+        covs = {snap.keys[i]: c for i, c in zip(res.indices, res.covariances, strict=True)}
+        for folded, k in latest.items():
+            if k in covs:
+                self.agents[folded] = PoseCovariance(map_id, k, covs[k], now, len(snap.keys))
+        if full:
+            self.maps[map_id] = MapCovariances(map_id, list(snap.keys), res.covariances, now, res.cpu_s)
+        return res

@@ -1,0 +1,48 @@
+"""REST views of the back-end's covariances (:mod:`hivemap.server.backend.uncertainty`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from hivemap.server import schemas
+from hivemap.server.core import HiveServer
+from hivemap.server.marginals import CONVENTION, position_covariance
+
+
+def _row(m: Any, map_id: int, key: tuple[str, int], cov: np.ndarray, t: float) -> schemas.PoseUncertainty:
+    T = m.keyframes[key].world_from_cam
+    return schemas.PoseUncertainty(
+        agent_id=key[0], kf_id=int(key[1]), map_id=map_id, position=np.asarray(T[:3, 3], float).tolist(),
+        position_cov=position_covariance(cov).tolist(), pose_cov=np.asarray(cov, float).tolist(),
+        computed_at=t, convention=CONVENTION,
+    )  # fmt: skip
+
+
+def agent_uncertainty(server: HiveServer, folded: str) -> schemas.PoseUncertainty | None:
+    """The latest keyframe's covariance of agent session ``folded``, if the back-end has one for the map
+    the session is in now."""
+    unc = getattr(getattr(server, "backend", None), "uncertainty", None)
+    cov = unc.of_agent(folded) if unc is not None else None
+    m = server.stack.maps.get(cov.map_id) if cov is not None else None
+    if cov is None or m is None or cov.key not in m.keyframes:
+        return None
+    return _row(m, cov.map_id, cov.key, cov.covariance, cov.computed_at)
+
+
+def map_uncertainty(server: HiveServer, m: Any, offset: int, limit: int) -> schemas.MapUncertainty:
+    """Every keyframe's covariance of map ``m`` from its last solve, ordered by (agent, id), paged;
+    keyframes that arrived after it are not listed."""
+    unc = getattr(getattr(server, "backend", None), "uncertainty", None)
+    res = unc.of_map(m.id) if unc is not None else None
+    if res is None:
+        return schemas.MapUncertainty(map_id=m.id, computed_at=None, cpu_s=None, total=0, offset=offset,
+                                      convention=CONVENTION, keyframes=[])  # fmt: skip
+    rows = sorted((k, i) for i, k in enumerate(res.keys) if k in m.keyframes)
+    page = rows[offset : offset + limit]
+    return schemas.MapUncertainty(
+        map_id=m.id, computed_at=res.computed_at, cpu_s=res.cpu_s, total=len(rows), offset=offset,
+        convention=CONVENTION,
+        keyframes=[_row(m, m.id, k, res.covariances[i], res.computed_at) for k, i in page],
+    )  # fmt: skip
