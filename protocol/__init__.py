@@ -35,6 +35,7 @@ from hivemap.protocol.messages import (
     Message,
     PoseUpdates,
     Rendezvous,
+    TeamAdvisory,
     Welcome,
 )
 
@@ -55,6 +56,7 @@ __all__ = [
     "PoseUpdates",
     "ProtocolError",
     "Rendezvous",
+    "TeamAdvisory",
     "UnknownTypeError",
     "VersionError",
     "Welcome",

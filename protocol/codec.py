@@ -46,6 +46,7 @@ from hivemap.protocol.messages import (
     Message,
     PoseUpdates,
     Rendezvous,
+    TeamAdvisory,
     Welcome,
 )
 
@@ -136,6 +137,7 @@ def _v_hello(b: dict[str, Any], lim: Limits) -> Hello:
         ),
         mission=_mission(b.get("mission")),
         stereo_baseline=_baseline(b.get("stereo_baseline"), lim),
+        team_advisories=as_bool(b.get("team_advisories", False), "body.team_advisories"),
     )
 
 
@@ -337,6 +339,21 @@ def _global_frame(v: Any) -> str:
     return frame
 
 
+def _v_team_advisory(b: dict[str, Any], lim: Limits) -> TeamAdvisory:
+    radius = as_float(b["radius_m"], "body.radius_m")
+    if radius < 0:
+        raise FieldError(f"radius must be >= 0, got {radius}", "body.radius_m")
+    return TeamAdvisory(
+        map_id=as_int(b["map_id"], "body.map_id", 0),
+        computed_at=as_float(b["computed_at"], "body.computed_at"),
+        goals=as_array(b["goals"], "body.goals", "<f8", (None, 3), lim.max_goals),
+        desired_velocity=as_array(b["desired_velocity"], "body.desired_velocity", "<f8", (3,)),
+        safe_velocity=as_array(b["safe_velocity"], "body.safe_velocity", "<f8", (3,)),
+        radius_m=radius,
+        session=_session(b),
+    )
+
+
 def _v_error(b: dict[str, Any], lim: Limits) -> Error:
     seq = b.get("seq")
     return Error(
@@ -360,14 +377,19 @@ _VALIDATORS: dict[str, Callable[[dict[str, Any], Limits], Message]] = {
     "rendezvous": _v_rendezvous,
     "ack": _v_ack,
     "correction": _v_correction,
+    "team_advisory": _v_team_advisory,
     "error": _v_error,
     "bye": _v_bye,
 }
 _FIELDS = {name: {f.name for f in fields(cls)} for name, cls in MESSAGE_TYPES.items()}
-# fields a v1 frame cannot have (its reader takes their defaults: a v1 keyframe is all mono, tracked well)
-_V2_FIELDS = {"hello": {"stereo_baseline"}, "keyframe": {"u_right", "odom_sigma"}}
+# fields an older frame cannot have, by the version that added them (its reader takes their defaults: a v1
+# keyframe is all mono, tracked well; a v3 hello does not read team advisories)
+_FIELD_SINCE = {
+    "hello": {"stereo_baseline": 2, "team_advisories": 4},
+    "keyframe": {"u_right": 2, "odom_sigma": 2},
+}
 # message types a frame of an older version cannot carry
-_SINCE = {"rendezvous": 3}
+_SINCE = {"rendezvous": 3, "team_advisory": 4}
 _REQUIRED = {
     name: {f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING}
     for name, cls in MESSAGE_TYPES.items()
@@ -415,7 +437,8 @@ def decode(frame: bytes, limits: Limits = DEFAULT_LIMITS) -> tuple[int, Message]
     if not isinstance(body, dict):
         raise FieldError(f"expected a map, got {type(body).__name__}", "body")
     keys = set(body)
-    unknown = keys - (_FIELDS[mtype] if version >= 2 else _FIELDS[mtype] - _V2_FIELDS.get(mtype, set()))
+    newer = {f for f, since in _FIELD_SINCE.get(mtype, {}).items() if version < since}
+    unknown = keys - (_FIELDS[mtype] - newer)
     if unknown:
         raise FieldError(
             f"unknown field(s) {sorted(map(str, unknown))}", f"body.{sorted(map(str, unknown))[0]}"

@@ -91,6 +91,8 @@ class TeamOptions:
     enabled: bool = True
     # frontiers and assignments are recomputed at most once per this many seconds (per map / team)
     min_interval_s: float = 2.0
+    # agents whose hello asked for them get a ``team_advisory`` this often (protocol v4)
+    push_interval_s: float = 1.0
     frontiers: FrontierOptions = FrontierOptions()
     auction: AuctionOptions = AuctionOptions()
     orca: OrcaOptions = OrcaOptions()

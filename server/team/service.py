@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.protocol import TeamAdvisory
 from hivemap.server import schemas
 from hivemap.server.team.auction import d_optimal_gain, ssi_auction
 from hivemap.server.team.frontiers import FrontierResult, extract
@@ -60,6 +61,46 @@ class TeamService:
         self.covariances = covariances
         self._frontiers: dict[int, _Cached] = {}
         self._team = _Cached()
+        self._push: asyncio.Task[None] | None = None
+        self.pushed = 0  # advisories sent
+
+    # ---------------------------------------------------------------- pushed advisories
+
+    def start_push(self) -> None:
+        """Push ``team_advisory`` messages to the agents that asked for them, until none is connected."""
+        if self.options.enabled and (self._push is None or self._push.done()):
+            self._push = asyncio.get_running_loop().create_task(self._push_loop(), name="hivemap-team-push")
+
+    def _wanting(self) -> list[Any]:
+        return [a for a in self.server.agents.values() if a.team_advisories and a.connection is not None]
+
+    async def _push_loop(self) -> None:
+        while True:
+            # first wait: the hello that started this is answered before the agent's connection is set
+            await asyncio.sleep(self.options.push_interval_s)
+            if not self._wanting():
+                return
+            try:
+                team = await self.assignments()
+            except Exception:
+                logger.exception("team assignments failed; advisories not pushed")
+                continue
+            wanting = {a.agent_id: a for a in self._wanting()}
+            for m in team.maps:
+                for a in m.agents:
+                    agent = wanting.get(a.agent_id)
+                    am = agent.maps.get(agent.session) if agent is not None else None
+                    if agent is None or am is None or agent.connection is None:
+                        continue
+                    msg = TeamAdvisory(
+                        map_id=m.map_id, computed_at=team.computed_at,
+                        goals=np.array(a.goal_positions, dtype=np.float64).reshape(-1, 3),
+                        desired_velocity=np.array(a.advisory.desired_velocity, dtype=np.float64),
+                        safe_velocity=np.array(a.advisory.safe_velocity, dtype=np.float64),
+                        radius_m=a.advisory.inflated_radius_m, session=am.client_session,
+                    )  # fmt: skip
+                    if agent.connection.send(msg):  # not queued for later: a stale advisory is no use
+                        self.pushed += 1
 
     # ---------------------------------------------------------------- frontiers
 

@@ -12,8 +12,9 @@ import pytest
 from agent_client import SyncAgent
 from srv_helpers import TOKENS, ServerProcess, map_of, write_config
 
-from hivemap.protocol import Keyframe, MapPoints
+from hivemap.protocol import Keyframe, MapPoints, TeamAdvisory, Welcome
 from hivemap.server import schemas
+from hivemap.server.loadgen import hello as make_hello
 from hivemap.server.team.frontiers import extract
 from hivemap.server.team.options import FrontierOptions, TeamOptions
 from hivemap.server.team.service import TeamService, _AgentSnap
@@ -113,6 +114,41 @@ def test_frontiers_and_assignments_over_rest(server: ServerProcess) -> None:
             )
         spec = server.json("/openapi.json")
         assert "/maps/{map_id}/frontiers" in spec["paths"] and "/team/assignments" in spec["paths"]
+
+
+def test_advisories_pushed_only_to_agents_that_ask(server: ServerProcess) -> None:
+    """uav2's hello asks for team advisories (protocol v4): it gets its goals and safe velocity, the same as
+    /team/assignments says; ugv1, connected alongside without asking, gets none."""
+    import dataclasses
+    import time
+
+    pts = _half_explored()
+    path = np.array([[2.0, 8.0, 3.5], [6.0, 8.0, 3.5]])
+    with (
+        SyncAgent(server.ws_url, "uav2", TOKENS["uav2"], kind="uav") as uav,
+        SyncAgent(server.ws_url, "ugv1", TOKENS["ugv1"], kind="ugv") as ugv,
+    ):
+        asking = dataclasses.replace(make_hello("uav2", TOKENS["uav2"], "uav"), team_advisories=True)
+        uav.send(asking, 0)
+        assert isinstance(uav.recv(), Welcome)
+        ugv.welcome()
+        uav.send_all(_stream(pts, path))
+        deadline, got = time.monotonic() + 10.0, None
+        while got is None and time.monotonic() < deadline:
+            got = next((m for m in uav.others if isinstance(m, TeamAdvisory)), None)
+            if got is None:
+                msg = uav.recv(timeout=10.0)
+                got = msg if isinstance(msg, TeamAdvisory) else None
+        assert got is not None, "no team advisory within 10 s"
+        team = schemas.TeamAssignments.model_validate(server.json("/team/assignments"))
+        (mine,) = [a for m in team.maps for a in m.agents if a.agent_id == "uav2"]
+        assert got.map_id == map_of(server, "uav2")["id"] and got.session == 0
+        np.testing.assert_allclose(got.goals, np.array(mine.goal_positions).reshape(-1, 3), atol=1e-9)
+        assert len(got.goals) >= 1 and got.radius_m == pytest.approx(mine.advisory.inflated_radius_m)
+        np.testing.assert_allclose(got.safe_velocity, mine.advisory.safe_velocity, atol=1e-9)
+        # ugv1 did not ask: nothing but what it asked for arrives (its queue stays empty for 2 push periods)
+        with pytest.raises(TimeoutError):
+            ugv.recv(timeout=2.5)
 
 
 def test_service_assigns_two_agents_in_one_map_and_separates_them() -> None:
