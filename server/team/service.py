@@ -9,6 +9,7 @@ request within that interval gets the last result, and concurrent requests share
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Callable
@@ -70,6 +71,13 @@ class TeamService:
         """Push ``team_advisory`` messages to the agents that asked for them, until none is connected."""
         if self.options.enabled and (self._push is None or self._push.done()):
             self._push = asyncio.get_running_loop().create_task(self._push_loop(), name="hivemap-team-push")
+
+    async def stop(self, _server: Any = None) -> None:
+        """Cancel the push task (a server shutdown hook)."""
+        if self._push is not None and not self._push.done():
+            self._push.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._push
 
     def _wanting(self) -> list[Any]:
         return [a for a in self.server.agents.values() if a.team_advisories and a.connection is not None]
@@ -269,4 +277,5 @@ def team_service(server: Any) -> TeamService:
     svc: TeamService | None = getattr(server, "team", None)
     if svc is None:
         svc = server.team = TeamService(server, server.settings.team)
+        server.shutdown_hooks.append(svc.stop)
     return svc
