@@ -23,7 +23,17 @@ import websockets
 from websockets.exceptions import ConnectionClosed
 
 from hivemap.client.outbox import Outbox
-from hivemap.protocol import Ack, Correction, Hello, Message, ProtocolError, Welcome, decode, encode
+from hivemap.protocol import (
+    Ack,
+    Correction,
+    Hello,
+    Message,
+    ProtocolError,
+    TeamAdvisory,
+    Welcome,
+    decode,
+    encode,
+)
 from hivemap.protocol import Bye as ByeMsg
 from hivemap.protocol import Error as ErrorMsg
 
@@ -91,6 +101,7 @@ class LinkStats:
     resent: int = 0
     corrections: int = 0
     errors: int = 0
+    advisories: int = 0
 
 
 class AgentLink:
@@ -109,8 +120,12 @@ class AgentLink:
         options: LinkOptions | None = None,
         cam_from_antenna: np.ndarray | None = None,
         stereo_baseline: float | None = None,
+        on_team_advisory: Callable[[TeamAdvisory], None] | None = None,
     ) -> None:
         self.url = url
+        # with a callback the hello asks the server for team advisories (goals, safe velocity)
+        self.on_team_advisory = on_team_advisory
+        self.last_advisory: TeamAdvisory | None = None
         self.stereo_baseline = stereo_baseline  # m, sent in the hello: the server's BA holds scale with it
         self.cam_from_antenna = cam_from_antenna  # (3,) GNSS lever arm in cam0, sent in the hello
         self.agent_id = agent_id
@@ -232,6 +247,7 @@ class AgentLink:
             hello = Hello(
                 self.agent_id, self.kind, self.camera, self.token, self.outbox.last_acked, self.session,
                 self.cam_from_antenna, self.outbox.mission, self.stereo_baseline,
+                self.on_team_advisory is not None,
             )  # fmt: skip
             await ws.send(encode(hello, 0))
             first = await asyncio.wait_for(ws.recv(), self.options.open_timeout_s)
@@ -311,6 +327,14 @@ class AgentLink:
                         self.on_correction(msg)
                     except Exception:
                         log.exception("on_correction callback failed (map %d)", msg.map_id)
+            elif isinstance(msg, TeamAdvisory):
+                self.stats.advisories += 1
+                self.last_advisory = msg
+                if self.on_team_advisory is not None:
+                    try:
+                        self.on_team_advisory(msg)
+                    except Exception:
+                        log.exception("on_team_advisory callback failed (map %d)", msg.map_id)
             elif isinstance(msg, ErrorMsg):
                 self.stats.errors += 1
                 self.server_errors.append(msg)

@@ -1,8 +1,11 @@
-"""Wire protocol v1: message dataclasses, msgpack codec, validation (numpy + msgpack only).
+"""Wire protocol v4 (the versions: :mod:`hivemap.protocol.limits`): message dataclasses, msgpack codec,
+validation (numpy + msgpack only).
 
 from hivemap.protocol import Keyframe, encode, decode
 frame = encode(msg, seq)
 seq, msg = decode(frame)  # raises ProtocolError (naming the field) on anything wrong
+frame = encode(downgrade(msg, 3), seq, version=3)  # to a peer that said hello in v3
+carries(3, "team_advisory")  # False: a message type newer than the peer's version is not sent to it
 
 Identity rules (missions and sessions). Data is keyed by (agent id, mission, session):
 
@@ -20,7 +23,7 @@ Identity rules (missions and sessions). Data is keyed by (agent id, mission, ses
 * Corrections name the session they correct as the agent numbered it, and reach only that mission.
 """
 
-from hivemap.protocol.codec import decode, decode_versioned, downgrade, encode
+from hivemap.protocol.codec import carries, decode, decode_versioned, downgrade, encode
 from hivemap.protocol.errors import FieldError, FrameTooLarge, ProtocolError, UnknownTypeError, VersionError
 from hivemap.protocol.limits import PROTOCOL_VERSION, Limits
 from hivemap.protocol.messages import (
@@ -35,6 +38,7 @@ from hivemap.protocol.messages import (
     Message,
     PoseUpdates,
     Rendezvous,
+    TeamAdvisory,
     Welcome,
 )
 
@@ -55,9 +59,11 @@ __all__ = [
     "PoseUpdates",
     "ProtocolError",
     "Rendezvous",
+    "TeamAdvisory",
     "UnknownTypeError",
     "VersionError",
     "Welcome",
+    "carries",
     "decode",
     "decode_versioned",
     "downgrade",

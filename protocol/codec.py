@@ -47,6 +47,7 @@ from hivemap.protocol.messages import (
     Message,
     PoseUpdates,
     Rendezvous,
+    TeamAdvisory,
     Welcome,
 )
 
@@ -88,6 +89,12 @@ def _default(obj: Any) -> Any:
 def _newer_fields(mtype: str, version: int) -> set[str]:
     """The fields of message type ``mtype`` that a frame of ``version`` cannot carry."""
     return {f for since, table in _FIELDS_SINCE.items() if since > version for f in table.get(mtype, ())}
+
+
+def carries(version: int, mtype: str) -> bool:
+    """Whether a frame of protocol ``version`` can carry message type ``mtype`` (a reader of an older
+    version rejects a newer type outright, so a sender must not write it at all)."""
+    return version >= _SINCE.get(mtype, 1)
 
 
 M = TypeVar("M", bound=Message)
@@ -169,6 +176,7 @@ def _v_hello(b: dict[str, Any], lim: Limits) -> Hello:
         ),
         mission=_mission(b.get("mission")),
         stereo_baseline=_baseline(b.get("stereo_baseline"), lim),
+        team_advisories=as_bool(b.get("team_advisories", False), "body.team_advisories"),
     )
 
 
@@ -380,6 +388,21 @@ def _global_frame(v: Any) -> str:
     return frame
 
 
+def _v_team_advisory(b: dict[str, Any], lim: Limits) -> TeamAdvisory:
+    radius = as_float(b["radius_m"], "body.radius_m")
+    if radius < 0:
+        raise FieldError(f"radius must be >= 0, got {radius}", "body.radius_m")
+    return TeamAdvisory(
+        map_id=as_int(b["map_id"], "body.map_id", 0),
+        computed_at=as_float(b["computed_at"], "body.computed_at"),
+        goals=as_array(b["goals"], "body.goals", "<f8", (None, 3), lim.max_goals),
+        desired_velocity=as_array(b["desired_velocity"], "body.desired_velocity", "<f8", (3,)),
+        safe_velocity=as_array(b["safe_velocity"], "body.safe_velocity", "<f8", (3,)),
+        radius_m=radius,
+        session=_session(b),
+    )
+
+
 def _v_error(b: dict[str, Any], lim: Limits) -> Error:
     seq = b.get("seq")
     return Error(
@@ -403,18 +426,20 @@ _VALIDATORS: dict[str, Callable[[dict[str, Any], Limits], Message]] = {
     "rendezvous": _v_rendezvous,
     "ack": _v_ack,
     "correction": _v_correction,
+    "team_advisory": _v_team_advisory,
     "error": _v_error,
     "bye": _v_bye,
 }
 _FIELDS = {name: {f.name for f in fields(cls)} for name, cls in MESSAGE_TYPES.items()}
 # per protocol version, the fields it added, which an older frame cannot have (its reader takes their
-# defaults: a v1 keyframe is all mono, tracked well; a v3 correction carries no covariance)
+# defaults: a v1 keyframe is all mono, tracked well; a v3 correction carries no covariance, a v3 hello does
+# not ask for team advisories)
 _FIELDS_SINCE: dict[int, dict[str, set[str]]] = {
     2: {"hello": {"stereo_baseline"}, "keyframe": {"u_right", "odom_sigma"}},
-    4: {"correction": {"pose_covariance", "covariance_kf_id"}},
+    4: {"hello": {"team_advisories"}, "correction": {"pose_covariance", "covariance_kf_id"}},
 }
 # message types a frame of an older version cannot carry
-_SINCE = {"rendezvous": 3}
+_SINCE = {"rendezvous": 3, "team_advisory": 4}
 _REQUIRED = {
     name: {f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING}
     for name, cls in MESSAGE_TYPES.items()

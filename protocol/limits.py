@@ -7,9 +7,11 @@ from dataclasses import dataclass
 # 2: keyframes carry ``u_right`` and ``odom_sigma``, hellos ``stereo_baseline``. A v1 frame still reads
 # (all keypoints mono, every keyframe tracked well).
 # 3: the ``rendezvous`` message (an agent saw another agent's marker carrier). v1 and v2 frames still read.
-# 4: corrections carry ``pose_covariance`` and ``covariance_kf_id``. v1-v3 frames still read, and a frame
-# to a peer that said hello in an older version is written in that version, without the newer fields
-# (``encode(..., version=)``, ``downgrade``), so older agents keep working.
+# 4: corrections carry ``pose_covariance`` and ``covariance_kf_id``; the ``team_advisory`` message
+# (server -> agent) and the hello's ``team_advisories`` (the agent reads them; no agent that does not say so
+# gets one). v1-v3 frames still read, and a frame to a peer that said hello in an older version is written in
+# that version, without the newer fields (``encode(..., version=)``, ``downgrade``); a message type newer
+# than the peer's version is not sent to it at all, so older agents keep working.
 PROTOCOL_VERSION = 4
 SUPPORTED_VERSIONS = (1, 2, 3, 4)
 
@@ -28,3 +30,4 @@ class Limits:
     max_seq: int = 2**62
     max_baseline_m: float = 100.0
     max_markers: int = 256
+    max_goals: int = 256  # goals of one team advisory

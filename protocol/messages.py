@@ -38,6 +38,8 @@ class Hello:
     # The stereo baseline (m) of a stereo agent's rig (None: monocular): the virtual rectified right
     # camera of its keyframes' ``u_right`` sits this far along cam0's x axis (protocol v2).
     stereo_baseline: float | None = None
+    # The agent reads ``team_advisory`` messages (protocol v4); agents that do not say so never get one.
+    team_advisories: bool = False
 
 
 @dataclass(frozen=True)
@@ -170,6 +172,26 @@ class Correction:
 
 
 @dataclass(frozen=True)
+class TeamAdvisory:
+    """Server -> agent (protocol v4, only to agents whose hello set ``team_advisories``): the agent's
+    exploration goals and collision advisory in the frame of its map ``map_id`` (the global frame of its
+    corrections). ``goals`` f64 (G,3): its won frontier goals in visiting order (G may be 0);
+    ``desired_velocity`` f64 (3,) towards the first one; ``safe_velocity`` f64 (3,): the ORCA velocity
+    nearest it that stays clear of the map's other agents; ``radius_m``: the agent's radius as inflated by
+    its uncertainty. Advisory only and not stored: a newer one replaces it; ``computed_at`` is the
+    server's unix time."""
+
+    TYPE: ClassVar[str] = "team_advisory"
+    map_id: int
+    computed_at: float
+    goals: NDArray[np.float64]
+    desired_velocity: NDArray[np.float64]
+    safe_velocity: NDArray[np.float64]
+    radius_m: float
+    session: int = 0
+
+
+@dataclass(frozen=True)
 class Error:
     """Either direction: what was wrong (``field`` names the culprit) with message ``seq``."""
 
@@ -186,8 +208,21 @@ class Bye:
     reason: str = ""
 
 
-Message = Hello | Welcome | Keyframe | MapPoints | PoseUpdates | Rendezvous | Ack | Correction | Error | Bye
+Message = (
+    Hello
+    | Welcome
+    | Keyframe
+    | MapPoints
+    | PoseUpdates
+    | Rendezvous
+    | Ack
+    | Correction
+    | TeamAdvisory
+    | Error
+    | Bye
+)
 MESSAGE_TYPES: dict[str, type] = {
     cls.TYPE: cls
-    for cls in (Hello, Welcome, Keyframe, MapPoints, PoseUpdates, Rendezvous, Ack, Correction, Error, Bye)
+    for cls in (Hello, Welcome, Keyframe, MapPoints, PoseUpdates, Rendezvous, Ack, Correction, TeamAdvisory)
+    + (Error, Bye)
 }

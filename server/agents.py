@@ -102,6 +102,7 @@ class AgentState:
     errors: int = 0
     cam_from_antenna: NDArray[np.float64] | None = None  # GNSS lever arm from the hello (not persisted)
     stereo_baseline: float | None = None  # m, from the hello (not persisted: every connection sends it)
+    team_advisories: bool = False  # the hello asked for team advisories (protocol v4; not persisted)
 
     @property
     def state(self) -> str:

@@ -216,6 +216,35 @@ async def events(
 
 
 @router.get(
+    "/maps/{map_id}/frontiers", response_model=schemas.FrontierList, responses=NOT_FOUND, tags=["team"]
+)
+async def map_frontiers(server: Server, map_id: MapId) -> schemas.FrontierList:
+    """Frontier goals of the map (hivemap.server.team.frontiers), recomputed at most once per
+    ``[team] min_interval_s``, off the event loop."""
+    from hivemap.server.team.service import TeamOff, frontier_list, team_service
+
+    views.get_map(server, map_id)  # 404 for an unknown map
+    svc = team_service(server)
+    try:
+        at, fr = await svc.frontiers(map_id)
+    except TeamOff as exc:
+        raise HTTPException(503, str(exc)) from exc
+    return frontier_list(map_id, at, fr, svc.options.frontiers.voxel_m)
+
+
+@router.get("/team/assignments", response_model=schemas.TeamAssignments, tags=["team"])
+async def team_assignments(server: Server) -> schemas.TeamAssignments:
+    """Per map: the SSI auction of its frontiers among its connected agents and each agent's ORCA
+    advisory (safe velocity for its desired one), recomputed at most once per ``[team] min_interval_s``."""
+    from hivemap.server.team.service import TeamOff, team_service
+
+    try:
+        return await team_service(server).assignments()
+    except TeamOff as exc:
+        raise HTTPException(503, str(exc)) from exc
+
+
+@router.get(
     "/metrics",
     response_class=PlainTextResponse,
     responses={200: {"content": {CONTENT_TYPE: {}}}},

@@ -329,6 +329,11 @@ class HiveServer(Ingest, MapEdits):
         if hello.cam_from_antenna is not None:
             agent.cam_from_antenna = np.array(hello.cam_from_antenna, dtype=np.float64)
         agent.stereo_baseline = hello.stereo_baseline
+        agent.team_advisories = hello.team_advisories
+        if hello.team_advisories:  # the team service pushes goals and advisories while such agents are on
+            from hivemap.server.team.service import team_service
+
+            team_service(self).start_push()
         am_now = self._session_map(agent, hello.mission, hello.session, create=True, persist=False)
         self.map_for(am_now)  # the agent's map exists (maybe empty) from its hello on
         am_now.camera = camera

@@ -227,3 +227,69 @@ class MapGroundTruth(BaseModel):
     configured: bool = Field(description="the server was given a ground-truth folder (groundtruth)")
     aligned: bool = Field(description="an alignment was possible (>= 3 keyframes with ground truth)")
     agents: list[AgentGroundTruth]
+
+
+# Team services (hivemap.server.team): frontier goals, their auction, ORCA advisories.
+
+
+class FrontierInfo(BaseModel):
+    id: int = Field(description="frontier id within this computation of the map's frontiers")
+    goal: list[float] = Field(
+        description="x, y on the explored region's boundary; z the median of its points"
+    )
+    points: int = Field(description="down-sampled frontier points in the cluster")
+    reachable: list[str] = Field(
+        description="agent kinds that can reach it (ugv: near the ground, uav: in band)"
+    )
+    goals: dict[str, list[float]] = Field(description="kind -> goal [x, y, z] at that kind's height")
+
+
+class FrontierList(BaseModel):
+    map_id: int
+    computed_at: float = Field(description="unix time of the computation (recomputed at a bounded rate)")
+    voxel_m: float
+    ground: list[float] = Field(description="ground plane z = a x + b y + c as [a, b, c], map frame")
+    known_cells: int = Field(description="explored ground cells")
+    frontier_points: int
+    frontiers: list[FrontierInfo]
+
+
+class Advisory(BaseModel):
+    desired_velocity: list[float] = Field(description="towards the first goal at the kind's cruise speed")
+    safe_velocity: list[float] = Field(description="ORCA: collision-free over the time horizon (horizontal)")
+    radius_m: float
+    inflated_radius_m: float = Field(description="radius + k_sigma * (sigma_pos + t_v * sigma_vel)")
+    neighbours: list[str]
+    covariance: str = Field(description="'graph' (the server's marginals) or 'default' (configured sigmas)")
+
+
+class AgentAssignment(BaseModel):
+    agent_id: str
+    kind: str
+    position: list[float] = Field(description="latest keyframe camera centre, map frame")
+    velocity: list[float] = Field(description="from the last two keyframes, m/s")
+    goals: list[int] = Field(description="frontier ids in visiting order")
+    goal_positions: list[list[float]]
+    path_cost_m: float = Field(description="straight-line length of the tour")
+    advisory: Advisory
+
+
+class AuctionRound(BaseModel):
+    round: int
+    agent_id: str
+    frontier_id: int
+    bid_m: float = Field(description="the winning bid: added path cost less the uncertainty value")
+    added_cost_m: float
+
+
+class MapAssignments(BaseModel):
+    map_id: int
+    frontiers: int
+    agents: list[AgentAssignment]
+    rounds: list[AuctionRound]
+    unassigned: list[int] = Field(description="frontier ids no agent took (cap or reachability)")
+
+
+class TeamAssignments(BaseModel):
+    computed_at: float
+    maps: list[MapAssignments] = Field(description="one per map with a connected agent")

@@ -28,6 +28,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.backend.options import from_table as backend_options_from_table
+from hivemap.server.team.options import TeamOptions
+from hivemap.server.team.options import from_table as team_options_from_table
 
 
 class QuotaSettings(BaseModel):
@@ -151,6 +153,10 @@ class ServerSettings(BaseSettings):
         default_factory=BackendOptions,
         description="The collaboration back-end (merging, loops): [backend] enabled, preset, stage tables.",
     )
+    team: TeamOptions = Field(
+        default_factory=TeamOptions,
+        description="Team services (frontiers, auction, ORCA advisories): [team] and its stage tables.",
+    )
     foxglove_port: int | None = Field(
         default=None, ge=0, le=65535, description="Publish the mission on a Foxglove WebSocket on this port."
     )
@@ -177,6 +183,11 @@ class ServerSettings(BaseSettings):
     @classmethod
     def _backend_options(cls, v: Any) -> BackendOptions:
         return backend_options_from_table(v)  # ConfigError (a ValueError) names an unknown key
+
+    @field_validator("team", mode="before")
+    @classmethod
+    def _team_options(cls, v: Any) -> TeamOptions:
+        return team_options_from_table(v)
 
 
 def load_settings(config: Path | None = None, **overrides: Any) -> ServerSettings:

@@ -33,8 +33,10 @@ from hivemap.protocol import (
     Limits,
     Message,
     ProtocolError,
+    TeamAdvisory,
     UnknownTypeError,
     VersionError,
+    carries,
     decode_versioned,
     downgrade,
     encode,
@@ -83,6 +85,7 @@ class AgentConnection:
         self._out_seq = 0
         # the protocol version of the agent's hello: what it is sent in (an older agent gets frames it reads)
         self.peer_version = PROTOCOL_VERSION
+        self.peer_team_advisories = False  # the hello asked for team advisories (protocol v4)
         self._closing = False
         self._overflow = False
         self._task: asyncio.Task[Any] | None = None
@@ -93,8 +96,15 @@ class AgentConnection:
 
     # -- outgoing -----------------------------------------------------------------------------------
     def send(self, msg: Message) -> bool:
-        """Queue a message for the agent. False if the connection is closing; a full queue drops the agent."""
+        """Queue a message for the agent. False if the connection is closing, or if the agent cannot read
+        the message (a type newer than its hello's version, a team advisory it did not ask for: an unknown
+        type would be a protocol error to it); a full queue drops the agent."""
         if self._closing:
+            return False
+        if not carries(self.peer_version, msg.TYPE) or (
+            isinstance(msg, TeamAdvisory) and not self.peer_team_advisories
+        ):
+            logger.debug("not sending %s to %s (protocol v%d)", msg.TYPE, self.agent_id, self.peer_version)
             return False
         try:
             self._outbox.put_nowait(msg)
@@ -218,6 +228,7 @@ class AgentConnection:
         if self.agent_id is None:
             if isinstance(msg, Hello):
                 self.peer_version = version
+                self.peer_team_advisories = msg.team_advisories
             await self._on_hello(seq, msg)
             if self.agent is not None:
                 self.agent.bandwidth.received(len(data))

@@ -15,6 +15,7 @@ from hypothesis.extra import numpy as hnp
 
 from hivemap.maps.geometry import se3, so3_exp
 from hivemap.protocol import (
+    PROTOCOL_VERSION,
     Ack,
     Bye,
     Correction,
@@ -266,7 +267,7 @@ def test_limits_are_enforced() -> None:
 def test_envelope_errors() -> None:
     frame = encode(Ack(5), 9)
     with pytest.raises(VersionError):
-        decode(_tamper(frame, v=5))
+        decode(_tamper(frame, v=PROTOCOL_VERSION + 1))
     with pytest.raises(UnknownTypeError):
         decode(_tamper(frame, type="teleport"))
     with pytest.raises(FieldError) as e:
@@ -385,9 +386,9 @@ def test_a_v1_keyframe_still_reads_as_all_mono() -> None:
     assert isinstance(both, Keyframe) and both.u_right is not None and both.odom_sigma is not None
     hello = Hello("uav1", "uav", _CAMERA, "t", mission="m1", stereo_baseline=0.11)
     with pytest.raises(FieldError) as e:
-        decode(_tamper(encode(hello, 1), v=1))
+        decode(_tamper(encode(hello, 1), v=1, body_team_advisories=None))
     assert e.value.field == "body.stereo_baseline"
-    _, h = decode(_tamper(encode(hello, 1), v=1, body_stereo_baseline=None))
+    _, h = decode(_tamper(encode(hello, 1), v=1, body_stereo_baseline=None, body_team_advisories=None))
     assert isinstance(h, Hello) and h.stereo_baseline is None
 
 

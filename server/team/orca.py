@@ -1,0 +1,134 @@
+"""ORCA collision advisories between the agents of one map (seed 001, section 3): each agent gets the
+velocity nearest its desired one that stays collision-free for a time horizon, assuming the others do
+their half, with its radius inflated by its position and velocity uncertainty (as Hennes et al. inflate
+by localisation uncertainty; the seed adds the velocity's).
+
+The linear programs are the reference RVO2 library's (van den Berg et al.) through the ``pyrvo``
+bindings, which install from a wheel: no hand-written ORCA. ORCA is planar: it acts on the horizontal
+velocity; two agents are neighbours only when their vertical gap is within their inflated radii (a UAV
+flying over a UGV does not have to swerve), and the vertical velocity is passed through.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pyrvo
+from numpy.typing import NDArray
+
+from hivemap.server.team.options import OrcaOptions
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class AgentMotion:
+    """One agent as ORCA sees it: map-frame position, current and desired velocity (3,), its own
+    radius and top speed, and the covariances (3, 3) of its position and velocity (None: unknown)."""
+
+    agent_id: str
+    position: F64
+    velocity: F64
+    desired: F64
+    radius: float
+    max_speed: float
+    position_cov: F64 | None = None
+    velocity_cov: F64 | None = None
+
+
+@dataclass(frozen=True)
+class Advisory:
+    agent_id: str
+    safe_velocity: F64  # (3,)
+    desired: F64  # (3,)
+    radius: float  # inflated
+    neighbours: tuple[str, ...]
+
+
+def _sigma_max(cov: F64 | None, axes: slice) -> float:
+    if cov is None:
+        return 0.0
+    c = np.asarray(cov, dtype=np.float64)[axes, axes]
+    return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(c).max()))))
+
+
+def inflated_radius(agent: AgentMotion, options: OrcaOptions) -> float:
+    """``radius + k (sigma_p + t_v sigma_v)``: ``sigma_p``, ``sigma_v`` the square roots of the largest
+    eigenvalues of the horizontal 2x2 blocks of the position and velocity covariances (``k`` =
+    ``options.k_sigma``; ``t_v`` = ``options.velocity_horizon_s``, how long a velocity error acts before
+    the next estimate corrects it)."""
+    xy = slice(0, 2)
+    sp = _sigma_max(agent.position_cov, xy)
+    sv = _sigma_max(agent.velocity_cov, xy)
+    return agent.radius + options.k_sigma * (sp + options.velocity_horizon_s * sv)
+
+
+def _vertical_margin(agent: AgentMotion, options: OrcaOptions) -> float:
+    sz = _sigma_max(agent.position_cov, slice(2, 3))
+    return agent.radius + options.k_sigma * sz
+
+
+def _clamp(v: F64, speed: float) -> F64:
+    n = float(np.linalg.norm(v))
+    return v if n <= speed or n == 0.0 else v * (speed / n)
+
+
+def advisories(agents: Sequence[AgentMotion], options: OrcaOptions) -> list[Advisory]:
+    """One advisory per agent (same order). An agent without neighbours keeps its desired velocity
+    (clamped to its top speed) exactly."""
+    o = options
+    radii = [inflated_radius(a, o) for a in agents]
+    vmargin = [_vertical_margin(a, o) for a in agents]
+    out: list[Advisory] = []
+    for i, a in enumerate(agents):
+        desired = np.asarray(a.desired, dtype=np.float64)
+        wanted = _clamp(desired[:2], a.max_speed)
+        nbrs = []
+        for j, b in enumerate(agents):
+            if j == i:
+                continue
+            d = np.asarray(b.position, dtype=np.float64) - np.asarray(a.position, dtype=np.float64)
+            if abs(d[2]) > vmargin[i] + vmargin[j]:
+                continue
+            if float(np.linalg.norm(d[:2])) <= o.neighbor_dist_m + radii[i] + radii[j]:
+                nbrs.append(j)
+        if not nbrs:
+            out.append(Advisory(a.agent_id, np.array([*wanted, desired[2]]), desired, radii[i], ()))
+            continue
+        v = _solve(i, nbrs, agents, radii, wanted, o)
+        out.append(
+            Advisory(a.agent_id, np.array([v[0], v[1], desired[2]]), desired, radii[i],
+                     tuple(agents[j].agent_id for j in nbrs))
+        )  # fmt: skip
+    return out
+
+
+def _solve(
+    i: int, nbrs: list[int], agents: Sequence[AgentMotion], radii: list[float], wanted: F64, o: OrcaOptions
+) -> F64:
+    """Agent ``i``'s ORCA velocity among ``nbrs``: one RVO2 step in a simulator holding just them, in
+    coordinates centred on agent ``i`` (RVO2 computes in single precision)."""
+    sim = pyrvo.RVOSimulator()
+    sim.set_time_step(o.time_step_s)
+    centre = np.asarray(agents[i].position, dtype=np.float64)[:2]
+    # the neighbour range must cover every neighbour chosen above, whatever RVO2's own k-d tree does
+    reach = float(max(np.linalg.norm(np.asarray(agents[j].position)[:2] - centre) for j in nbrs))
+    reach += 2.0 * max(radii) + 1.0
+    handles = []
+    for j in [i, *nbrs]:
+        b = agents[j]
+        p = np.asarray(b.position, dtype=np.float64)[:2] - centre
+        v = np.asarray(b.velocity, dtype=np.float64)[:2]
+        handles.append(
+            sim.add_agent((float(p[0]), float(p[1])), reach, len(nbrs), o.time_horizon_s, o.time_horizon_s,
+                          radii[j], max(b.max_speed, float(np.linalg.norm(v))), (float(v[0]), float(v[1])))
+        )  # fmt: skip
+        # the neighbours' preferred velocities do not change agent i's result (only their current ones)
+        sim.set_agent_pref_velocity(handles[-1], (float(v[0]), float(v[1])))
+    sim.set_agent_pref_velocity(handles[0], (float(wanted[0]), float(wanted[1])))
+    sim.set_agent_max_speed(handles[0], agents[i].max_speed)
+    sim.do_step()
+    v = sim.get_agent_velocity(handles[0])
+    return np.array([v.x, v.y], dtype=np.float64)

@@ -1,0 +1,281 @@
+"""The team services on a running server: frontiers per map and the team's assignments (auction goals and
+ORCA advisories), for ``GET /maps/{id}/frontiers`` and ``GET /team/assignments``.
+
+What they need is copied from the maps on the event loop (the only thread that changes them); the work runs
+in a thread, at most once per ``min_interval_s`` per map (frontiers) or for the team (assignments): a
+request within that interval gets the last result, and concurrent requests share one computation.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.protocol import TeamAdvisory
+from hivemap.server import schemas
+from hivemap.server.team.auction import d_optimal_gain, ssi_auction
+from hivemap.server.team.frontiers import FrontierResult, extract
+from hivemap.server.team.options import TeamOptions
+from hivemap.server.team.orca import AgentMotion, advisories, inflated_radius
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+# agent id -> (position covariance (3, 3) or None, velocity covariance (3, 3) or None) in its map's frame;
+# None: unknown (the options' default sigmas are used). The server's marginals plug in here.
+Covariances = Callable[[str], tuple[F64 | None, F64 | None] | None]
+
+
+class TeamOff(RuntimeError):
+    """The team services are switched off (``[team] enabled = false``)."""
+
+
+@dataclass
+class _Cached:
+    at: float = -1e18  # monotonic time of the last computation
+    wall: float = 0.0
+    value: Any = None
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+
+
+@dataclass(frozen=True)
+class _AgentSnap:
+    agent_id: str
+    kind: str
+    map_id: int
+    position: F64
+    velocity: F64
+
+
+class TeamService:
+    def __init__(self, server: Any, options: TeamOptions, covariances: Covariances | None = None) -> None:
+        self.server = server
+        self.options = options
+        self.covariances = covariances
+        self._frontiers: dict[int, _Cached] = {}
+        self._team = _Cached()
+        self._push: asyncio.Task[None] | None = None
+        self.pushed = 0  # advisories sent
+
+    # ---------------------------------------------------------------- pushed advisories
+
+    def start_push(self) -> None:
+        """Push ``team_advisory`` messages to the agents that asked for them, until none is connected."""
+        if self.options.enabled and (self._push is None or self._push.done()):
+            self._push = asyncio.get_running_loop().create_task(self._push_loop(), name="hivemap-team-push")
+
+    async def stop(self, _server: Any = None) -> None:
+        """Cancel the push task (a server shutdown hook)."""
+        if self._push is not None and not self._push.done():
+            self._push.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._push
+
+    def _wanting(self) -> list[Any]:
+        return [a for a in self.server.agents.values() if a.team_advisories and a.connection is not None]
+
+    async def _push_loop(self) -> None:
+        while True:
+            # first wait: the hello that started this is answered before the agent's connection is set
+            await asyncio.sleep(self.options.push_interval_s)
+            if not self._wanting():
+                return
+            try:
+                team = await self.assignments()
+            except Exception:
+                logger.exception("team assignments failed; advisories not pushed")
+                continue
+            wanting = {a.agent_id: a for a in self._wanting()}
+            for m in team.maps:
+                for a in m.agents:
+                    agent = wanting.get(a.agent_id)
+                    am = agent.maps.get(agent.session) if agent is not None else None
+                    if agent is None or am is None or agent.connection is None:
+                        continue
+                    msg = TeamAdvisory(
+                        map_id=m.map_id, computed_at=team.computed_at,
+                        goals=np.array(a.goal_positions, dtype=np.float64).reshape(-1, 3),
+                        desired_velocity=np.array(a.advisory.desired_velocity, dtype=np.float64),
+                        safe_velocity=np.array(a.advisory.safe_velocity, dtype=np.float64),
+                        radius_m=a.advisory.inflated_radius_m, session=am.client_session,
+                    )  # fmt: skip
+                    if agent.connection.send(msg):  # not queued for later: a stale advisory is no use
+                        self.pushed += 1
+
+    # ---------------------------------------------------------------- frontiers
+
+    def _map_snapshot(self, map_id: int) -> tuple[F64, list[F64]]:
+        m = self.server.stack.maps[map_id]
+        _, xyz = m.points_xyz()
+        paths: dict[str, list[tuple[float, F64]]] = {}
+        for kf in m.keyframes.values():
+            T = np.asarray(kf.world_from_cam, dtype=np.float64)
+            paths.setdefault(kf.agent_id, []).append((float(kf.timestamp), T[:3, 3].copy()))
+        return xyz, [np.array([p for _, p in sorted(v, key=lambda e: e[0])]) for v in paths.values()]
+
+    async def frontiers(self, map_id: int) -> tuple[float, FrontierResult]:
+        """(unix time computed, frontiers) of the map; KeyError for an unknown map."""
+        if not self.options.enabled:
+            raise TeamOff("the team services are off")
+        if map_id not in self.server.stack.maps:
+            raise KeyError(map_id)
+        c = self._frontiers.setdefault(map_id, _Cached())
+        async with c.lock:
+            if time.monotonic() - c.at >= self.options.min_interval_s or c.value is None:
+                xyz, paths = self._map_snapshot(map_id)
+                c.value = await asyncio.to_thread(extract, xyz, self.options.frontiers, paths)
+                c.at, c.wall = time.monotonic(), time.time()
+            return c.wall, c.value
+
+    # ---------------------------------------------------------------- assignments
+
+    def _agents(self) -> list[_AgentSnap]:
+        out = []
+        for agent in sorted(self.server.agents.values(), key=lambda a: a.agent_id):
+            am = agent.maps.get(agent.session)
+            if agent.connection is None or am is None:
+                continue
+            m = self.server.stack.map_of_agent(am.folded)
+            kfs = sorted(
+                (kf for kf in m.keyframes.values() if kf.agent_id == am.folded) if m is not None else (),
+                key=lambda kf: (kf.timestamp, kf.id),
+            )
+            if not kfs:
+                continue
+            p = np.asarray(kfs[-1].world_from_cam, dtype=np.float64)[:3, 3].copy()
+            v = np.zeros(3)
+            if len(kfs) > 1 and kfs[-1].timestamp > kfs[-2].timestamp:
+                q = np.asarray(kfs[-2].world_from_cam, dtype=np.float64)[:3, 3]
+                v = (p - q) / (kfs[-1].timestamp - kfs[-2].timestamp)
+            out.append(_AgentSnap(agent.agent_id, agent.kind, m.id, p, v))  # type: ignore[union-attr]
+        return out
+
+    async def assignments(self) -> schemas.TeamAssignments:
+        if not self.options.enabled:
+            raise TeamOff("the team services are off")
+        c = self._team
+        async with c.lock:
+            if time.monotonic() - c.at >= self.options.min_interval_s or c.value is None:
+                agents = self._agents()
+                maps = []
+                for map_id in sorted({a.map_id for a in agents}):
+                    _, fr = await self.frontiers(map_id)
+                    team = [a for a in agents if a.map_id == map_id]
+                    covs = [self._covariance(a.agent_id) for a in team]
+                    maps.append(await asyncio.to_thread(self._assign, map_id, fr, team, covs))
+                c.value = schemas.TeamAssignments(computed_at=time.time(), maps=maps)
+                c.at = time.monotonic()
+            value: schemas.TeamAssignments = c.value
+            return value
+
+    def _covariance(self, agent_id: str) -> tuple[F64, F64, str]:
+        o = self.options.orca
+        got = self.covariances(agent_id) if self.covariances is not None else None
+        P = got[0] if got is not None else None
+        V = got[1] if got is not None else None
+        source = "graph" if P is not None else "default"
+        if P is None:
+            P = np.diag([o.default_position_sigma_m**2] * 2 + [0.0])
+        if V is None:
+            V = np.diag([o.default_velocity_sigma_mps**2] * 2 + [0.0])
+        return np.asarray(P, dtype=np.float64), np.asarray(V, dtype=np.float64), source
+
+    def _assign(
+        self, map_id: int, fr: FrontierResult, team: list[_AgentSnap], covs: list[tuple[F64, F64, str]]
+    ) -> schemas.MapAssignments:
+        """The auction of the map's frontiers among ``team`` and the ORCA advisories (in a thread)."""
+        o = self.options
+        goals = np.array([f.goal[:2] for f in fr.frontiers]).reshape(-1, 2)
+        starts = np.array([a.position[:2] for a in team]).reshape(-1, 2)
+        allowed = np.array([[a.kind in f.reachable for f in fr.frontiers] for a in team], bool)
+        value: Callable[[int, int], float] | None = None
+        if o.auction.uncertainty_weight_m > 0 and len(goals):
+            pts = fr.frontier_points[:, :2]
+            near = [int((np.linalg.norm(pts - g, axis=1) <= o.auction.gain_radius_m).sum()) for g in goals]
+            gain = [
+                [d_optimal_gain(P[:2, :2], min(n, o.auction.max_fixes), o.auction.fix_sigma_m) for n in near]
+                for P, _, _ in covs
+            ]
+
+            def uncertainty_value(a: int, g: int) -> float:
+                return o.auction.uncertainty_weight_m * gain[a][g]
+
+            value = uncertainty_value
+
+        res = ssi_auction(
+            starts, goals, allowed=allowed.reshape(len(team), len(goals)),
+            cap=o.auction.max_goals_per_agent, value=value,
+        )  # fmt: skip
+        motions = []
+        for a, tour, (P, V, _) in zip(team, res.tours, covs, strict=True):
+            ugv = a.kind == "ugv"
+            speed = o.orca.max_speed_ugv if ugv else o.orca.max_speed_uav
+            desired = np.zeros(3)
+            if tour:
+                f = fr.frontiers[tour[0]]
+                to_goal = f.goals.get(a.kind, f.goal) - a.position
+                dist = float(np.linalg.norm(to_goal))
+                if dist > 0:  # at cruise speed, slowing to arrive within one advisory period
+                    desired = to_goal / dist * min(speed, dist / o.orca.time_step_s)
+            radius = o.orca.radius_ugv_m if ugv else o.orca.radius_uav_m
+            motions.append(AgentMotion(a.agent_id, a.position, a.velocity, desired, radius, speed, P, V))
+        advs = advisories(motions, o.orca)
+        ids = [f.id for f in fr.frontiers]
+        out_agents = []
+        for a, m, adv, tour, cost, (_, _, source) in zip(
+            team, motions, advs, res.tours, res.costs, covs, strict=True
+        ):
+            f_goals = [fr.frontiers[g] for g in tour]
+            out_agents.append(
+                schemas.AgentAssignment(
+                    agent_id=a.agent_id, kind=a.kind, position=a.position.tolist(),
+                    velocity=a.velocity.tolist(), goals=[f.id for f in f_goals],
+                    goal_positions=[f.goals.get(a.kind, f.goal).tolist() for f in f_goals],
+                    path_cost_m=cost,
+                    advisory=schemas.Advisory(
+                        desired_velocity=adv.desired.tolist(), safe_velocity=adv.safe_velocity.tolist(),
+                        radius_m=m.radius, inflated_radius_m=inflated_radius(m, o.orca),
+                        neighbours=list(adv.neighbours), covariance=source,
+                    ),
+                )
+            )  # fmt: skip
+        rounds = [
+            schemas.AuctionRound(round=b.round, agent_id=team[b.agent].agent_id, frontier_id=ids[b.goal],
+                                 bid_m=b.bid, added_cost_m=b.added_cost)
+            for b in res.won
+        ]  # fmt: skip
+        return schemas.MapAssignments(
+            map_id=map_id, frontiers=len(fr.frontiers), agents=out_agents, rounds=rounds,
+            unassigned=[ids[g] for g in res.unassigned],
+        )  # fmt: skip
+
+
+def frontier_list(
+    map_id: int, computed_at: float, fr: FrontierResult, voxel_m: float
+) -> schemas.FrontierList:
+    return schemas.FrontierList(
+        map_id=map_id, computed_at=computed_at, voxel_m=voxel_m, ground=list(fr.ground),
+        known_cells=fr.known_cells, frontier_points=len(fr.frontier_points),
+        frontiers=[
+            schemas.FrontierInfo(id=f.id, goal=f.goal.tolist(), points=f.points, reachable=list(f.reachable),
+                                 goals={k: g.tolist() for k, g in f.goals.items()})
+            for f in fr.frontiers
+        ],
+    )  # fmt: skip
+
+
+def team_service(server: Any) -> TeamService:
+    """The server's team service, made on first use from its settings' ``team`` options."""
+    svc: TeamService | None = getattr(server, "team", None)
+    if svc is None:
+        svc = server.team = TeamService(server, server.settings.team)
+        server.shutdown_hooks.append(svc.stop)
+    return svc

@@ -1,0 +1,272 @@
+"""Team services against hand-computed cases: SSI auction, ORCA advisories, frontiers, follow-the-leader,
+and their options from TOML."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+from hivemap.server.team.auction import d_optimal_gain, path_length, ssi_auction
+from hivemap.server.team.follow import reference
+from hivemap.server.team.frontiers import extract, voxel_downsample
+from hivemap.server.team.options import ConfigError, FrontierOptions, OrcaOptions, TeamOptions, from_table
+from hivemap.server.team.options import to_table as team_to_table
+from hivemap.server.team.orca import AgentMotion, advisories, inflated_radius
+
+# ---------------------------------------------------------------- auction
+
+
+def test_auction_two_agents_on_a_line_exact_bids() -> None:
+    starts = np.array([[0.0, 0.0], [10.0, 0.0]])
+    goals = np.array([[1.0, 0.0], [2.0, 0.0], [9.0, 0.0], [11.0, 0.0]])
+    r = ssi_auction(starts, goals)
+    # round 0: A bids 1, 2, 9, 11; B bids 9, 8, 1, 1 -> A takes goal 0 at 1 (tie with B, A is earlier)
+    # round 1: A adds goal 1 after goal 0 for 1 (B: 8); B's 1 for goals 2 and 3 ties, A is earlier
+    # round 2: A would add 7 / 9, B 1 / 1 -> B takes goal 2 (the earlier goal)
+    # round 3: B adds goal 3 for 2 (after goal 2: 9->11; before it: 10->11->9 adds 1 + 2 - 1); A: 9
+    assert [(b.agent, b.goal) for b in r.won] == [(0, 0), (0, 1), (1, 2), (1, 3)]
+    assert [b.bid for b in r.won] == pytest.approx([1.0, 1.0, 1.0, 2.0], abs=1e-12)
+    assert r.tours == [[0, 1], [2, 3]]
+    assert r.costs == pytest.approx([2.0, 3.0], abs=1e-12)
+    assert r.unassigned == []
+
+
+def test_auction_added_cost_differs_from_nearest_agent_greedy() -> None:
+    # B is nearer goal 1 (5 vs 6) but A, having won goal 0, adds only 2 for it
+    starts = np.array([[0.0, 0.0], [11.0, 0.0]])
+    goals = np.array([[4.0, 0.0], [6.0, 0.0]])
+    nearest = [int(np.argmin(np.linalg.norm(starts - g, axis=1))) for g in goals]
+    assert nearest == [0, 1]
+    r = ssi_auction(starts, goals)
+    assert [(b.agent, b.goal, b.bid) for b in r.won] == [(0, 0, 4.0), (0, 1, 2.0)]
+    assert r.tours == [[0, 1], []]
+    greedy_total = 4.0 + 5.0
+    assert sum(r.costs) == pytest.approx(6.0) and sum(r.costs) < greedy_total
+
+
+def test_auction_insertion_goes_between_and_cap_and_reachability() -> None:
+    # A wins (10, 0) first, then (5, 1) is cheaper inserted before it than appended
+    starts = np.array([[0.0, 0.0]])
+    goals = np.array([[10.0, 0.0], [5.0, 1.0]])
+    r = ssi_auction(starts, goals, value=lambda a, g: 20.0 if g == 0 else 0.0)
+    assert r.tours == [[1, 0]]
+    added = 2 * math.hypot(5.0, 1.0) - 10.0
+    assert r.won[1].added_cost == pytest.approx(added) and r.won[1].position == 0
+    assert r.costs[0] == pytest.approx(path_length(starts[0], [1, 0], goals))
+    # cap 1: the second goal goes to the other agent; a goal nobody may reach stays unassigned
+    starts2 = np.array([[0.0, 0.0], [10.0, 0.0]])
+    goals2 = np.array([[1.0, 0.0], [2.0, 0.0], [50.0, 0.0]])
+    allowed = np.array([[True, True, False], [True, True, False]])
+    r2 = ssi_auction(starts2, goals2, allowed=allowed, cap=1)
+    assert r2.tours == [[0], [1]] and r2.unassigned == [2]
+    assert r2.won[1].bid == pytest.approx(8.0)
+
+
+def test_d_optimal_gain_by_hand() -> None:
+    # P = s^2 I (2-D), n fixes of sigma: P' = (1/s^2 + n/sigma^2)^-1 I; gain = 0.5 * 2 * log(s^2 / p')
+    s, sigma, n = 0.4, 0.5, 4
+    p_after = 1.0 / (1.0 / s**2 + n / sigma**2)
+    assert d_optimal_gain(s**2 * np.eye(2), n, sigma) == pytest.approx(math.log(s**2 / p_after))
+    assert d_optimal_gain(np.eye(2), 0, sigma) == 0.0
+    # the value hook can turn the assignment: the uncertain agent B takes goal 0 despite its longer path
+    starts = np.array([[0.0, 0.0], [3.0, 0.0]])
+    goals = np.array([[1.0, 0.0]])
+    gains = {0: d_optimal_gain(0.01 * np.eye(2), 10, sigma), 1: d_optimal_gain(1.0 * np.eye(2), 10, sigma)}
+    assert ssi_auction(starts, goals).tours == [[0], []]
+    r = ssi_auction(starts, goals, value=lambda a, g: 1.0 * gains[a])
+    assert r.tours == [[], [0]]
+    assert r.won[0].bid == pytest.approx(2.0 - gains[1])
+
+
+# ---------------------------------------------------------------- ORCA
+
+OPT = OrcaOptions(time_horizon_s=5.0, time_step_s=0.1, k_sigma=2.0, velocity_horizon_s=1.0)
+
+
+def _agent(name: str, p: tuple[float, float], v: tuple[float, float], **kw: object) -> AgentMotion:
+    pos = np.array([p[0], p[1], 1.5])
+    vel = np.array([v[0], v[1], 0.0])
+    return AgentMotion(name, pos, vel, vel.copy(), radius=0.5, max_speed=2.0, **kw)  # type: ignore[arg-type]
+
+
+def _min_distance(pa: np.ndarray, va: np.ndarray, pb: np.ndarray, vb: np.ndarray, horizon: float) -> float:
+    """Closest approach of two agents moving at constant velocities over [0, horizon]."""
+    dp, dv = pb - pa, vb - va
+    t = 0.0 if dv @ dv == 0 else float(np.clip(-(dp @ dv) / (dv @ dv), 0.0, horizon))
+    return float(np.linalg.norm(dp + t * dv))
+
+
+@pytest.mark.parametrize("cov", [None, np.diag([0.04, 0.01, 0.0])])
+def test_orca_head_on_safe_over_horizon(cov: np.ndarray | None) -> None:
+    a = _agent("a", (0.0, 0.0), (1.0, 0.0), position_cov=cov)
+    b = _agent("b", (8.0, 0.0), (-1.0, 0.0), position_cov=cov)
+    # at their desired velocities they would meet within the horizon
+    assert _min_distance(a.position[:2], a.velocity[:2], b.position[:2], b.velocity[:2], 5.0) == 0.0
+    adv = advisories([a, b], OPT)
+    r_sum = adv[0].radius + adv[1].radius
+    va, vb = adv[0].safe_velocity[:2], adv[1].safe_velocity[:2]
+    # RVO2 works in single precision: 1 mm
+    assert _min_distance(a.position[:2], va, b.position[:2], vb, OPT.time_horizon_s) >= r_sum - 1e-3
+    assert np.linalg.norm(va) <= 2.0 + 1e-6 and np.linalg.norm(vb) <= 2.0 + 1e-6
+    assert adv[0].neighbours == ("b",) and adv[0].safe_velocity[2] == 0.0
+
+
+def test_orca_closed_loop_never_closer_than_inflated_radii() -> None:
+    cov = np.diag([0.01, 0.01, 0.0])
+    goals = {"a": np.array([10.0, 0.2]), "b": np.array([0.0, 0.0])}
+    pos = {"a": np.array([0.0, 0.0]), "b": np.array([10.0, 0.2])}
+    vel = {k: np.zeros(2) for k in pos}
+    dt, closest = OPT.time_step_s, math.inf
+    r_sum = None
+    for _ in range(200):  # 20 s: both reach their goals
+        agents = []
+        for k in ("a", "b"):
+            to_goal = goals[k] - pos[k]
+            desired = to_goal / max(np.linalg.norm(to_goal), 1e-9) * min(1.0, np.linalg.norm(to_goal) / dt)
+            agents.append(AgentMotion(k, np.array([*pos[k], 0.0]), np.array([*vel[k], 0.0]),
+                                      np.array([*desired, 0.0]), 0.5, 1.0, position_cov=cov))  # fmt: skip
+        adv = advisories(agents, OPT)
+        r_sum = adv[0].radius + adv[1].radius
+        for k, ad in zip(("a", "b"), adv, strict=True):
+            vel[k] = ad.safe_velocity[:2]
+            pos[k] = pos[k] + dt * vel[k]
+        closest = min(closest, float(np.linalg.norm(pos["a"] - pos["b"])))
+    assert r_sum == pytest.approx(2 * (0.5 + 2.0 * 0.1))
+    assert closest >= r_sum - 1e-3
+    for k in pos:
+        assert np.linalg.norm(pos[k] - goals[k]) < 0.05, (k, pos[k])
+
+
+def test_orca_lone_agent_keeps_desired_velocity_exactly() -> None:
+    a = _agent("a", (0.0, 0.0), (0.3, -1.1))
+    far = _agent("far", (500.0, 0.0), (-1.0, 0.0))
+    above = AgentMotion("above", np.array([0.5, 0.0, 30.0]), np.zeros(3), np.zeros(3), 0.5, 2.0)
+    desired = np.array([0.3, -1.1, 0.25])
+    a = AgentMotion("a", a.position, a.velocity, desired, 0.5, 2.0)
+    adv = advisories([a, far, above], OPT)
+    assert adv[0].neighbours == ()
+    assert np.array_equal(adv[0].safe_velocity, desired)
+
+
+def test_inflated_radius_by_hand() -> None:
+    base = _agent("a", (0.0, 0.0), (0.0, 0.0))
+    assert inflated_radius(base, OPT) == 0.5
+    # horizontal block [[0.05, 0.03], [0.03, 0.05]]: eigenvalues 0.08, 0.02 -> sigma 0.2828
+    P = np.array([[0.05, 0.03, 0.0], [0.03, 0.05, 0.0], [0.0, 0.0, 9.0]])  # vertical variance ignored
+    V = np.diag([0.0004, 0.0009, 4.0])  # sigma_v 0.03
+    a = AgentMotion("a", base.position, base.velocity, base.desired, 0.5, 2.0, P, V)
+    assert inflated_radius(a, OPT) == pytest.approx(0.5 + 2.0 * (math.sqrt(0.08) + 1.0 * 0.03))
+    bigger = AgentMotion("a", base.position, base.velocity, base.desired, 0.5, 2.0, 4 * P, V)
+    assert inflated_radius(bigger, OPT) == pytest.approx(0.5 + 2.0 * (2 * math.sqrt(0.08) + 0.03))
+
+
+# ---------------------------------------------------------------- frontiers
+
+FOPT = FrontierOptions(voxel_m=0.5, close_cells=1, cluster_m=2.5, min_cluster_points=3,
+                       ugv_max_height_m=0.5, uav_min_alt_m=1.0, uav_max_alt_m=8.0)  # fmt: skip
+
+
+def _half_explored(hole: bool = False) -> np.ndarray:
+    """A 20 x 10 m site whose west half x in [0, 10] is mapped: floor points for y < 4.9, a deck at 3 m
+    (its floor unseen) for y > 5.1; east of x = 10 nothing is known."""
+    rng = np.random.default_rng(3)
+    xs = np.arange(0.0, 10.0 + 1e-9, 0.2)
+    floor = np.array([(x, y, 0.0) for x in xs for y in np.arange(0.0, 4.9, 0.2)])
+    if hole:  # a textureless patch of floor
+        inside = (floor[:, 0] > 3.9) & (floor[:, 0] < 6.1) & (floor[:, 1] > 1.4) & (floor[:, 1] < 3.6)
+        floor = floor[~inside]
+    deck = np.array([(x, y, 3.0) for x in xs for y in np.arange(5.2, 10.0 + 1e-9, 0.2)])
+    pts = np.vstack([floor, deck])
+    return pts + rng.normal(0.0, 0.01, pts.shape)
+
+
+def _to_perimeter(xy: np.ndarray) -> np.ndarray:
+    x, y = xy[:, 0], xy[:, 1]
+    return np.minimum.reduce([np.abs(x), np.abs(10 - x), np.abs(y), np.abs(10 - y)])
+
+
+def test_voxel_downsample_centroids() -> None:
+    pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.2, 0.0, 0.0]])
+    out = voxel_downsample(pts, 1.0)
+    assert sorted(map(tuple, out.round(9))) == [(0.2, 0.2, 0.2), (1.2, 0.0, 0.0)]
+
+
+def test_frontiers_of_half_explored_rectangle() -> None:
+    res = extract(_half_explored(), FOPT)
+    a, b, c = res.ground
+    assert abs(a) < 1e-3 and abs(b) < 1e-3 and abs(c) < 0.02
+    assert len(res.frontiers) >= 8
+    goals = np.array([f.goal[:2] for f in res.frontiers])
+    # every frontier point and goal lies on the known boundary, within one voxel
+    assert (_to_perimeter(res.frontier_points[:, :2]) <= FOPT.voxel_m).all()
+    assert (_to_perimeter(goals) <= FOPT.voxel_m).all()
+    # the boundary with the unknown east half is covered, on both the floor and the deck
+    east = [f for f in res.frontiers if f.goal[0] > 10 - FOPT.voxel_m]
+    assert {int(f.goal[1] // 2.5) for f in east} == {0, 1, 2, 3}
+    for f in res.frontiers:
+        if f.goal[1] < 4.9:
+            assert f.reachable == ("ugv",), f
+            assert f.goals["ugv"][2] == pytest.approx(0.0, abs=0.02)
+        elif f.goal[1] > 5.1:
+            assert f.reachable == ("uav",), f
+            assert f.goals["uav"][2] == pytest.approx(3.0, abs=0.02)
+
+
+def test_frontiers_hole_is_closed_by_a_path_through_it() -> None:
+    pts = _half_explored(hole=True)
+    res = extract(pts, FOPT)
+    inner = _to_perimeter(res.frontier_points[:, :2]) > FOPT.voxel_m
+    assert inner.sum() > 10  # the hole's rim is a frontier
+    rows = [np.array([[3.5, y, 1.0], [6.5, y, 1.0]]) for y in np.arange(1.5, 3.6, 0.5)]
+    lawnmower = np.vstack([r if i % 2 == 0 else r[::-1] for i, r in enumerate(rows)])
+    res2 = extract(pts, FOPT, paths=[lawnmower])
+    assert (_to_perimeter(res2.frontier_points[:, :2]) <= FOPT.voxel_m).all()
+    assert res2.known_cells > res.known_cells
+
+
+# ---------------------------------------------------------------- follow-the-leader
+
+
+def test_follow_straight_path() -> None:
+    path = np.column_stack([np.linspace(0.0, 10.0, 11), np.zeros(11), np.full(11, 1.5)])
+    ref = reference(path, 3.0, spacing=0.5)
+    np.testing.assert_allclose(ref.point, [7.0, 0.0, 1.5], atol=1e-12)
+    np.testing.assert_allclose(ref.tangent, [1.0, 0.0, 0.0], atol=1e-12)
+    assert ref.behind_m == pytest.approx(3.0)
+    np.testing.assert_allclose(ref.path[-1], ref.point) and np.testing.assert_allclose(ref.path[0], path[0])
+    assert np.diff(ref.path[:, 0]).max() <= 0.5 + 1e-12
+    short = reference(path[:3], 3.0)  # the leader has gone 2 m: the follower waits at its start
+    np.testing.assert_allclose(short.point, path[0]) and np.testing.assert_allclose(short.behind_m, 2.0)
+
+
+def test_follow_circular_path() -> None:
+    R, theta, d = 5.0, math.pi, 2.0
+    t = np.linspace(0.0, theta, 4001)
+    path = np.column_stack([R * np.cos(t), R * np.sin(t), np.zeros_like(t)])
+    ref = reference(path, d)
+    phi = theta - d / R  # arc length d behind on the circle
+    np.testing.assert_allclose(ref.point, [R * math.cos(phi), R * math.sin(phi), 0.0], atol=1e-4)
+    np.testing.assert_allclose(ref.tangent, [-math.sin(phi), math.cos(phi), 0.0], atol=1e-3)
+    assert abs(np.linalg.norm(ref.point[:2]) - R) < 1e-4
+
+
+# ---------------------------------------------------------------- options
+
+
+def test_team_options_from_toml() -> None:
+    table = tomllib.loads(
+        "min_interval_s = 1.0\n[frontiers]\nvoxel_m = 0.25\n[orca]\nk_sigma = 3\n[auction]\n"
+        "max_goals_per_agent = 2\n"
+    )
+    o = from_table(table)
+    assert o.min_interval_s == 1.0 and o.frontiers.voxel_m == 0.25 and o.orca.k_sigma == 3.0
+    assert o.auction.max_goals_per_agent == 2 and o.frontiers.cluster_m == FrontierOptions().cluster_m
+    assert from_table(team_to_table(o)) == o
+    assert from_table(False) == TeamOptions(enabled=False)
+    with pytest.raises(ConfigError, match="team.orca.nope"):
+        from_table({"orca": {"nope": 1}})
+    with pytest.raises(ConfigError, match="team.frontiers.voxel_m"):
+        from_table({"frontiers": {"voxel_m": "big"}})
