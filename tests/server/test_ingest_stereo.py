@@ -6,23 +6,18 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-import msgpack
 import numpy as np
 from agent_client import SyncAgent
 from srv_helpers import TOKENS, ServerProcess, map_of, write_config
 
 from hivemap.maps.store import MapStore
-from hivemap.protocol import Keyframe, encode
+from hivemap.protocol import Keyframe, Message, downgrade, encode
 from hivemap.server.loadgen import hello, synthetic_stream
 
 
-def _v1(frame: bytes) -> bytes:
-    """The frame as a v1 agent writes it: version 1, no v2 fields."""
-    obj = msgpack.unpackb(frame, raw=False)
-    obj["v"] = 1
-    for k in ("u_right", "odom_sigma", "stereo_baseline"):
-        obj["body"].pop(k, None)
-    return msgpack.packb(obj, use_bin_type=True)
+def _v1(msg: Message, seq: int) -> bytes:
+    """The frame as a v1 agent writes it: version 1, none of the later versions' fields."""
+    return encode(downgrade(msg, 1), seq, version=1)
 
 
 def _stereo(kf: Keyframe) -> Keyframe:
@@ -42,10 +37,10 @@ def test_u_right_is_kept_and_persisted_and_v1_agents_are_mono(tmp_path: Path) ->
             assert not errors
         old, _ = synthetic_stream("uav2", 3, seed=6, pose_update_every=0)
         with SyncAgent(server.ws_url, "uav2", TOKENS["uav2"]) as ag:
-            ag.send_raw(_v1(encode(hello("uav2", TOKENS["uav2"]), 0)))
+            ag.send_raw(_v1(hello("uav2", TOKENS["uav2"]), 0))
             ag.recv()
             for seq, m in enumerate(old, 1):
-                ag.send_raw(_v1(encode(m, seq)))
+                ag.send_raw(_v1(m, seq))
             acks = [ag.recv() for _ in old]
             assert all(type(a).__name__ == "Ack" for a in acks), acks
         assert map_of(server, "uav1")["keyframes"] == len(truth.kf_poses)
