@@ -147,18 +147,27 @@ class PosePrior:
         J[3:, :3] = -np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
         return r, J
 
-    def chi2(self, T: F64, other_info: F64 | None = None) -> float:
+    def chi2(self, T: F64, other_info: F64 | None = None, rotation_only: bool = False) -> float:
         """Mahalanobis distance^2 of ``T`` from the mean; with ``other_info`` (the information of
         ``T``'s own estimate) under the sum of both covariances. Only the components the prior
-        constrains count."""
+        constrains count; ``rotation_only``: of the attitude alone, under its marginal covariance."""
         r, _ = self.residual(T)
-        use = np.diag(self.info) > 0
-        if other_info is None:
+        if other_info is None and not rotation_only:
             return float(r @ self.info @ r)
+        use, cov = self._marginal_cov(other_info)
+        keep = np.ones(len(cov), bool) if not rotation_only else np.flatnonzero(use) < 3
+        if not keep.any():
+            return 0.0
+        ru = r[use][keep]
+        return float(ru @ np.linalg.solve(cov[np.ix_(keep, keep)], ru))
+
+    def _marginal_cov(self, other_info: F64 | None) -> tuple[NDArray[np.bool_], F64]:
+        """(components the prior constrains, their covariance, plus ``other_info``'s if given)."""
+        use = np.diag(self.info) > 0
         cov = np.linalg.inv(self.info[np.ix_(use, use)])
-        cov = cov + np.linalg.inv(other_info + 1e-9 * np.eye(6))[np.ix_(use, use)]
-        ru = r[use]
-        return float(ru @ np.linalg.solve(cov, ru))
+        if other_info is not None:
+            cov = cov + np.linalg.inv(other_info + 1e-9 * np.eye(6))[np.ix_(use, use)]
+        return use, cov
 
 
 def optimize_pose(

@@ -75,6 +75,7 @@ class FrontendOptions:
     imu_prior: bool = True
     imu_gate_chi2: float = 22.46
     imu_gate_strong_scale: float = 25.0  # from ``good_min_inliers`` inliers the gate is this much wider
+    imu_gate_rot_chi2: float = 16.27  # the attitude alone (3 DoF, 99.9%), whatever the inliers
     vio_meas_sigma_m: float = 0.02  # a visual body position, as the filter's measurement
     vio_init_vel_sigma_mps: float = 0.3
     vio_init_acc_sigma_mps2: float = 0.2

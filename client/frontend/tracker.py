@@ -184,9 +184,19 @@ class Frontend:
                 ok, n_tracked = relocalize(self, frame)
                 was_lost = was_lost or ok
         # A weak visual solution that disagrees with the IMU beyond both uncertainties is not taken; a
-        # well supported one only when the disagreement is gross (the IMU integrates the map's tilt).
+        # well supported one only when the disagreement is gross (the IMU integrates the map's tilt
+        # into its position). The attitude is gated on its own and never widened: over one frame the
+        # gyro holds it far better than any visual solution the map's tilt could excuse, and a taken
+        # attitude jump makes the IMU integrate gravity wrongly from then on.
         gate = o.imu_gate_chi2 * (1.0 if n_tracked < o.good_min_inliers else o.imu_gate_strong_scale)
-        if ok and pred.prior is not None and pred.prior.chi2(frame.T_cw, self._vis_info) > gate:
+        if (
+            ok
+            and pred.prior is not None
+            and (
+                pred.prior.chi2(frame.T_cw, self._vis_info) > gate
+                or pred.prior.chi2(frame.T_cw, self._vis_info, rotation_only=True) > o.imu_gate_rot_chi2
+            )
+        ):
             log.debug("t=%.3f: visual pose (%d inliers) rejected by the IMU gate", t, n_tracked)
             self.stats.imu_rejections += 1
             ok = False

@@ -8,6 +8,7 @@ from functools import lru_cache
 
 import numpy as np
 from evo.core.geometry import umeyama_alignment
+from scipy.spatial.transform import Rotation
 
 from hivemap.client.frontend import (
     FrameResult,
@@ -17,6 +18,7 @@ from hivemap.client.frontend import (
     NewSessionEvent,
     TrackingState,
 )
+from hivemap.client.frontend.optim import PosePrior
 from hivemap.client.frontend.synthetic import SyntheticSequence, make_sequence
 
 N = 50  # 5 s at 10 Hz: gravity alignment after 1 s, a 2 s blackout from 2 s, 1 s after it
@@ -95,9 +97,30 @@ def test_visual_pose_the_imu_contradicts_is_not_taken() -> None:
     assert res[30].state == TrackingState.LOST and fe.stats.imu_rejections >= 1
     assert err[30] < 0.05 and err[30:].max() < 0.1, (err[30], err[30:].max())  # measured 4 mm, 3 cm
     # the control: without the gate the visual jump is taken and the keyframe made there corrupts the map
-    fe2 = Frontend(seq.rig, FrontendOptions(imu_gate_chi2=float("inf")), imu_params={})
+    no_gate = FrontendOptions(imu_gate_chi2=float("inf"), imu_gate_rot_chi2=float("inf"))
+    fe2 = Frontend(seq.rig, no_gate, imu_params={})
     _, err2 = _run(fe2, swap=swap)
     assert err2[30] > 0.3  # measured 0.61 m
+
+
+def test_the_gate_reads_the_attitude_on_its_own() -> None:
+    # sigmas 0.5 deg and 0.1 m per axis: a 4 deg attitude error is 8 sigma (chi2 64) whatever the
+    # position says, a 4 cm position error leaves the attitude's chi2 at 0 (6 DoF: 0.16), and the
+    # visual estimate's own equal covariance halves the attitude's chi2 (the covariances add up)
+    info = np.diag([1.0 / np.radians(0.5) ** 2] * 3 + [1.0 / 0.1**2] * 3)
+    prior = PosePrior(np.eye(4), info)
+    tilted = np.eye(4)
+    tilted[:3, :3] = Rotation.from_rotvec([np.radians(4.0), 0.0, 0.0]).as_matrix()
+    shifted = np.eye(4)
+    shifted[:3, 3] = [0.04, 0.0, 0.0]
+    assert abs(prior.chi2(tilted, rotation_only=True) - 64.0) < 1e-6
+    assert abs(prior.chi2(shifted, rotation_only=True)) < 1e-9
+    assert abs(prior.chi2(shifted) - 0.16) < 1e-9
+    assert abs(prior.chi2(tilted, info, rotation_only=True) - 32.0) < 1e-4
+    # the frontend's gate: the attitude test refuses the tilt at a chi2 the 6-DoF strong gate takes
+    o = FrontendOptions()
+    assert prior.chi2(tilted, info) < o.imu_gate_chi2 * o.imu_gate_strong_scale
+    assert prior.chi2(tilted, info, rotation_only=True) > o.imu_gate_rot_chi2
 
 
 def test_loss_beyond_the_imu_hold_starts_a_session_placed_in_the_old_one() -> None:
