@@ -77,8 +77,8 @@ def main() -> None:
         for r in table["unwelded"]:
             pair = (r["query"], r["candidate"])
             same = [x for x in table["welded"] if (x["query"], x["candidate"]) == pair]
-            w = next((x for x in same if abs(x["distance_m"] - r["distance_m"]) < 1e-6), None)
-            after = f"{w['trans_err_m']:.3f} m / {w['rot_err_deg']:.2f} deg" if w else "refused"
+            match = next((x for x in same if abs(x["distance_m"] - r["distance_m"]) < 1e-6), None)
+            after = f"{match['trans_err_m']:.3f} m / {match['rot_err_deg']:.2f} deg" if match else "refused"
             print(f"    {r['kind']:5s} {r['query']}->{r['candidate']} {r['distance_m']:5.1f} m apart: "
                   f"{r['trans_err_m']:.3f} m / {r['rot_err_deg']:.2f} deg (tilt {r['tilt_err_deg']:.2f}) -> "
                   f"{after}  bound {r['bound_m']:.3f} m / {r['bound_deg']:.2f} deg")  # fmt: skip

@@ -13,6 +13,9 @@ from hivemap.client.frontend.options import FrontendOptions
 log = logging.getLogger(__name__)
 U8 = NDArray[np.uint8]
 CONTRAST_MODES = ("stretch", "clahe", "off")
+# Immerkaer's noise operator: the difference of two Laplacians, blind to planes and ramps; on white noise
+# of sigma s its output has sigma 6 s
+_NOISE_MASK = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]], np.float32)
 
 
 class ContrastNormaliser:
@@ -57,7 +60,8 @@ class OrbExtractor:
     """cv2 ORB, over-detected then thinned on a grid so features spread over the image.
 
     The FAST threshold drops (down to ``min_fast_threshold``) when too few corners are found and
-    recovers slowly when there are plenty, so somber/misty images still give enough features.
+    recovers slowly when there are plenty, so somber/misty images still give enough features; cells
+    the image-wide threshold leaves nearly empty are detected again at a noise-derived threshold.
     """
 
     def __init__(self, options: FrontendOptions) -> None:
@@ -99,6 +103,8 @@ class OrbExtractor:
                 np.zeros((0, 32), np.uint8),
                 np.zeros(0, np.float32),
             )
+        if adapt and o.fast_cell_refill:
+            kps = self._refill_sparse_cells(gray, kps, mask)
         kps = self._grid_select(kps, gray.shape)
         kps, desc = self._orb.compute(gray, kps)
         if desc is None or len(kps) == 0:
@@ -116,17 +122,62 @@ class OrbExtractor:
         ang = np.array([k.angle for k in kps], dtype=np.float32)
         return uv, octv, desc, ang
 
+    def _cells(self, pts: NDArray[np.float64], shape: tuple[int, ...]) -> NDArray[np.int64]:
+        o = self.options
+        h, w = shape[:2]
+        cx = np.minimum((pts[:, 0] * o.grid_cols / w).astype(int), o.grid_cols - 1)
+        cy = np.minimum((pts[:, 1] * o.grid_rows / h).astype(int), o.grid_rows - 1)
+        return np.asarray(cy * o.grid_cols + cx, dtype=np.int64)
+
+    def _refill_sparse_cells(
+        self, gray: U8, kps: tuple[cv2.KeyPoint, ...], mask: U8 | None
+    ) -> tuple[cv2.KeyPoint, ...]:
+        """Cells the image-wide threshold starves (a faint, foggy background beside one close, sharp
+        object) are detected again at a threshold just above the sensor noise, as ORB-SLAM's
+        extractor retries each cell at its minimum threshold."""
+        o = self.options
+        n_cells = o.grid_cols * o.grid_rows
+        pts = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
+        count = np.bincount(self._cells(pts, gray.shape), minlength=n_cells)
+        sparse = count < max(1, o.n_features // n_cells) / 4.0
+        if not sparse.any():
+            return kps
+        th = self._refill_threshold(gray)
+        if th >= self.threshold:
+            return kps
+        h, w = gray.shape[:2]
+        cell_mask = np.zeros((o.grid_rows, o.grid_cols), np.uint8)
+        cell_mask.flat[np.flatnonzero(sparse)] = 255
+        cell_mask = cv2.resize(cell_mask, (w, h), interpolation=cv2.INTER_NEAREST)
+        if mask is not None:
+            cell_mask = np.minimum(cell_mask, mask)
+        self._orb.setFastThreshold(th)
+        extra = self._orb.detect(gray, cell_mask)
+        if not extra:
+            return kps
+        epts = np.array([k.pt for k in extra], np.float64).reshape(-1, 2)
+        keep = [k for k, c in zip(kps, self._cells(pts, gray.shape), strict=True) if not sparse[c]]
+        new = [k for k, c in zip(extra, self._cells(epts, gray.shape), strict=True) if sparse[c]]
+        log.debug("FAST refill at threshold %d: %d corners in %d sparse cells", th, len(new), sparse.sum())
+        return tuple(keep + new)
+
+    def _refill_threshold(self, gray: U8) -> int:
+        """A FAST threshold three sigmas of a pixel difference above the image's noise (Immerkaer's
+        estimate, with the median so that texture and edges do not count as noise)."""
+        o = self.options
+        resp = cv2.filter2D(gray[::2, ::2].astype(np.float32), -1, _NOISE_MASK)[1:-1, 1:-1]
+        # median |N(0, 6s)| = 0.6745 * 6 s
+        sigma = float(np.median(np.abs(resp))) / (6.0 * 0.6745)
+        return int(np.clip(round(3.0 * np.sqrt(2.0) * sigma), o.min_fast_threshold, self.threshold))
+
     def _grid_select(self, kps: tuple[cv2.KeyPoint, ...], shape: tuple[int, ...]) -> list[cv2.KeyPoint]:
         o = self.options
         n = len(kps)
         if n <= o.n_features:
             return list(kps)
-        h, w = shape[:2]
         pts = np.array([k.pt for k in kps])
         resp = np.array([k.response for k in kps])
-        cx = np.minimum((pts[:, 0] * o.grid_cols / w).astype(int), o.grid_cols - 1)
-        cy = np.minimum((pts[:, 1] * o.grid_rows / h).astype(int), o.grid_rows - 1)
-        cell = cy * o.grid_cols + cx
+        cell = self._cells(pts, shape)
         order = np.lexsort((-resp, cell))  # by cell, best response first
         cell_sorted = cell[order]
         first = np.searchsorted(cell_sorted, cell_sorted, side="left")

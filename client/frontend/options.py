@@ -16,6 +16,7 @@ class FrontendOptions:
     n_levels: int = 8
     fast_threshold: int = 20
     min_fast_threshold: int = 5
+    fast_cell_refill: bool = True  # cells with < 1/4 of their share of corners: detected again lower
     low_contrast_std: float = 20.0  # below this grey-level std: contrast step + blur (dim/fog); 0 = off
     contrast: str = "stretch"  # stretch | clahe | off (see features.ContrastNormaliser)
     clahe_clip_limit: float = 2.0

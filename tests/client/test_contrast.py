@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -57,3 +58,41 @@ def test_somber_images_get_features_back_over_the_whole_image(mode: str) -> None
 def test_unknown_contrast_mode_is_refused() -> None:
     with pytest.raises(ValueError, match="contrast must be one of"):
         ContrastNormaliser(replace(FrontendOptions(), contrast="histogram"))
+
+
+def _half_image(kind: str, noise: float) -> np.ndarray:
+    """The synthetic scene's left image with its right half faded to a quarter of its contrast
+    (``faint``: a far, foggy background) or flat (``flat``: a bare sky), plus sensor noise."""
+    left, _ = make_sequence(3, seed=3).images(1)
+    img = left.astype(np.float32)
+    w = img.shape[1]
+    half = img[:, w // 2 :]
+    m = float(half.mean())
+    img[:, w // 2 :] = m + (half - m) * 0.25 if kind == "faint" else m
+    img += np.random.default_rng(0).normal(0.0, noise, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _in_right_half(opts: FrontendOptions, img: np.ndarray) -> int:
+    ex = OrbExtractor(opts)
+    for _ in range(3):
+        uv, *_ = ex.extract(img)
+    assert ex.threshold == opts.fast_threshold  # the sharp half keeps the image-wide threshold up
+    return int((uv[:, 0] >= img.shape[1] / 2).sum())
+
+
+def test_cells_the_global_threshold_starves_are_detected_again() -> None:
+    img = _half_image("faint", noise=0.5)
+    # measured 0 without the per-cell retry, 274 with it (threshold 8 from the noise estimate)
+    assert _in_right_half(replace(FrontendOptions(), fast_cell_refill=False), img) == 0
+    assert _in_right_half(FrontendOptions(), img) >= 100
+
+
+def test_the_retry_threshold_stays_above_the_sensor_noise() -> None:
+    img = _half_image("flat", noise=2.0)
+    w = img.shape[1]
+    # the control: FAST at the minimum threshold fires on the noise of the flat half
+    fast = cv2.FastFeatureDetector_create(threshold=FrontendOptions().min_fast_threshold)
+    assert sum(k.pt[0] >= w / 2 + 20 for k in fast.detect(img)) > 100
+    # the retry's threshold is derived from the noise (measured 13), so the flat half stays empty
+    assert _in_right_half(FrontendOptions(), img) == 0
