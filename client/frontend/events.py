@@ -120,5 +120,6 @@ class FrontendStats:
     lost_frames: int = 0
     relocalizations: int = 0
     imu_rejections: int = 0  # visual poses not taken because the IMU prediction disagreed
+    lost_keyframes: int = 0  # keyframes made at the IMU's pose while lost
     sessions: int = 1
     timing: dict[str, float] = field(default_factory=dict)

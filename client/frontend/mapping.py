@@ -195,7 +195,10 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
         # so that keyframes with few points are held by their neighbours' (and the IMU's) motion
         window = sorted(fe._kfs)[-o.ba_window :][::-1]
     else:
-        window = [kf.id] + [k for k, _ in sorted(cov.items(), key=lambda kv: -kv[1])[: o.ba_window - 1]]
+        # covisible keyframes as ORB-SLAM's graph has them: a handful of (likely false) matches is no
+        # link, and would chain a keyframe made on the IMU alone to a part of the map it does not see
+        strong = [k for k, c in sorted(cov.items(), key=lambda kv: -kv[1]) if c >= o.ba_min_shared]
+        window = [kf.id] + strong[: o.ba_window - 1]
     wset = set(window)
     pids_l = [fe._kfs[k].frame.point_ids for k in window]
     pids = np.unique(np.concatenate(pids_l))
@@ -214,7 +217,9 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
             cams.append(k_id)
             pts_i.append(j)
             kp_i.append(i)
-    fixed = [k for k, _ in sorted(fixed_count.items(), key=lambda kv: -kv[1])[: o.ba_fixed_max]]
+    # nor does such a keyframe hold the window's gauge through its few shared points
+    ranked = sorted(fixed_count.items(), key=lambda kv: -kv[1])
+    fixed = [k for k, c in ranked if c >= o.ba_min_shared][: o.ba_fixed_max]
     before = fe._kfs[min(window)].prev_id if inertial_on else None
     if before is not None and before in fe._kfs and before not in fixed:
         fixed.append(before)  # the inertial anchor: its pose, velocity and bias held

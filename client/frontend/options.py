@@ -45,6 +45,7 @@ class FrontendOptions:
     # local mapping
     ba_window: int = 10
     ba_fixed_max: int = 10
+    ba_min_shared: int = 15  # fewer points in common: not covisible (neither in the window nor fixed)
     ba_iterations: int = 6
     # a point's refined position is streamed when it moved this far since it was last sent: the server's
     # copy stays within it of the agent's, a tenth of place recognition's smallest 3-D tolerance, and
@@ -60,6 +61,10 @@ class FrontendOptions:
     reloc_bow_candidates: int = 5  # older keyframes found by bag of words, besides the recent ones
     max_lost_frames: int = 20  # without an IMU (or before gravity alignment): then a new session
     imu_hold_s: float = 3.0  # with an IMU: IMU-only propagation this long before a new session
+    # with an IMU, a lost frame with enough close stereo points becomes a keyframe at the IMU's pose
+    # (at most one per interval), so tracking resumes on its points (ORB-SLAM3's ``InsertKFsLost``)
+    imu_lost_keyframes: bool = True
+    imu_lost_keyframe_interval_s: float = 0.2
     # tracking quality: OK from this many inliers, WEAK from ``min_tracked``
     good_min_inliers: int = 50
     # what weak or lost tracking adds to the next keyframe's pose error relative to the previous keyframe

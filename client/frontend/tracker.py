@@ -200,6 +200,9 @@ class Frontend:
             log.debug("t=%.3f: visual pose (%d inliers) rejected by the IMU gate", t, n_tracked)
             self.stats.imu_rejections += 1
             ok = False
+            rejected = True
+        else:
+            rejected = False
         self._prior = None
         if ok and was_lost:
             state = TrackingState.RELOCALIZED
@@ -230,6 +233,14 @@ class Frontend:
                 give_up = self._lost_count > o.max_lost_frames
             if give_up:
                 new_kf, state = self._new_session(frame, T_pred)
+            elif not rejected and self._keyframe_while_lost(frame):
+                # ORB-SLAM3's keyframes in RECENTLY_LOST: a view the map has no points for gets them
+                # at the IMU's pose, so the next frame tracks again instead of waiting for a new session
+                self._add_odom_error(state, self._lost_count)
+                self._lost_count = 0
+                new_kf = mapping.create_keyframe(self, frame, gnss_epoch, first=True)
+                self.stats.lost_keyframes += 1
+                log.info("t=%.3f: lost, keyframe %d at the IMU pose (%d points)", t, new_kf, n_tracked)
         t3 = time.perf_counter()
         self._finish(frame, acc_mean, tracked=state != TrackingState.LOST)
         tm = self.stats.timing
@@ -239,6 +250,19 @@ class Frontend:
         if state == TrackingState.INITIALIZING:
             frame.T_cw = T_pred
         return self._result(frame, n_tracked, new_kf, state)
+
+    def _keyframe_while_lost(self, frame: Frame) -> bool:
+        """Lost for want of matches, with the IMU holding the pose: does the frame give a keyframe to
+        track on? Not a frame the IMU gate refused (its image, not the map, disagrees with the IMU)."""
+        o = self.options
+        if not (o.imu_lost_keyframes and self._filter is not None and self._gravity_aligned):
+            return False
+        last = self._kfs.get(self._kf_last_id)
+        if last is not None and frame.t - last.timestamp < o.imu_lost_keyframe_interval_s:
+            return False
+        z = frame.pts_cam[:, 2]
+        n_close = int((np.isfinite(z) & (z < o.close_depth_baselines * self.rig.baseline)).sum())
+        return n_close >= o.kf_min_close_tracked
 
     def _add_odom_error(self, state: TrackingState, n_lost: int) -> None:
         """A tracked frame: what the stretch before it adds to the next keyframe's relative pose error.
