@@ -164,7 +164,7 @@ class PosePrior:
     def _marginal_cov(self, other_info: F64 | None) -> tuple[NDArray[np.bool_], F64]:
         """(components the prior constrains, their covariance, plus ``other_info``'s if given)."""
         use = np.diag(self.info) > 0
-        cov = np.linalg.inv(self.info[np.ix_(use, use)])
+        cov = np.asarray(np.linalg.inv(self.info[np.ix_(use, use)]), dtype=np.float64)
         if other_info is not None:
             cov = cov + np.linalg.inv(other_info + 1e-9 * np.eye(6))[np.ix_(use, use)]
         return use, cov
