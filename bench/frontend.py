@@ -156,7 +156,7 @@ def main() -> None:
     print(f"  states {states}, tracking losses {losses}, sessions {fe.session + 1}, kfs {st.keyframes}")
     print(
         f"  weak {st.weak_frames}, lost {st.lost_frames}, relocalised {st.relocalizations}, "
-        f"visual poses refused by the IMU gate {st.imu_rejections}"
+        f"visual poses refused by the IMU gate {st.imu_rejections}, keyframes while lost {st.lost_keyframes}"
     )
     print("  time per frame (ms): " + ", ".join(f"{k} {1e3 * v / n:.1f}" for k, v in fe.stats.timing.items()))
     if rv is not None:

@@ -101,11 +101,13 @@ class RunSummary:
     keyframes: int = 0
     tracking_losses: int = 0
     # every frame by the front-end's tracking quality (issue 28): few inliers, no visual pose taken
-    # (IMU-only or lost), relocalised; visual poses the IMU gate refused; map sessions
+    # (IMU-only or lost), relocalised; visual poses the IMU gate refused; keyframes made at the IMU's
+    # pose while lost; map sessions
     weak_frames: int = 0
     lost_frames: int = 0
     relocalized_frames: int = 0
     imu_rejections: int = 0
+    lost_keyframes: int = 0
     sessions: int = 1
     segments: int = 0
     gnss_available: int = 0
@@ -500,6 +502,7 @@ def _write_outputs(agent: OfflineAgent, out: Path, summary: RunSummary, n_frames
     summary.relocalized_frames, summary.imu_rejections, summary.sessions = (
         st.relocalizations, st.imu_rejections, st.sessions,
     )  # fmt: skip
+    summary.lost_keyframes = st.lost_keyframes
     summary.segments = agent.stage.segment_count
     summary.gnss_used = agent.gnss_used
     summary.gnss_rejected = agent.gnss_rejected
