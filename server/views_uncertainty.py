@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from hivemap.server import schemas
+from hivemap.server.backend.uncertainty import PoseCovariance
 from hivemap.server.core import HiveServer
 from hivemap.server.marginals import CONVENTION, position_covariance
 
@@ -20,15 +21,25 @@ def _row(m: Any, map_id: int, key: tuple[str, int], cov: np.ndarray, t: float) -
     )  # fmt: skip
 
 
-def agent_uncertainty(server: HiveServer, folded: str) -> schemas.PoseUncertainty | None:
-    """The latest keyframe's covariance of agent session ``folded``, if the back-end has one for the map
-    the session is in now."""
+def latest_pose_covariance(server: Any, folded: str) -> PoseCovariance | None:
+    """The back-end's covariance of agent session ``folded``'s latest keyframe (as of its last solve), if
+    it is of a map that still holds that keyframe: what ``/agents/{id}``, the corrections and the team
+    service's advisories report (on the event loop)."""
     unc = getattr(getattr(server, "backend", None), "uncertainty", None)
-    cov = unc.of_agent(folded) if unc is not None else None
+    cov: PoseCovariance | None = unc.of_agent(folded) if unc is not None else None
     m = server.stack.maps.get(cov.map_id) if cov is not None else None
     if cov is None or m is None or cov.key not in m.keyframes:
         return None
-    return _row(m, cov.map_id, cov.key, cov.covariance, cov.computed_at)
+    return cov
+
+
+def agent_uncertainty(server: HiveServer, folded: str) -> schemas.PoseUncertainty | None:
+    """The latest keyframe's covariance of agent session ``folded``, if the back-end has one for the map
+    the session is in now."""
+    cov = latest_pose_covariance(server, folded)
+    if cov is None:
+        return None
+    return _row(server.stack.maps[cov.map_id], cov.map_id, cov.key, cov.covariance, cov.computed_at)
 
 
 def map_uncertainty(server: HiveServer, m: Any, offset: int, limit: int) -> schemas.MapUncertainty:

@@ -30,7 +30,7 @@ logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 # agent id -> (position covariance (3, 3) or None, velocity covariance (3, 3) or None) in its map's frame;
-# None: unknown (the options' default sigmas are used). The server's marginals plug in here.
+# None: unknown (the options' default sigmas are used). The server's are :func:`graph_covariances`.
 Covariances = Callable[[str], tuple[F64 | None, F64 | None] | None]
 
 
@@ -272,10 +272,40 @@ def frontier_list(
     )  # fmt: skip
 
 
+def graph_covariances(server: Any) -> Covariances:
+    """The :data:`Covariances` hook from the server's pose graph: an agent's position covariance is the
+    (3, 3) camera-centre block of the back-end's marginal of its current session's latest keyframe, the
+    one ``/agents/{id}`` and the corrections carry (:func:`~hivemap.server.views_uncertainty.
+    latest_pose_covariance`), already in its map's frame (:mod:`hivemap.server.marginals`); none while
+    the back-end has none for the map the agent is in now (off, fewer than two keyframes, singular).
+
+    The velocity covariance is left unknown (the options' ``default_velocity_sigma_mps``): the server
+    estimates no velocity error, and the marginals carry no cross-covariance between keyframes."""
+    from hivemap.server.marginals import position_covariance
+    from hivemap.server.views_uncertainty import latest_pose_covariance
+
+    def of_agent(agent_id: str) -> tuple[F64 | None, F64 | None] | None:
+        agent = server.agents.get(agent_id)
+        am = agent.maps.get(agent.session) if agent is not None else None
+        if am is None:
+            return None
+        m = server.stack.map_of_agent(am.folded)
+        cov = latest_pose_covariance(server, am.folded)
+        if cov is None or m is None or cov.map_id != m.id:
+            return None
+        # The velocity keeps the default: (P_k + P_k-1) / dt^2 over the two keyframes it is differenced from
+        # would count their shared drift from the gauge, most of each marginal and cancelling in the
+        # difference, as velocity error (1 m at the end of a chain would read 1.4 m/s at 1 s apart).
+        return position_covariance(cov.covariance), None
+
+    return of_agent
+
+
 def team_service(server: Any) -> TeamService:
-    """The server's team service, made on first use from its settings' ``team`` options."""
+    """The server's team service, made on first use from its settings' ``team`` options, its advisories'
+    radii inflated by the back-end's pose covariances (:func:`graph_covariances`)."""
     svc: TeamService | None = getattr(server, "team", None)
     if svc is None:
-        svc = server.team = TeamService(server, server.settings.team)
+        svc = server.team = TeamService(server, server.settings.team, covariances=graph_covariances(server))
         server.shutdown_hooks.append(svc.stop)
     return svc
