@@ -8,8 +8,8 @@ Usage::
     for ev in fe.poll_events(): ...   # KeyframeEvent / PoseUpdateEvent / NewSessionEvent
     fe.flush()                        # end of run: emit the keyframes still held back
 
-Pipeline per frame: ORB (grid-thinned, adaptive FAST threshold, nearly empty cells detected again
-at a threshold above the image's noise) on the left image; stereo depth by
+Pipeline per frame: ORB (grid-thinned, adaptive FAST threshold; optionally, nearly empty cells
+detected again at a threshold above the image's noise) on the left image; stereo depth by
 pyramidal LK into the right image, checked on rectified rows and forward-backward; prediction by the
 constant-velocity model with the gyro rotation (gtsam preintegration, gyro bias estimated against the
 visual rotation); once the VIO frame is gravity-aligned, the full IMU prediction from a motion filter

@@ -16,7 +16,9 @@ class FrontendOptions:
     n_levels: int = 8
     fast_threshold: int = 20
     min_fast_threshold: int = 5
-    fast_cell_refill: bool = True  # cells with < 1/4 of their share of corners: detected again lower
+    # cells with < 1/4 of their share of corners detected again at a noise-derived threshold; off: on a
+    # clear world it tripled the UGV's keyframes and its error (docs/decisions.md, issue 28)
+    fast_cell_refill: bool = False
     low_contrast_std: float = 20.0  # below this grey-level std: contrast step + blur (dim/fog); 0 = off
     contrast: str = "stretch"  # stretch | clahe | off (see features.ContrastNormaliser)
     clahe_clip_limit: float = 2.0
@@ -65,6 +67,7 @@ class FrontendOptions:
     # (at most one per interval), so tracking resumes on its points (ORB-SLAM3's ``InsertKFsLost``)
     imu_lost_keyframes: bool = True
     imu_lost_keyframe_interval_s: float = 0.2
+    imu_lost_keyframe_min_points: int = 100  # stereo points, as a keyframe makes at least
     # tracking quality: OK from this many inliers, WEAK from ``min_tracked``
     good_min_inliers: int = 50
     # what weak or lost tracking adds to the next keyframe's pose error relative to the previous keyframe

@@ -260,9 +260,9 @@ class Frontend:
         last = self._kfs.get(self._kf_last_id)
         if last is not None and frame.t - last.timestamp < o.imu_lost_keyframe_interval_s:
             return False
-        z = frame.pts_cam[:, 2]
-        n_close = int((np.isfinite(z) & (z < o.close_depth_baselines * self.rig.baseline)).sum())
-        return n_close >= o.kf_min_close_tracked
+        # any depth: when a close object leaves the view, the far background it hid has no map points
+        # (a keyframe makes only its close points when it has enough of them), and it is all there is
+        return int(np.isfinite(frame.pts_cam[:, 2]).sum()) >= o.imu_lost_keyframe_min_points
 
     def _add_odom_error(self, state: TrackingState, n_lost: int) -> None:
         """A tracked frame: what the stretch before it adds to the next keyframe's relative pose error.
