@@ -178,3 +178,18 @@ def visual_update(fe: Frontend, frame: Frame, pim: Any, state: TrackingState) ->
         bg = np.asarray(fe.imu.bias.gyroscope(), dtype=np.float64)
         dR = pim.deltaRij().matrix()
         fe.imu.set_gyro_bias(gyro_bias_step(R_prev, T_wb[:3, :3], dR, frame.t - fe._last.t, bg, fe.options))
+
+
+def gate_refuses(fe: Frontend, pred: Prediction, frame: Frame, n_tracked: int) -> bool:
+    """Whether the IMU gate refuses the visual pose ``frame.T_cw``. A weak visual solution that disagrees
+    with the IMU beyond both uncertainties is not taken; a well supported one only when the disagreement
+    is gross (the IMU integrates the map's tilt into its position). The attitude is gated on its own and
+    never widened: over one frame the gyro holds it far better than any visual solution the map's tilt
+    could excuse, and a taken attitude jump makes the IMU integrate gravity wrongly from then on."""
+    if pred.prior is None:
+        return False
+    o = fe.options
+    gate = o.imu_gate_chi2 * (1.0 if n_tracked < o.good_min_inliers else o.imu_gate_strong_scale)
+    if pred.prior.chi2(frame.T_cw, fe._vis_info) > gate:
+        return True
+    return pred.prior.chi2(frame.T_cw, fe._vis_info, rotation_only=True) > o.imu_gate_rot_chi2

@@ -50,6 +50,20 @@ def need_keyframe(fe: Frontend, frame: Frame, n_tracked: int, gnss_epoch: bool, 
     return n_tracked < o.kf_min_tracked_ratio * fe._ref_tracked or weak_close
 
 
+def keyframe_while_lost(fe: Frontend, frame: Frame) -> bool:
+    """Lost for want of matches, with the IMU holding the pose: does the frame give a keyframe to track
+    on (the caller leaves out frames the IMU gate refused: there the image, not the map, disagrees)?"""
+    o = fe.options
+    if not (o.imu_lost_keyframes and fe._filter is not None and fe._gravity_aligned):
+        return False
+    last = fe._kfs.get(fe._kf_last_id)
+    if last is not None and frame.t - last.timestamp < o.imu_lost_keyframe_interval_s:
+        return False
+    # any depth: when a close object leaves the view, the far background it hid has no map points (a
+    # keyframe makes only its close points when it has enough of them), and it is all there is
+    return int(np.isfinite(frame.pts_cam[:, 2]).sum()) >= o.imu_lost_keyframe_min_points
+
+
 def create_keyframe(fe: Frontend, frame: Frame, gnss_epoch: bool, first: bool = False) -> int:
     import time
 

@@ -183,26 +183,11 @@ class Frontend:
             if not ok:
                 ok, n_tracked = relocalize(self, frame)
                 was_lost = was_lost or ok
-        # A weak visual solution that disagrees with the IMU beyond both uncertainties is not taken; a
-        # well supported one only when the disagreement is gross (the IMU integrates the map's tilt
-        # into its position). The attitude is gated on its own and never widened: over one frame the
-        # gyro holds it far better than any visual solution the map's tilt could excuse, and a taken
-        # attitude jump makes the IMU integrate gravity wrongly from then on.
-        gate = o.imu_gate_chi2 * (1.0 if n_tracked < o.good_min_inliers else o.imu_gate_strong_scale)
-        if (
-            ok
-            and pred.prior is not None
-            and (
-                pred.prior.chi2(frame.T_cw, self._vis_info) > gate
-                or pred.prior.chi2(frame.T_cw, self._vis_info, rotation_only=True) > o.imu_gate_rot_chi2
-            )
-        ):
+        rejected = ok and imu.gate_refuses(self, pred, frame, n_tracked)
+        if rejected:
             log.debug("t=%.3f: visual pose (%d inliers) rejected by the IMU gate", t, n_tracked)
             self.stats.imu_rejections += 1
             ok = False
-            rejected = True
-        else:
-            rejected = False
         self._prior = None
         if ok and was_lost:
             state = TrackingState.RELOCALIZED
@@ -233,7 +218,7 @@ class Frontend:
                 give_up = self._lost_count > o.max_lost_frames
             if give_up:
                 new_kf, state = self._new_session(frame, T_pred)
-            elif not rejected and self._keyframe_while_lost(frame):
+            elif not rejected and mapping.keyframe_while_lost(self, frame):
                 # ORB-SLAM3's keyframes in RECENTLY_LOST: a view the map has no points for gets them
                 # at the IMU's pose, so the next frame tracks again instead of waiting for a new session
                 self._add_odom_error(state, self._lost_count)
@@ -250,19 +235,6 @@ class Frontend:
         if state == TrackingState.INITIALIZING:
             frame.T_cw = T_pred
         return self._result(frame, n_tracked, new_kf, state)
-
-    def _keyframe_while_lost(self, frame: Frame) -> bool:
-        """Lost for want of matches, with the IMU holding the pose: does the frame give a keyframe to
-        track on? Not a frame the IMU gate refused (its image, not the map, disagrees with the IMU)."""
-        o = self.options
-        if not (o.imu_lost_keyframes and self._filter is not None and self._gravity_aligned):
-            return False
-        last = self._kfs.get(self._kf_last_id)
-        if last is not None and frame.t - last.timestamp < o.imu_lost_keyframe_interval_s:
-            return False
-        # any depth: when a close object leaves the view, the far background it hid has no map points
-        # (a keyframe makes only its close points when it has enough of them), and it is all there is
-        return int(np.isfinite(frame.pts_cam[:, 2]).sum()) >= o.imu_lost_keyframe_min_points
 
     def _add_odom_error(self, state: TrackingState, n_lost: int) -> None:
         """A tracked frame: what the stretch before it adds to the next keyframe's relative pose error.
