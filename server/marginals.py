@@ -70,7 +70,8 @@ def pose_marginals(
     :func:`hivemap.server.optim.solve_pose_graph_se3` solves, linearised at ``world_from_cam`` (N, 4, 4),
     in the map frame. Robust edges are weighted as the solve weights them at these poses (Huber), or
     taken whole with ``options.gnc`` (pass only the edges the GNC kept). Raises ``RuntimeError`` when the
-    graph is singular (a part without gauge)."""
+    graph is singular (a part without gauge, or, for all poses, a pose no edge reaches); with ``indices``
+    such a pose is left out of the result."""
     import gtsam
 
     t0 = time.process_time()
@@ -79,6 +80,15 @@ def pose_marginals(
     if not want:
         return MarginalsResult([], np.zeros((0, 6, 6)), 0.0)
     graph, values = se3_graph(poses, edges, fixed, options or PoseGraphOptions(), loose)
+    held = set(fixed)
+    in_graph = set(graph.keyVector())
+    free = [i for i in want if i not in held and i not in in_graph]
+    if free and indices is None:  # a keyframe no edge reaches has no gauge, as a singular part has none
+        raise RuntimeError(f"pose graph marginals: {len(free)} pose(s) without an edge (first {free[0]})")
+    if free:  # asked for by index (an agent's latest keyframe, before its first edge): left out
+        want = [i for i in want if i not in free]
+        if not want:
+            return MarginalsResult([], np.zeros((0, 6, 6)), 0.0)
     try:
         linear = graph.linearize(values)
         if len(want) <= FEW:
@@ -91,7 +101,6 @@ def pose_marginals(
     except RuntimeError as exc:  # gtsam's IndeterminantLinearSystemException
         raise RuntimeError(f"pose graph marginals: singular system ({exc})") from exc
     out = np.empty((len(want), 6, 6))
-    held = set(fixed)
     for n, i in enumerate(want):
         if i in held:
             out[n] = 0.0  # a held keyframe is the gauge: exact by definition

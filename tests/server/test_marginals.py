@@ -111,3 +111,14 @@ def test_the_loop_shrinks_the_marginal_and_the_gauge_is_exact() -> None:
     for c in with_loop:
         np.testing.assert_allclose(c, c.T, atol=1e-15)
         assert np.linalg.eigvalsh(c).min() > -1e-12
+
+
+def test_a_pose_no_edge_reaches_is_refused_whole_and_left_out_by_index() -> None:
+    true = truth()
+    edges = noisy_edges(true, np.random.default_rng(1))[: N - 2]  # pose N-1 hangs on no edge
+    with pytest.raises(RuntimeError, match="without an edge"):
+        pose_marginals(true, edges, {0})
+    res = pose_marginals(true, edges, {0}, indices=[N - 1, 7])
+    assert res.indices == [7]
+    whole = pose_marginals(true[: N - 1], edges, {0}).covariances
+    np.testing.assert_allclose(res.covariances[0], whole[7], rtol=1e-9, atol=1e-15)
