@@ -225,7 +225,7 @@ class Frontend:
                 self._lost_count = 0
                 new_kf = mapping.create_keyframe(self, frame, gnss_epoch, first=True)
                 self.stats.lost_keyframes += 1
-                log.info("t=%.3f: lost, keyframe %d at the IMU pose (%d points)", t, new_kf, n_tracked)
+                log.info("t=%.3f: lost (%d matches), keyframe %d at the IMU pose", t, n_tracked, new_kf)
         t3 = time.perf_counter()
         self._finish(frame, acc_mean, tracked=state != TrackingState.LOST)
         tm = self.stats.timing
