@@ -60,8 +60,9 @@ class OrbExtractor:
     """cv2 ORB, over-detected then thinned on a grid so features spread over the image.
 
     The FAST threshold drops (down to ``min_fast_threshold``) when too few corners are found and
-    recovers slowly when there are plenty, so somber/misty images still give enough features; cells
-    the image-wide threshold leaves nearly empty are detected again at a noise-derived threshold.
+    recovers slowly when there are plenty, so somber/misty images still give enough features; with
+    ``fast_cell_refill``, cells the image-wide threshold leaves nearly empty are detected again at a
+    noise-derived threshold.
     """
 
     def __init__(self, options: FrontendOptions) -> None:
