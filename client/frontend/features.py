@@ -139,7 +139,8 @@ class OrbExtractor:
         o = self.options
         n_cells = o.grid_cols * o.grid_rows
         pts = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
-        count = np.bincount(self._cells(pts, gray.shape), minlength=n_cells)
+        cells = self._cells(pts, gray.shape)
+        count = np.bincount(cells, minlength=n_cells)
         sparse = count < max(1, o.n_features // n_cells) / 4.0
         if not sparse.any():
             return kps
@@ -157,7 +158,7 @@ class OrbExtractor:
         if not extra:
             return kps
         epts = np.array([k.pt for k in extra], np.float64).reshape(-1, 2)
-        keep = [k for k, c in zip(kps, self._cells(pts, gray.shape), strict=True) if not sparse[c]]
+        keep = [k for k, c in zip(kps, cells, strict=True) if not sparse[c]]
         new = [k for k, c in zip(extra, self._cells(epts, gray.shape), strict=True) if sparse[c]]
         log.debug("FAST refill at threshold %d: %d corners in %d sparse cells", th, len(new), sparse.sum())
         return tuple(keep + new)

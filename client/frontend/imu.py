@@ -190,6 +190,5 @@ def gate_refuses(fe: Frontend, pred: Prediction, frame: Frame, n_tracked: int) -
         return False
     o = fe.options
     gate = o.imu_gate_chi2 * (1.0 if n_tracked < o.good_min_inliers else o.imu_gate_strong_scale)
-    if pred.prior.chi2(frame.T_cw, fe._vis_info) > gate:
-        return True
-    return pred.prior.chi2(frame.T_cw, fe._vis_info, rotation_only=True) > o.imu_gate_rot_chi2
+    full, attitude = pred.prior.chi2_and_attitude(frame.T_cw, fe._vis_info)
+    return full > gate or attitude > o.imu_gate_rot_chi2

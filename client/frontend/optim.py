@@ -151,15 +151,24 @@ class PosePrior:
         """Mahalanobis distance^2 of ``T`` from the mean; with ``other_info`` (the information of
         ``T``'s own estimate) under the sum of both covariances. Only the components the prior
         constrains count; ``rotation_only``: of the attitude alone, under its marginal covariance."""
-        r, _ = self.residual(T)
         if other_info is None and not rotation_only:
+            r, _ = self.residual(T)
             return float(r @ self.info @ r)
+        full, rot = self.chi2_and_attitude(T, other_info)
+        return rot if rotation_only else full
+
+    def chi2_and_attitude(self, T: F64, other_info: F64 | None = None) -> tuple[float, float]:
+        """(:meth:`chi2` of the constrained components, of the attitude alone) from one residual and one
+        marginal covariance, as the IMU gate needs both on every frame."""
+        r, _ = self.residual(T)
         use, cov = self._marginal_cov(other_info)
-        keep = np.ones(len(cov), bool) if not rotation_only else np.flatnonzero(use) < 3
-        if not keep.any():
-            return 0.0
-        ru = r[use][keep]
-        return float(ru @ np.linalg.solve(cov[np.ix_(keep, keep)], ru))
+        ru = r[use]
+        full = float(ru @ np.linalg.solve(cov, ru))
+        att = np.flatnonzero(use) < 3
+        if not att.any():
+            return full, 0.0
+        ra = ru[att]
+        return full, float(ra @ np.linalg.solve(cov[np.ix_(att, att)], ra))
 
     def _marginal_cov(self, other_info: F64 | None) -> tuple[NDArray[np.bool_], F64]:
         """(components the prior constrains, their covariance, plus ``other_info``'s if given)."""
