@@ -12,6 +12,8 @@ the settings YAML, ORB-SLAM3's log, its trajectory (TUM, body frame) and ``stats
 run is reused unless ``--rerun``. Then one table: agent, hivemap ATE (m, % of path), ORB-SLAM3 ATE
 (m, %), the share of frames each trajectory covers, ORB-SLAM3's tracking losses and maps; means over
 agents. Both ATEs are evo's, SE(3)-aligned, against the body ground truth, through ``hivemap.eval``.
+With the default ``--out`` the experiment's report (``EXP_OUT/report.md``) is re-written with a
+section that sets both side by side (:mod:`hivemap.eval.peer`).
 
 The acceptance run (issue 28: full-length factory01, its default world and seed 1)::
 
@@ -441,6 +443,13 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").write_text(json.dumps(rows, indent=1))
     print_table(rows)
+    if args.out is None:  # the summary sits in the experiment's folder, so its report gets the section
+        from hivemap.eval.peer import rewrite_report
+
+        try:
+            print(f"report: {rewrite_report(args.hivemap)} (with the ORB-SLAM3 section)")
+        except (FileNotFoundError, ValueError) as exc:
+            failures.append(f"report: {exc}")
     for msg in failures:
         print(f"FAILED: {msg}")
     return 1 if failures else 0

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from hivemap.eval.globalmap import globalmap_section
+from hivemap.eval.peer import peer_section
 from hivemap.eval.rendezvous import rendezvous_section
 from hivemap.eval.seeds import seeds_section
 
@@ -423,6 +424,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str], report_dir: 
                     }
                 )
     md.append("")
+    md += peer_section(out)
     # ---------------------------------------------------------------- Table 5
     md += ["## Table 5: bandwidth per agent (server side, 1 s windows) [kB/s]", ""]
     md.append(
