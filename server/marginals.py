@@ -19,7 +19,8 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,11 +42,14 @@ CONVENTION = (
 @dataclass
 class MarginalsResult:
     """``covariances`` (len(indices), 6, 6) in the map frame (module docstring), in the order of
-    ``indices``; ``cpu_s``: the CPU time the factorisation and recovery took."""
+    ``indices``; ``relative``: per asked pair (a, b) the (3, 3) map-frame covariance of the difference of
+    their camera centres ``p_a - p_b`` (pairs with a pose no edge reaches are left out); ``cpu_s``: the
+    CPU time the factorisation and recovery took."""
 
     indices: list[int]
     covariances: F64
     cpu_s: float
+    relative: dict[tuple[int, int], F64] = field(default_factory=dict)
 
 
 def to_map_frame(cov_right: F64, R: F64) -> F64:
@@ -65,13 +69,16 @@ def pose_marginals(
     options: PoseGraphOptions | None = None,
     loose: Sequence[int] = (),
     indices: Sequence[int] | None = None,
+    pairs: Sequence[tuple[int, int]] = (),
 ) -> MarginalsResult:
     """Marginal covariances of the poses ``indices`` (default: all) of the SE(3) pose graph that
     :func:`hivemap.server.optim.solve_pose_graph_se3` solves, linearised at ``world_from_cam`` (N, 4, 4),
     in the map frame. Robust edges are weighted as the solve weights them at these poses (Huber), or
     taken whole with ``options.gnc`` (pass only the edges the GNC kept). Raises ``RuntimeError`` when the
     graph is singular (a part without gauge, or, for all poses, a pose no edge reaches); with ``indices``
-    such a pose is left out of the result."""
+    such a pose is left out of the result. ``pairs``: also the covariance of the difference of two poses'
+    positions (:class:`MarginalsResult`), from their joint marginal, so the drift they share from the
+    gauge cancels as it does in the difference itself."""
     import gtsam
 
     t0 = time.process_time()
@@ -87,14 +94,17 @@ def pose_marginals(
         raise RuntimeError(f"pose graph marginals: {len(free)} pose(s) without an edge (first {free[0]})")
     if free:  # asked for by index (an agent's latest keyframe, before its first edge): left out
         want = [i for i in want if i not in free]
-        if not want:
-            return MarginalsResult([], np.zeros((0, 6, 6)), 0.0)
+    reach = held | in_graph
+    pairs = [(int(a), int(b)) for a, b in pairs if a in reach and b in reach]
+    if not want and not pairs:
+        return MarginalsResult([], np.zeros((0, 6, 6)), 0.0)
+    last = sorted({*want, *(i for ab in pairs for i in ab)} - held)
     try:
         linear = graph.linearize(values)
-        if len(want) <= FEW:
+        if len(last) <= FEW:
             # the wanted poses eliminated last sit in the Bayes tree's root clique: their covariances need
             # no walk down the tree (the latest keyframe's cost 0.13 s more at 2000 keyframes otherwise)
-            ordering = gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(linear, want)
+            ordering = gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(linear, last)
         else:
             ordering = gtsam.Ordering.ColamdGaussianFactorGraph(linear)
         tree = linear.eliminateMultifrontal(ordering)
@@ -106,7 +116,28 @@ def pose_marginals(
             out[n] = 0.0  # a held keyframe is the gauge: exact by definition
             continue
         out[n] = to_map_frame(np.asarray(tree.marginalCovariance(i)), poses[i][:3, :3])
-    return MarginalsResult(want, out, time.process_time() - t0)
+    rel = {(a, b): _difference_covariance(tree, poses, held, a, b) for a, b in pairs}
+    return MarginalsResult(want, out, time.process_time() - t0, rel)
+
+
+def _difference_covariance(tree: Any, poses: F64, held: set[int], a: int, b: int) -> F64:
+    """Map-frame (3, 3) covariance of ``p_a - p_b`` from the Bayes tree: ``C_aa + C_bb - C_ab - C_ba`` of
+    the position blocks (a held pose contributes nothing)."""
+    free = [i for i in (a, b) if i not in held]
+    if not free:
+        return np.zeros((3, 3))
+    if len(free) == 1:
+        return position_covariance(
+            to_map_frame(np.asarray(tree.marginalCovariance(free[0])), poses[free[0]][:3, :3])
+        )
+    J = tree.jointMarginalCovariance([a, b])  # blocks by key: gtsam's [w, v] of each pose
+    Ra, Rb = poses[a][:3, :3], poses[b][:3, :3]
+    # only the translation parts enter: dp = R_hat v (module docstring)
+    Caa = Ra @ np.asarray(J.at(a, a))[3:, 3:] @ Ra.T
+    Cbb = Rb @ np.asarray(J.at(b, b))[3:, 3:] @ Rb.T
+    Cab = Ra @ np.asarray(J.at(a, b))[3:, 3:] @ Rb.T
+    out = Caa + Cbb - Cab - Cab.T
+    return np.asarray(0.5 * (out + out.T), dtype=np.float64)
 
 
 def position_covariance(cov6: F64) -> F64:

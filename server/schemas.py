@@ -81,6 +81,11 @@ class PoseUncertainty(BaseModel):
     position: list[float] = Field(description="the camera centre now, map frame (m)")
     position_cov: list[list[float]] = Field(description="3x3 covariance of the camera centre, map frame, m^2")
     pose_cov: list[list[float]] = Field(description="6x6 covariance of [dtheta (rad), dp (m)], map frame")
+    velocity_cov: list[list[float]] | None = Field(
+        default=None,
+        description="3x3 covariance of the velocity differenced from this keyframe and the agent's previous "
+        "one (their joint marginal), map frame, (m/s)^2; agent rows only, null with one keyframe",
+    )
     computed_at: float = Field(description="unix time of the solve")
     convention: str
 

@@ -12,11 +12,14 @@ from hivemap.server.core import HiveServer
 from hivemap.server.marginals import CONVENTION, position_covariance
 
 
-def _row(m: Any, map_id: int, key: tuple[str, int], cov: np.ndarray, t: float) -> schemas.PoseUncertainty:
+def _row(
+    m: Any, map_id: int, key: tuple[str, int], cov: np.ndarray, t: float, velocity: np.ndarray | None = None
+) -> schemas.PoseUncertainty:
     T = m.keyframes[key].world_from_cam
     return schemas.PoseUncertainty(
         agent_id=key[0], kf_id=int(key[1]), map_id=map_id, position=np.asarray(T[:3, 3], float).tolist(),
         position_cov=position_covariance(cov).tolist(), pose_cov=np.asarray(cov, float).tolist(),
+        velocity_cov=None if velocity is None else np.asarray(velocity, float).tolist(),
         computed_at=t, convention=CONVENTION,
     )  # fmt: skip
 
@@ -39,7 +42,9 @@ def agent_uncertainty(server: HiveServer, folded: str) -> schemas.PoseUncertaint
     cov = latest_pose_covariance(server, folded)
     if cov is None:
         return None
-    return _row(server.stack.maps[cov.map_id], cov.map_id, cov.key, cov.covariance, cov.computed_at)
+    return _row(
+        server.stack.maps[cov.map_id], cov.map_id, cov.key, cov.covariance, cov.computed_at, cov.velocity
+    )
 
 
 def map_uncertainty(server: HiveServer, m: Any, offset: int, limit: int) -> schemas.MapUncertainty:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -44,13 +45,15 @@ F64 = NDArray[np.float64]
 @dataclass(frozen=True)
 class PoseCovariance:
     """One keyframe's (6, 6) map-frame covariance (:mod:`hivemap.server.marginals`), computed at unix
-    time ``computed_at`` on map ``map_id``'s graph of ``n_keyframes``."""
+    time ``computed_at`` on map ``map_id``'s graph of ``n_keyframes``; ``velocity``: the (3, 3) covariance
+    of the agent's velocity differenced from this keyframe and its previous one (None with no previous)."""
 
     map_id: int
     key: KfKey
     covariance: F64
     computed_at: float
     n_keyframes: int
+    velocity: F64 | None = None
 
 
 @dataclass(frozen=True)
@@ -65,22 +68,46 @@ class MapCovariances:
 
 
 def compute(
-    problem: optimise.PoseGraphProblem, poses: F64, o: OptimiseOptions, indices: list[int] | None
+    problem: optimise.PoseGraphProblem,
+    poses: F64,
+    o: OptimiseOptions,
+    indices: list[int] | None,
+    pairs: Sequence[tuple[int, int]] = (),
 ) -> MarginalsResult:
     """Worker: the marginals of ``problem``'s pose graph at its initial poses (module-level: picklable)."""
     edges = optimise.problem_edges(problem, poses, o)
     opts = PoseGraphOptions(gnc=o.gnc, gnc_inlier_probability=o.gnc_inlier_probability)
-    return pose_marginals(problem.initial, edges, set(problem.fixed), opts, problem.loose, indices)
+    return pose_marginals(problem.initial, edges, set(problem.fixed), opts, problem.loose, indices, pairs)
 
 
 def latest_keys(m: Any) -> dict[str, KfKey]:
     """Each agent's latest keyframe in map ``m`` (by timestamp, then id)."""
-    out: dict[str, tuple[float, int]] = {}
+    return {a: two[0] for a, two in latest_two(m).items()}
+
+
+def latest_two(m: Any) -> dict[str, tuple[KfKey, KfKey | None]]:
+    """Each agent's latest keyframe in map ``m`` and the one before it (by timestamp, then id)."""
+    order: dict[str, list[tuple[float, int]]] = {}
     for k, kf in m.keyframes.items():
-        cur = out.get(k[0])
-        if cur is None or (kf.timestamp, k[1]) > cur:
-            out[k[0]] = (kf.timestamp, k[1])
-    return {a: (a, kid) for a, (_, kid) in out.items()}
+        top = order.setdefault(k[0], [])
+        top.append((kf.timestamp, k[1]))
+        if len(top) > 2:
+            top.sort(reverse=True)
+            del top[2:]
+    out: dict[str, tuple[KfKey, KfKey | None]] = {}
+    for a, top in order.items():
+        top.sort(reverse=True)
+        out[a] = ((a, top[0][1]), (a, top[1][1]) if len(top) > 1 else None)
+    return out
+
+
+def velocity_covariance(res: MarginalsResult, pair: tuple[int, int], dt: float) -> F64 | None:
+    """The (3, 3) covariance of ``(p_a - p_b) / dt`` from the pair's difference covariance, None when the
+    pair was left out or ``dt`` is not positive."""
+    rel = res.relative.get(pair)
+    if rel is None or not dt > 0.0:
+        return None
+    return np.asarray(rel / dt**2, dtype=np.float64)
 
 
 class Uncertainty:
@@ -164,15 +191,21 @@ class Uncertainty:
         kept = [ev.edge for ev in judged if not ev.rejected]  # the edges the last pose graph kept
         apart = bk.evidence.apart(map_id) if o.gnc else []
         problem = optimise.pose_graph_problem(m, snap, kept, None, fixed, o, apart)
-        latest = latest_keys(m)
+        two = latest_two(m)
+        latest = {a: k for a, (k, _) in two.items()}
+        pairs = {a: (index[k], index[p]) for a, (k, p) in two.items() if p is not None}
+        kfs = m.keyframes
+        dts = {a: kfs[k].timestamp - kfs[p].timestamp for a, (k, p) in two.items() if p is not None}
         wanted = None if full else sorted(index[k] for k in latest.values())
         t0 = time.monotonic()
         try:
             if full:
-                res: MarginalsResult = await bk.verifier.call(compute, problem, snap.poses, o, wanted)
+                res: MarginalsResult = await bk.verifier.call(
+                    compute, problem, snap.poses, o, wanted, list(pairs.values())
+                )
             else:  # the optimisation thread: corrections wait for it, and verification jobs may queue
                 res = await asyncio.get_running_loop().run_in_executor(
-                    bk._opt_exec, compute, problem, snap.poses, o, wanted
+                    bk._opt_exec, compute, problem, snap.poses, o, wanted, list(pairs.values())
                 )
         except RuntimeError as exc:
             if map_id not in self._failed:
@@ -189,7 +222,8 @@ class Uncertainty:
         covs = {snap.keys[i]: c for i, c in zip(res.indices, res.covariances, strict=True)}
         for folded, k in latest.items():
             if k in covs:
-                self.agents[folded] = PoseCovariance(map_id, k, covs[k], now, len(snap.keys))
+                vel = velocity_covariance(res, pairs[folded], dts[folded]) if folded in pairs else None
+                self.agents[folded] = PoseCovariance(map_id, k, covs[k], now, len(snap.keys), vel)
         if full:
             self.maps[map_id] = MapCovariances(map_id, list(snap.keys), res.covariances, now, res.cpu_s)
         return res

@@ -279,8 +279,10 @@ def graph_covariances(server: Any) -> Covariances:
     latest_pose_covariance`), already in its map's frame (:mod:`hivemap.server.marginals`); none while
     the back-end has none for the map the agent is in now (off, fewer than two keyframes, singular).
 
-    The velocity covariance is left unknown (the options' ``default_velocity_sigma_mps``): the server
-    estimates no velocity error, and the marginals carry no cross-covariance between keyframes."""
+    The velocity covariance is that of the position difference of the same keyframe and the agent's
+    previous one over their time apart, from the two poses' joint marginal (the drift both share from the
+    gauge cancels in the difference); unknown (the options' ``default_velocity_sigma_mps``) while the
+    session has one keyframe."""
     from hivemap.server.marginals import position_covariance
     from hivemap.server.views_uncertainty import latest_pose_covariance
 
@@ -293,10 +295,7 @@ def graph_covariances(server: Any) -> Covariances:
         cov = latest_pose_covariance(server, am.folded)
         if cov is None or m is None or cov.map_id != m.id:
             return None
-        # The velocity keeps the default: (P_k + P_k-1) / dt^2 over the two keyframes it is differenced from
-        # would count their shared drift from the gauge, most of each marginal and cancelling in the
-        # difference, as velocity error (1 m at the end of a chain would read 1.4 m/s at 1 s apart).
-        return position_covariance(cov.covariance), None
+        return position_covariance(cov.covariance), cov.velocity
 
     return of_agent
 

@@ -51,12 +51,12 @@ def dead_reckoning(edges: list[PoseGraphEdge], start: np.ndarray) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def monte_carlo() -> tuple[np.ndarray, np.ndarray, np.ndarray, list[PoseGraphEdge]]:
-    """Per trial, the last pose's map-frame rotation and position error; and one trial's solution and
-    edges (what the server would report from)."""
+def monte_carlo() -> tuple[np.ndarray, np.ndarray, np.ndarray, list[PoseGraphEdge], np.ndarray]:
+    """Per trial, the last pose's map-frame rotation and position error; one trial's solution and edges
+    (what the server would report from); per trial, the error of the last two poses' position difference."""
     true = truth()
     rng = np.random.default_rng(26)
-    rot, pos = [], []
+    rot, pos, diff = [], [], []
     first = None
     for _ in range(TRIALS):
         edges = noisy_edges(true, rng)
@@ -64,14 +64,15 @@ def monte_carlo() -> tuple[np.ndarray, np.ndarray, np.ndarray, list[PoseGraphEdg
         T = res.poses[-1]
         rot.append(so3_log(T.R @ true[-1][:3, :3].T))
         pos.append(T.t - true[-1][:3, 3])
+        diff.append(T.t - res.poses[-2].t - (true[-1][:3, 3] - true[-2][:3, 3]))
         if first is None:
             first = (np.array([se3(p.R, p.t) for p in res.poses]), edges)
     assert first is not None
-    return np.array(rot), np.array(pos), first[0], first[1]
+    return np.array(rot), np.array(pos), first[0], first[1], np.array(diff)
 
 
 def test_last_pose_marginal_matches_monte_carlo_spread(monte_carlo) -> None:  # type: ignore[no-untyped-def]
-    rot, pos, solved, edges = monte_carlo
+    rot, pos, solved, edges, _ = monte_carlo
     cov = pose_marginals(solved, edges, {0}, indices=[N - 1]).covariances[0]
     mc_pos, mc_rot = np.cov(pos.T), np.cov(rot.T)
     rep_pos, rep_rot = position_covariance(cov), cov[:3, :3]
@@ -90,10 +91,28 @@ def test_last_pose_marginal_matches_monte_carlo_spread(monte_carlo) -> None:  # 
 
 def test_two_sigma_ellipsoid_holds_about_its_share(monte_carlo) -> None:  # type: ignore[no-untyped-def]
     """A 3-D Gaussian lies inside its 2-sigma ellipsoid with probability 73.9 % (chi-square, 3 dof)."""
-    _, pos, solved, edges = monte_carlo
+    _, pos, solved, edges, _ = monte_carlo
     cov3 = position_covariance(pose_marginals(solved, edges, {0}, indices=[N - 1]).covariances[0])
     share = np.mean([inside_ellipsoid(e, cov3) for e in pos])
     assert abs(share - 0.739) < 0.05, share
+
+
+def test_the_last_two_poses_difference_matches_monte_carlo_and_not_the_sum(monte_carlo) -> None:  # type: ignore[no-untyped-def]
+    """What an agent's velocity uncertainty is differenced from: the joint marginal of its last two
+    keyframes, in which the drift both share from the gauge cancels."""
+    _, pos, solved, edges, diff = monte_carlo
+    res = pose_marginals(solved, edges, {0}, indices=[N - 1, N - 2], pairs=[(N - 1, N - 2)])
+    rel = res.relative[(N - 1, N - 2)]
+    mc = np.cov(diff.T)
+    np.testing.assert_allclose(np.diag(rel), np.diag(mc), rtol=0.2)
+    # the shared drift is most of each marginal: ignoring the cross-covariance overstates it many times
+    naive = position_covariance(res.covariances[0]) + position_covariance(res.covariances[1])
+    assert np.trace(naive) > 20 * np.trace(mc)
+    # a held pose contributes nothing; a pair with a pose no edge reaches is left out
+    one = pose_marginals(solved, edges, {0}, indices=[1], pairs=[(1, 0)])
+    np.testing.assert_allclose(one.relative[(1, 0)], position_covariance(one.covariances[0]), rtol=1e-9)
+    cut = pose_marginals(solved, edges[: N - 2], {0}, indices=[5], pairs=[(N - 1, N - 2), (5, 4)])
+    assert list(cut.relative) == [(5, 4)]
 
 
 def test_the_loop_shrinks_the_marginal_and_the_gauge_is_exact() -> None:

@@ -1,10 +1,10 @@
 """The team service's ORCA advisories inflate each agent's radius by the server's own pose covariance (issue
 26, item 3): two synthetic agents stream to a real server (in-process uvicorn, real WebSockets, the
-back-end on) and merge; ``/team/assignments`` must then use the marginal covariance that ``/agents/{id}``
-reports for each agent's latest keyframe. The same streams run twice, the second time with the pose
-graph's edge sigmas five times larger, so the same agents' covariances are ~25 times larger; the expected
-radii and the UAV's ORCA velocity (one neighbour: RVO2's formulas, written out below) are computed here by
-hand from the numbers the server reports."""
+back-end on) and merge; ``/team/assignments`` must then use the marginal covariances (position and
+velocity) that ``/agents/{id}`` reports for each agent's latest keyframe. The same streams run twice, the
+second time with the pose graph's edge sigmas five times larger, so the same agents' covariances are ~25
+times larger; the expected radii and the UAV's ORCA velocity (one neighbour: RVO2's formulas, written out
+below) are computed here by hand from the numbers the server reports."""
 
 from __future__ import annotations
 
@@ -66,10 +66,11 @@ def _agents(run: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return {a["agent_id"]: a for m in run["team"]["maps"] for a in m["agents"]}
 
 
-def _expected_radius(radius: float, P: np.ndarray) -> float:
-    """radius + k (sqrt(lambda_max(P_xy)) + t_v sigma_v), sigma_v the default (no velocity covariance)."""
+def _expected_radius(radius: float, P: np.ndarray, V: np.ndarray) -> float:
+    """radius + k (sqrt(lambda_max(P_xy)) + t_v sqrt(lambda_max(V_xy)))."""
     sigma_p = np.sqrt(np.linalg.eigvalsh(P[:2, :2]).max())
-    return radius + ORCA.k_sigma * (sigma_p + ORCA.velocity_horizon_s * ORCA.default_velocity_sigma_mps)
+    sigma_v = np.sqrt(np.linalg.eigvalsh(V[:2, :2]).max())
+    return radius + ORCA.k_sigma * (sigma_p + ORCA.velocity_horizon_s * sigma_v)
 
 
 def _orca_one_neighbour(
@@ -103,9 +104,10 @@ def _orca_one_neighbour(
 
 
 def test_inflated_radius_is_the_graph_covariance_by_hand(runs: dict[float, dict[str, Any]]) -> None:
-    """Each advisory's inflated radius is radius + 2 (sigma_p + 1 s x 0.05 m/s), sigma_p from the
-    covariance /agents/{id} reports (relative tolerance 1e-9: the same float64 numbers); five times the
-    edge sigmas give each agent a ~25 times larger covariance, so a ~5 times larger position term."""
+    """Each advisory's inflated radius is radius + 2 (sigma_p + 1 s x sigma_v), sigma_p and sigma_v from
+    the position and velocity covariances /agents/{id} reports (relative tolerance 1e-9: the same float64
+    numbers); five times the edge sigmas give each agent ~25 times larger covariances, so a ~5 times larger
+    inflation."""
     inflation: dict[float, dict[str, float]] = {}
     for scale, run in runs.items():
         assert run["maps"] == [["uav1", "ugv1"]], (scale, run["maps"])
@@ -114,22 +116,28 @@ def test_inflated_radius_is_the_graph_covariance_by_hand(runs: dict[float, dict[
             unc, adv = run["unc"][agent_id], a["advisory"]
             assert unc is not None and unc["kf_id"] == 9, (scale, agent_id, unc)
             P = np.array(unc["position_cov"])
+            assert unc["velocity_cov"] is not None, (scale, agent_id)
+            V = np.array(unc["velocity_cov"])
+            np.testing.assert_allclose(V, V.T, atol=1e-15)
+            assert np.linalg.eigvalsh(V).min() > -1e-12
             np.testing.assert_allclose(a["position"], unc["position"], atol=1e-12)  # the same keyframe
             assert adv["covariance"] == "graph"
-            want = _expected_radius(adv["radius_m"], P)
+            want = _expected_radius(adv["radius_m"], P, V)
             assert adv["inflated_radius_m"] == pytest.approx(want, rel=1e-9), (scale, agent_id)
             inflation[scale][agent_id] = adv["inflated_radius_m"] - adv["radius_m"]
     small, large = (inflation[s] for s in SCALES)
     for agent_id in ("ugv1", "uav1"):
         P_small = np.array(runs[SCALES[0]]["unc"][agent_id]["position_cov"])
         P_large = np.array(runs[SCALES[1]]["unc"][agent_id]["position_cov"])
-        # the premise: the covariance scales with the sigmas squared (not exactly: the merge's edges keep
-        # their own sigmas; measured 0.998-1.0 of it); then the position term scales by the sigmas
+        V_small = np.array(runs[SCALES[0]]["unc"][agent_id]["velocity_cov"])
+        V_large = np.array(runs[SCALES[1]]["unc"][agent_id]["velocity_cov"])
+        # the premise: the covariances scale with the sigmas squared (not exactly: the merge's edges keep
+        # their own sigmas; measured 0.998-1.0 of it); then the inflation scales by the sigmas
         s = SCALES[1] / SCALES[0]
-        ratio = np.trace(P_large[:2, :2]) / np.trace(P_small[:2, :2])
-        assert 0.97 * s**2 < ratio < 1.001 * s**2, (agent_id, ratio)
-        velocity_term = ORCA.k_sigma * ORCA.velocity_horizon_s * ORCA.default_velocity_sigma_mps
-        grown = (large[agent_id] - velocity_term) / (small[agent_id] - velocity_term)
+        for big, little in ((P_large, P_small), (V_large, V_small)):
+            ratio = np.trace(big[:2, :2]) / np.trace(little[:2, :2])
+            assert 0.97 * s**2 < ratio < 1.001 * s**2, (agent_id, ratio)
+        grown = large[agent_id] / small[agent_id]
         assert 0.98 * s < grown < 1.001 * s, (agent_id, small, large)
     # the UAV hangs on the UGV by the merge: the larger covariance, the larger inflation in both runs
     assert all(inflation[s]["uav1"] > inflation[s]["ugv1"] for s in SCALES)
@@ -141,7 +149,7 @@ def test_safe_velocity_by_hand_is_more_conservative_with_the_larger_covariance(
     """The UAV wants to drift sideways at 0.5 m/s with the UGV coming on at 1.5 m/s from 4 m behind: its
     ORCA velocity, computed here from the served positions, velocities and inflated radii, matches the
     server's to 1e-4 m/s (RVO2 computes in single precision); with the larger covariance it has to swerve
-    further from what it wants (0.93 vs 1.05 m/s measured)."""
+    further from what it wants (0.92 vs 1.08 m/s measured)."""
     deviation = {}
     for scale, run in runs.items():
         agents = _agents(run)
