@@ -58,6 +58,32 @@ def _warm() -> int:
     return os.getpid()
 
 
+def _exit_with_parent(parent: int, period_s: float) -> None:
+    """Worker initializer: end this worker once the server that spawned it is gone. A killed server
+    (SIGKILL, out of memory) cannot shut its pools down, and its spawned workers would otherwise wait
+    on their queues for ever, holding their memory."""
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(period_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="hive-parent-watch", daemon=True).start()
+
+
+def spawn_pool(period_s: float = 1.0) -> concurrent.futures.ProcessPoolExecutor:
+    """A one-process pool, spawned (the server's threads are not forked), whose worker ends when the
+    server process does (:func:`_exit_with_parent`)."""
+    return concurrent.futures.ProcessPoolExecutor(
+        1,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_exit_with_parent,
+        initargs=(os.getpid(), period_s),
+    )
+
+
 class ThreadVerifier:
     """Jobs in the given thread pool (the place-recognition thread): one at a time, no processes."""
 
@@ -90,8 +116,7 @@ class ProcessVerifier:
 
     @staticmethod
     def _start() -> concurrent.futures.ProcessPoolExecutor:
-        ctx = multiprocessing.get_context("spawn")
-        pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=ctx)
+        pool = spawn_pool()
         pool.submit(_warm)
         return pool
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
-import multiprocessing
 import time
 from functools import partial
 from typing import Any
@@ -31,7 +30,7 @@ from hivemap.server.backend import (
 )
 from hivemap.server.backend.backlog import QueryQueue
 from hivemap.server.backend.evidence import EvidenceBook
-from hivemap.server.backend.executor import Verifier
+from hivemap.server.backend.executor import Verifier, spawn_pool
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.backend.startprior import StartPrior
@@ -371,9 +370,7 @@ class Pipeline:
         fixed = optimise.anchor(m, snap.keys, self._agent_kind)
         t0 = time.perf_counter()
         if self._ba_exec is None:
-            self._ba_exec = concurrent.futures.ProcessPoolExecutor(
-                1, mp_context=multiprocessing.get_context("spawn")
-            )
+            self._ba_exec = spawn_pool()
         self._ba_solving = True
         try:
             res = await asyncio.get_running_loop().run_in_executor(
