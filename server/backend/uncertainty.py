@@ -80,11 +80,6 @@ def compute(
     return pose_marginals(problem.initial, edges, set(problem.fixed), opts, problem.loose, indices, pairs)
 
 
-def latest_keys(m: Any) -> dict[str, KfKey]:
-    """Each agent's latest keyframe in map ``m`` (by timestamp, then id)."""
-    return {a: two[0] for a, two in latest_two(m).items()}
-
-
 def latest_two(m: Any) -> dict[str, tuple[KfKey, KfKey | None]]:
     """Each agent's latest keyframe in map ``m`` and the one before it (by timestamp, then id)."""
     order: dict[str, list[tuple[float, int]]] = {}
