@@ -84,7 +84,7 @@ def pose_marginals(
     t0 = time.process_time()
     poses = np.asarray(world_from_cam, dtype=np.float64)
     want = list(range(len(poses))) if indices is None else [int(i) for i in indices]
-    if not want:
+    if not want and not pairs:
         return MarginalsResult([], np.zeros((0, 6, 6)), 0.0)
     graph, values = se3_graph(poses, edges, fixed, options or PoseGraphOptions(), loose)
     held = set(fixed)

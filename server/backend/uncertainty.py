@@ -21,6 +21,7 @@ not shrink them, and they are as calibrated as the edges' sigmas are (``docs/dec
 from __future__ import annotations
 
 import asyncio
+import heapq
 import logging
 import time
 from collections.abc import Sequence
@@ -82,16 +83,12 @@ def compute(
 
 def latest_two(m: Any) -> dict[str, tuple[KfKey, KfKey | None]]:
     """Each agent's latest keyframe in map ``m`` and the one before it (by timestamp, then id)."""
-    order: dict[str, list[tuple[float, int]]] = {}
+    by_agent: dict[str, list[tuple[float, int]]] = {}
     for k, kf in m.keyframes.items():
-        top = order.setdefault(k[0], [])
-        top.append((kf.timestamp, k[1]))
-        if len(top) > 2:
-            top.sort(reverse=True)
-            del top[2:]
+        by_agent.setdefault(k[0], []).append((kf.timestamp, k[1]))
     out: dict[str, tuple[KfKey, KfKey | None]] = {}
-    for a, top in order.items():
-        top.sort(reverse=True)
+    for a, stamps in by_agent.items():
+        top = heapq.nlargest(2, stamps)
         out[a] = ((a, top[0][1]), (a, top[1][1]) if len(top) > 1 else None)
     return out
 
@@ -188,19 +185,19 @@ class Uncertainty:
         problem = optimise.pose_graph_problem(m, snap, kept, None, fixed, o, apart)
         two = latest_two(m)
         latest = {a: k for a, (k, _) in two.items()}
-        pairs = {a: (index[k], index[p]) for a, (k, p) in two.items() if p is not None}
         kfs = m.keyframes
-        dts = {a: kfs[k].timestamp - kfs[p].timestamp for a, (k, p) in two.items() if p is not None}
+        # per agent: (latest, previous) as graph indices, and their time apart
+        pairs = {a: ((index[k], index[p]), kfs[k].timestamp - kfs[p].timestamp)
+                 for a, (k, p) in two.items() if p is not None}  # fmt: skip
+        asked = [pair for pair, _ in pairs.values()]
         wanted = None if full else sorted(index[k] for k in latest.values())
         t0 = time.monotonic()
         try:
             if full:
-                res: MarginalsResult = await bk.verifier.call(
-                    compute, problem, snap.poses, o, wanted, list(pairs.values())
-                )
+                res: MarginalsResult = await bk.verifier.call(compute, problem, snap.poses, o, wanted, asked)
             else:  # the optimisation thread: corrections wait for it, and verification jobs may queue
                 res = await asyncio.get_running_loop().run_in_executor(
-                    bk._opt_exec, compute, problem, snap.poses, o, wanted, list(pairs.values())
+                    bk._opt_exec, compute, problem, snap.poses, o, wanted, asked
                 )
         except RuntimeError as exc:
             if map_id not in self._failed:
@@ -217,7 +214,7 @@ class Uncertainty:
         covs = {snap.keys[i]: c for i, c in zip(res.indices, res.covariances, strict=True)}
         for folded, k in latest.items():
             if k in covs:
-                vel = velocity_covariance(res, pairs[folded], dts[folded]) if folded in pairs else None
+                vel = velocity_covariance(res, *pairs[folded]) if folded in pairs else None
                 self.agents[folded] = PoseCovariance(map_id, k, covs[k], now, len(snap.keys), vel)
         if full:
             self.maps[map_id] = MapCovariances(map_id, list(snap.keys), res.covariances, now, res.cpu_s)
