@@ -444,6 +444,7 @@ class _Stream:
                     None if ev.prev_session_sigma is None else np.asarray(ev.prev_session_sigma, np.float64),
                     ev.u_right,
                     None if ev.odom_sigma is None else np.asarray(ev.odom_sigma, np.float64),
+                    None if ev.track_sigma is None else np.asarray(ev.track_sigma, np.float64),
                 )
             )  # fmt: skip
         elif isinstance(ev, PoseUpdateEvent):

@@ -44,6 +44,8 @@ def map_digest(m: Map) -> str:
             h.update(np.float64(kf.stereo_baseline).tobytes())
         if kf.odom_sigma is not None:  # (absent from older maps' digests)
             _arr(h, kf.odom_sigma)
+        if kf.track_sigma is not None:
+            _arr(h, kf.track_sigma)
     for k in sorted(m.points):
         p = m.points[k]
         h.update(json.dumps([list(k), sorted((list(o), i) for o, i in p.observations.items())]).encode())

@@ -65,7 +65,9 @@ class Keyframe:
     match's u in the virtual rectified right camera (the camera's undistorted pinhole intrinsics, the
     baseline along x), NaN where none (``hivemap.protocol.Keyframe``); None for a monocular keyframe.
     camera frame); ``odom_sigma`` f64 (2,) [m, deg] or None (the error weak or lost tracking added to the
-    pose relative to the agent's previous keyframe, ``protocol.Keyframe.odom_sigma``).
+    pose relative to the agent's previous keyframe, ``protocol.Keyframe.odom_sigma``); ``track_sigma`` f64
+    (2,) [m, deg] or None (that pose's per-axis sigma as the agent's tracking measured it,
+    ``protocol.Keyframe.track_sigma``).
 
     Point references: keypoint ``i`` references point ``(agent, point_ids[i])`` where ``agent`` is
     ``point_agents.get(i, agent_id)`` (``point_agents`` only lists keypoints that reference another agent's
@@ -93,6 +95,7 @@ class Keyframe:
         "u_right",
         "stereo_baseline",
         "odom_sigma",
+        "track_sigma",
         "parent",
     )
 
@@ -115,6 +118,7 @@ class Keyframe:
         u_right: ArrayLike | None = None,
         stereo_baseline: float | None = None,
         odom_sigma: ArrayLike | None = None,
+        track_sigma: ArrayLike | None = None,
     ) -> None:
         self.agent_id = str(agent_id)
         self.id = int(id)
@@ -173,6 +177,9 @@ class Keyframe:
             self.stereo_baseline = float(stereo_baseline)
         self.odom_sigma: F64 | None = (
             None if odom_sigma is None else np.array(odom_sigma, np.float64).reshape(2)
+        )
+        self.track_sigma: F64 | None = (
+            None if track_sigma is None else np.array(track_sigma, np.float64).reshape(2)
         )
         self.parent: KfKey | None = None
 

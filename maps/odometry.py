@@ -1,7 +1,8 @@
 """How sure each agent's odometry is between two of its keyframes: the error that weak or lost tracking
-added (``Keyframe.odom_sigma``, per keyframe relative to the agent's previous one) summed in quadrature
-along the agent's keyframes in time, and the path travelled, so the pose graph's odometry edges and the
-loop gates can let a loop correct a tracking jump."""
+added (``Keyframe.odom_sigma``, per keyframe relative to the agent's previous one) and the error its
+tracking measured (``Keyframe.track_sigma``), each summed in quadrature along the agent's keyframes in
+time, and the path travelled, so the pose graph's odometry edges weigh each agent by how well it tracked
+and the loop gates can let a loop correct a tracking jump."""
 
 from __future__ import annotations
 
@@ -28,33 +29,39 @@ class Chains:
             by_agent.setdefault(k[0], []).append(k)
         self.pos: dict[KfKey, tuple[str, int]] = {}
         self.order: dict[str, list[KfKey]] = by_agent
-        self.cum: dict[str, F64] = {}  # (n, 4): path m, rotation rad, var m^2, var deg^2
+        # (n, 7): path m, rotation rad, weak var m^2, deg^2, tracked var m^2, deg^2, steps without tracked
+        self.cum: dict[str, F64] = {}
         for agent, ks in by_agent.items():
             ks.sort(key=lambda k: (m.keyframes[k].timestamp, k[1]))
-            cum = np.zeros((len(ks), 4))
+            cum = np.zeros((len(ks), 7))
             for i in range(1, len(ks)):
                 kf = m.keyframes[ks[i]]
                 a = poses[ks[i - 1]] if poses is not None else m.keyframes[ks[i - 1]].world_from_cam
                 b = poses[ks[i]] if poses is not None else kf.world_from_cam
-                step = np.zeros(4)
+                step = np.zeros(7)
                 step[0] = float(np.linalg.norm(b[:3, 3] - a[:3, 3]))
                 step[1] = np.radians(rotation_angle_deg(a[:3, :3].T @ b[:3, :3]))
                 if kf.odom_sigma is not None:
-                    step[2:] = np.asarray(kf.odom_sigma, dtype=np.float64) ** 2
+                    step[2:4] = np.asarray(kf.odom_sigma, dtype=np.float64) ** 2
+                if kf.track_sigma is not None:
+                    step[4:6] = np.asarray(kf.track_sigma, dtype=np.float64) ** 2
+                else:
+                    step[6] = 1.0
                 cum[i] = cum[i - 1] + step
             for i, k in enumerate(ks):
                 self.pos[k] = (agent, i)
             self.cum[agent] = cum
 
     def between(self, a: KfKey, b: KfKey) -> F64 | None:
-        """[path m, rotation rad, weak sigma m, weak sigma deg] between two keyframes of one agent, or
-        None when they are of different agents (or unknown)."""
+        """[path m, rotation rad, weak sigma m, weak sigma deg, tracked sigma m, tracked sigma deg, steps
+        without a tracked sigma] between two keyframes of one agent, or None when they are of different
+        agents (or unknown)."""
         pa, pb = self.pos.get(a), self.pos.get(b)
         if pa is None or pb is None or pa[0] != pb[0]:
             return None
         c = self.cum[pa[0]]
         d = np.abs(c[pb[1]] - c[pa[1]])
-        d[2:] = np.sqrt(d[2:])
+        d[2:6] = np.sqrt(d[2:6])
         return d
 
     def previous(self, k: KfKey) -> KfKey | None:
@@ -65,7 +72,7 @@ class Chains:
     def weak_total(self, agent: str) -> F64:
         """[m, deg]: the weak-tracking sigma over all of an agent's keyframes (zero if none)."""
         c = self.cum.get(agent)
-        return np.zeros(2) if c is None or not len(c) else np.sqrt(c[-1, 2:])
+        return np.zeros(2) if c is None or not len(c) else np.sqrt(c[-1, 2:4])
 
 
 def weak_sigma_between(m: Any, a: KfKey, b: KfKey) -> F64:

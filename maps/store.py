@@ -49,8 +49,8 @@ __all__ = [
     "unpack_array",
 ]  # fmt: skip
 
-# 2: map_keyframes.up_cam; 3: u_right, stereo_baseline; 4: odom_sigma; 5: map_rendezvous
-SCHEMA_VERSION = 5
+# 2: map_keyframes.up_cam; 3: u_right, stereo_baseline; 4: odom_sigma; 5: map_rendezvous; 6: track_sigma
+SCHEMA_VERSION = 6
 
 
 class StoreError(RuntimeError):
@@ -106,7 +106,9 @@ class MapStore:
                     ("u_right", "BLOB"),  # 2 -> 3: and their stereo observations
                     ("stereo_baseline", "REAL"),
                     ("odom_sigma", "BLOB"),  # 3 -> 4: and the error weak or lost tracking added
-                )  # 4 -> 5: the table map_rendezvous, created below with the others
+                    # 4 -> 5: the table map_rendezvous, created below with the others
+                    ("track_sigma", "BLOB"),  # 5 -> 6: and how well the agent tracked
+                )
                 with self._tx():
                     for col, kind in added:
                         if col not in cols:
@@ -461,8 +463,8 @@ class MapStore:
         for row in c.execute(
             f"SELECT {_KF_COLS} FROM map_keyframes WHERE map_id = ? ORDER BY seq", (mid,)
         ).fetchall():
-            (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pag, genu, gcov, up, ur, base, odom, pa,
-             pi) = row  # fmt: skip
+            (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pag, genu, gcov, up, ur, base, odom,
+             track, pa, pi) = row  # fmt: skip
             camera = cameras.get(cam)
             if camera is None:
                 camera = cameras[cam] = PinholeCamera.from_dict(json.loads(cam))
@@ -482,6 +484,7 @@ class MapStore:
                 u_right=None if ur is None else unpack_array(ur),
                 stereo_baseline=base,
                 odom_sigma=None if odom is None else unpack_array(odom),
+                track_sigma=None if track is None else unpack_array(track),
             )
             if pag:
                 kf.point_agents = {int(i): a for i, a in json.loads(pag).items()}

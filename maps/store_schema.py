@@ -39,6 +39,7 @@ CREATE TABLE IF NOT EXISTS map_keyframes (
     u_right BLOB,                         -- float32 per keypoint, NaN = mono; NULL for a mono keyframe
     stereo_baseline REAL,
     odom_sigma BLOB,
+    track_sigma BLOB,
     parent_agent TEXT,
     parent_id INTEGER,
     PRIMARY KEY (map_id, agent, id)
@@ -79,16 +80,17 @@ CREATE TABLE IF NOT EXISTS map_rendezvous (
 _KF_COLS = (
     "map_id, agent, id, seq, timestamp, world_from_cam, camera, keypoints, octaves, descriptors, "
     "point_ids, point_agents, gnss_enu, gnss_cov, up_cam, u_right, stereo_baseline, odom_sigma, "
-    "parent_agent, parent_id"
+    "track_sigma, parent_agent, parent_id"
 )
 _KF_UPSERT = (
-    f"INSERT INTO map_keyframes ({_KF_COLS}) VALUES ({', '.join('?' * 20)}) "
+    f"INSERT INTO map_keyframes ({_KF_COLS}) VALUES ({', '.join('?' * 21)}) "
     "ON CONFLICT (map_id, agent, id) DO UPDATE SET timestamp = excluded.timestamp, "
     "world_from_cam = excluded.world_from_cam, camera = excluded.camera, keypoints = excluded.keypoints, "
     "octaves = excluded.octaves, descriptors = excluded.descriptors, point_ids = excluded.point_ids, "
     "point_agents = excluded.point_agents, gnss_enu = excluded.gnss_enu, gnss_cov = excluded.gnss_cov, "
     "up_cam = excluded.up_cam, u_right = excluded.u_right, stereo_baseline = excluded.stereo_baseline, "
-    "odom_sigma = excluded.odom_sigma, parent_agent = excluded.parent_agent, parent_id = excluded.parent_id"
+    "odom_sigma = excluded.odom_sigma, track_sigma = excluded.track_sigma, "
+    "parent_agent = excluded.parent_agent, parent_id = excluded.parent_id"
 )
 _PT_UPSERT = (
     "INSERT INTO map_points (map_id, agent, id, seq, xyz, descriptor) VALUES (?, ?, ?, ?, ?, ?) "

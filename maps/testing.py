@@ -66,6 +66,8 @@ def random_keyframes_and_points(
             kfs[-1].stereo_baseline = 0.11
         if k % 5 == 3:  # a keyframe after weak tracking (no draws either)
             kfs[-1].odom_sigma = np.array([0.05 * k, 1.5])
+        if k % 5 == 1:  # a keyframe that says how well it tracked (no draws either)
+            kfs[-1].track_sigma = np.array([0.004 + 1e-4 * k, 0.05])
     return kfs, pts
 
 

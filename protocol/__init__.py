@@ -1,4 +1,4 @@
-"""Wire protocol v4 (the versions: :mod:`hivemap.protocol.limits`): message dataclasses, msgpack codec,
+"""Wire protocol v5 (the versions: :mod:`hivemap.protocol.limits`): message dataclasses, msgpack codec,
 validation (numpy + msgpack only).
 
 from hivemap.protocol import Keyframe, encode, decode

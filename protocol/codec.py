@@ -1,4 +1,4 @@
-"""msgpack codec for protocol v4 (reads v1-v3, writes any of them) with validation on decode.
+"""msgpack codec for protocol v5 (reads v1-v4, writes any of them) with validation on decode.
 
 A frame is one msgpack map ``{"v": 4, "type": str, "seq": int, "body": {...}}``. numpy arrays travel
 as msgpack ext type 1: ``dtype code (1 byte) | ndim (1 byte) | shape (ndim x uint32 LE) | raw bytes``,
@@ -259,6 +259,11 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         odom = as_array(odom, "body.odom_sigma", "<f8", (2,))
         if not (np.all(np.isfinite(odom)) and np.all(odom >= 0)):
             raise FieldError("sigmas must be finite and >= 0", "body.odom_sigma")
+    track = b.get("track_sigma")
+    if track is not None:
+        track = as_array(track, "body.track_sigma", "<f8", (2,))
+        if not (np.all(np.isfinite(track)) and np.all(track > 0)):
+            raise FieldError("sigmas must be finite and positive", "body.track_sigma")
     return Keyframe(
         kf_id=as_int(b["kf_id"], "body.kf_id", 0),
         timestamp=as_float(b["timestamp"], "body.timestamp"),
@@ -275,6 +280,7 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         prev_session_sigma=sigma,
         u_right=ur,
         odom_sigma=odom,
+        track_sigma=track,
     )
 
 
@@ -437,6 +443,7 @@ _FIELDS = {name: {f.name for f in fields(cls)} for name, cls in MESSAGE_TYPES.it
 _FIELDS_SINCE: dict[int, dict[str, set[str]]] = {
     2: {"hello": {"stereo_baseline"}, "keyframe": {"u_right", "odom_sigma"}},
     4: {"hello": {"team_advisories"}, "correction": {"pose_covariance", "covariance_kf_id"}},
+    5: {"keyframe": {"track_sigma"}},
 }
 # message types a frame of an older version cannot carry
 _SINCE = {"rendezvous": 3, "team_advisory": 4}

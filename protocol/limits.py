@@ -12,8 +12,8 @@ from dataclasses import dataclass
 # gets one). v1-v3 frames still read, and a frame to a peer that said hello in an older version is written in
 # that version, without the newer fields (``encode(..., version=)``, ``downgrade``); a message type newer
 # than the peer's version is not sent to it at all, so older agents keep working.
-PROTOCOL_VERSION = 4
-SUPPORTED_VERSIONS = (1, 2, 3, 4)
+PROTOCOL_VERSION = 5
+SUPPORTED_VERSIONS = (1, 2, 3, 4, 5)
 
 
 @dataclass(frozen=True)

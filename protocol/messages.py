@@ -1,4 +1,4 @@
-"""Protocol v4 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
+"""Protocol v5 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
 
 Arrays are numpy arrays with fixed dtypes; shapes are given per field. Poses are 4x4 float64
 ``world_from_cam`` in the sender's frame (the agent's VIO frame for agent -> server messages, the
@@ -69,7 +69,11 @@ class Keyframe:
     NaN where the keypoint has no stereo match; what lets the server's global BA hold metric scale.
     Optional ``odom_sigma`` f64 (2,) [position m, attitude deg]: the 1-sigma error of this keyframe's pose
     relative to the previous keyframe of its session that weak or lost tracking between them added; absent
-    when both tracked well, so the server's pose graph can let a loop correct a jump there."""
+    when both tracked well, so the server's pose graph can let a loop correct a jump there.
+    Optional ``track_sigma`` f64 (2,) [position m, attitude deg] (protocol v5): the per-axis 1-sigma of this
+    keyframe's pose relative to the previous keyframe of its session as its tracking measured it (its
+    observations' information), so the server's pose graph weighs each agent's odometry by how well it
+    tracked."""
 
     TYPE: ClassVar[str] = "keyframe"
     kf_id: int
@@ -87,6 +91,7 @@ class Keyframe:
     prev_session_sigma: NDArray[np.float64] | None = None
     u_right: NDArray[np.float32] | None = None
     odom_sigma: NDArray[np.float64] | None = None
+    track_sigma: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)

@@ -48,6 +48,7 @@ def keyframe_from_msg(
         u_right=None if msg.u_right is None or stereo_baseline is None else msg.u_right,
         stereo_baseline=stereo_baseline,
         odom_sigma=None if msg.odom_sigma is None else np.array(msg.odom_sigma, dtype=np.float64),
+        track_sigma=None if msg.track_sigma is None else np.array(msg.track_sigma, dtype=np.float64),
     )
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 
 from hivemap.client.frontend.events import KeyframeEvent
 from hivemap.client.frontend.mapdata import KeyframeData
@@ -75,5 +76,12 @@ def emit_keyframe(fe: Frontend, kf: KeyframeData) -> None:
             prev_session_sigma=kf.prev_session_sigma,
             u_right=f.meas[:, 2].astype(np.float32),
             odom_sigma=kf.odom_sigma,
+            track_sigma=track_sigma(kf.rel_cov_cam) if rel_cov is not None else None,
         )
     )
+
+
+def track_sigma(cov: NDArray[np.float64]) -> tuple[float, float]:
+    """[m, deg]: the per-axis sigmas (RMS over the axes) of a 6x6 [rot, trans] pose covariance."""
+    c = np.asarray(cov, dtype=np.float64)
+    return float(np.sqrt(np.trace(c[3:, 3:]) / 3.0)), float(np.degrees(np.sqrt(np.trace(c[:3, :3]) / 3.0)))

@@ -56,6 +56,8 @@ class KeyframeEvent:
     the IMU bridged from the previous one, the guess of this session's frame in that one's.
     ``odom_sigma`` [m, deg]: the error of this keyframe's pose relative to the previous one that weak or
     lost tracking between them added (None: both tracked well).
+    ``track_sigma`` [m, deg]: the per-axis sigma of this keyframe's pose relative to the previous one from
+    its observations' information (``rel_cov`` in the camera frame); None with ``rel_cov``.
     """
 
     session: int
@@ -79,6 +81,7 @@ class KeyframeEvent:
     # per keypoint its stereo match's u in the virtual rectified right camera (undistorted), NaN if none
     u_right: NDArray[np.float32] | None = None
     odom_sigma: tuple[float, float] | None = None
+    track_sigma: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)

@@ -126,7 +126,9 @@ def pose_graph_problem(
             if k in index and index[k] not in fixed:
                 initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
-    if not any(m.keyframes[k].odom_sigma is not None for k in snap.keys):
+    kfs = [m.keyframes[k] for k in snap.keys]
+    tracked = o.pose_graph_track_scale > 0 and any(kf.track_sigma is not None for kf in kfs)
+    if not tracked and not any(kf.odom_sigma is not None for kf in kfs):
         return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, new_edge_covs=covs)
     chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
     graph_edges = across_weak_tracking(graph_edges, snap.keys, chains, m)
@@ -152,7 +154,7 @@ def across_weak_tracking(
         if frozenset((i, j)) in loops:
             return False
         d = chains.between(keys[i], keys[j])
-        return d is not None and bool(np.any(d[2:] > 0))
+        return d is not None and bool(np.any(d[2:4] > 0))
 
     kept = [(i, j) for i, j in graph_edges if not crosses(i, j)]
     odo = {tuple(sorted((index[p], index[k]))) for k in weak if (p := chains.previous(k)) is not None}
@@ -161,13 +163,20 @@ def across_weak_tracking(
 
 def odometry_sigmas(chain: F64 | None, o: OptimiseOptions) -> tuple[float, float, float]:
     """(sigma_rot rad, sigma_trans m, extra yaw sigma rad) of an essential edge whose ends are
-    ``chain`` (:meth:`Chains.between`) apart: across weak tracking the drift over the path travelled or
-    the options' sigmas, whichever is larger, plus the weak sigma; otherwise (and across agents, by their
-    fused points) the options'."""
+    ``chain`` (:meth:`Chains.between`) apart. The base: where every keyframe between them says how well
+    it tracked, that error summed along the chain (times ``pose_graph_track_scale``, at least the
+    ``pose_graph_track_floor_*``), so an agent that tracked badly bends at a loop and one that tracked
+    well does not; else the options' fixed sigmas. Across weak tracking, the drift over the path travelled
+    or the base, whichever is larger, plus the weak sigma. Across agents (their fused points): the
+    options' fixed sigmas."""
     base_r, base_t = o.pose_graph_sigma_rot, o.pose_graph_sigma_trans
     if chain is None:
         return base_r, base_t, 0.0
-    path, turn, weak_m, weak_deg = (float(x) for x in chain)
+    path, turn, weak_m, weak_deg, track_m, track_deg, untracked = (float(x) for x in chain)
+    if o.pose_graph_track_scale > 0 and untracked == 0 and (track_m > 0 or track_deg > 0):
+        base_t = max(o.pose_graph_track_scale * track_m, o.pose_graph_track_floor_m)
+        base_r = max(o.pose_graph_track_scale * float(np.radians(track_deg)),
+                     float(np.radians(o.pose_graph_track_floor_deg)))  # fmt: skip
     if weak_m <= 0 and weak_deg <= 0:
         # tracked well: the ends' shared points set their relative pose, which the drift does not bend
         return base_r, base_t, 0.0

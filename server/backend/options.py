@@ -118,6 +118,12 @@ class OptimiseOptions:
     # in quadrature, the error the front-end reported (``Keyframe.odom_sigma``)
     pose_graph_drift_trans: float = 0.02
     pose_graph_drift_rot: float = 0.02
+    # An agent's odometry edges are as sure as its tracking says (``Keyframe.track_sigma``, summed along
+    # its keyframes), times this scale (the front-end's covariance is its observations' alone, which the
+    # map points' own error adds to), at least the floors; 0: the fixed sigmas above for every agent.
+    pose_graph_track_scale: float = 2.0
+    pose_graph_track_floor_m: float = 0.002
+    pose_graph_track_floor_deg: float = 0.02
     # Loop and merge edges are judged by graduated non-convexity (truncated least squares) at every pose
     # graph, all of a map's kept edges together: one the rest contradicts gets no weight and is reported
     # rejected (False: Huber, which still pulls).

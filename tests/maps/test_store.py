@@ -226,7 +226,7 @@ def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
     store.save_stack(stack)
     store.close()
     con = sqlite3.connect(path)  # make it a version-1 file: no up_cam column
-    for col in ("up_cam", "u_right", "stereo_baseline", "odom_sigma"):
+    for col in ("up_cam", "u_right", "stereo_baseline", "odom_sigma", "track_sigma"):
         con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
     con.execute("UPDATE map_schema SET version = 1")
     con.commit()
@@ -237,6 +237,7 @@ def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
     for m in stack.maps.values():
         for kf in m.keyframes.values():
             kf.up_cam = kf.u_right = kf.stereo_baseline = kf.odom_sigma = None  # what a version-1 file held
+            kf.track_sigma = None
     assert_stacks_equal(stack, loaded)
     kf = next(iter(loaded.maps[0].keyframes.values()))
     kf.up_cam = np.array([0.0, 0.6, 0.8])
@@ -259,7 +260,7 @@ def test_version_2_file_is_migrated_and_its_keyframes_load_as_mono(tmp_path: Pat
     store.save_stack(stack)
     store.close()
     con = sqlite3.connect(path)
-    for col in ("u_right", "stereo_baseline", "odom_sigma"):
+    for col in ("u_right", "stereo_baseline", "odom_sigma", "track_sigma"):
         con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
     con.execute("UPDATE map_schema SET version = 2")
     con.commit()
@@ -268,7 +269,7 @@ def test_version_2_file_is_migrated_and_its_keyframes_load_as_mono(tmp_path: Pat
     loaded = store.load_stack()
     for m in stack.maps.values():
         for kf in m.keyframes.values():
-            kf.u_right = kf.stereo_baseline = kf.odom_sigma = None
+            kf.u_right = kf.stereo_baseline = kf.odom_sigma = kf.track_sigma = None
     assert_stacks_equal(stack, loaded)
     kf = next(iter(loaded.maps[0].keyframes.values()))
     kf.u_right = np.full(kf.n_keypoints, 100.5, np.float32)
@@ -472,3 +473,32 @@ def test_version_4_file_gains_the_rendezvous_table_and_keeps_its_maps(tmp_path: 
     store = MapStore(path)
     assert store.load_rendezvous() == {3: {**rec, "state": "kept"}}
     store.close()
+
+
+def test_version_5_file_is_migrated_and_stores_track_sigma(tmp_path: Path) -> None:
+    """A store written before keyframes said how well their agent tracked (schema 5) opens with no
+    ``track_sigma`` anywhere, keeps every other field, and stores it from then on."""
+    path = tmp_path / "v5.sqlite"
+    stack = build_stack(14, 40, 2000)
+    assert any(kf.track_sigma is not None for m in stack.maps.values() for kf in m.keyframes.values())
+    store = MapStore(path)
+    store.save_stack(stack)
+    store.close()
+    con = sqlite3.connect(path)
+    con.execute("ALTER TABLE map_keyframes DROP COLUMN track_sigma")
+    con.execute("UPDATE map_schema SET version = 5")
+    con.commit()
+    con.close()
+    store = MapStore(path)
+    assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == SCHEMA_VERSION
+    loaded = store.load_stack()
+    for m in stack.maps.values():
+        for kf in m.keyframes.values():
+            kf.track_sigma = None
+    assert_stacks_equal(stack, loaded)
+    kf = next(iter(loaded.maps[0].keyframes.values()))
+    kf.track_sigma = np.array([0.007, 0.04])
+    store.put_keyframe(0, kf)
+    store.close()
+    again = MapStore(path).load_stack().maps[0].keyframes[kf.key]
+    assert np.array_equal(again.track_sigma, [0.007, 0.04])

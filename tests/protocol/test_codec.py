@@ -100,6 +100,7 @@ def keyframes(draw: Any) -> Keyframe:
         prev_session_sigma=draw(arr(np.float64, (2,), st.floats(1e-3, 100))) if guess else None,
         u_right=draw(arr(np.float32, (n,), ur)) if stereo else None,
         odom_sigma=draw(st.one_of(st.none(), arr(np.float64, (2,), st.floats(0, 100)))),
+        track_sigma=draw(st.one_of(st.none(), arr(np.float64, (2,), st.floats(1e-6, 100)))),
     )
 
 
@@ -222,6 +223,9 @@ def _tamper(frame: bytes, **changes: Any) -> bytes:
         (lambda m: replace(m, odom_sigma=np.array([-1.0, 1.0])), FieldError, "body.odom_sigma"),
         (lambda m: replace(m, odom_sigma=np.array([np.inf, 1.0])), FieldError, "body.odom_sigma"),
         (lambda m: replace(m, odom_sigma=np.ones(3)), FieldError, "body.odom_sigma"),
+        (lambda m: replace(m, track_sigma=np.array([0.0, 1.0])), FieldError, "body.track_sigma"),
+        (lambda m: replace(m, track_sigma=np.array([np.nan, 1.0])), FieldError, "body.track_sigma"),
+        (lambda m: replace(m, track_sigma=np.ones((2, 2))), FieldError, "body.track_sigma"),
         (
             lambda m: replace(m, session=1, prev_session_from_world=np.eye(4)),
             FieldError,
@@ -371,16 +375,17 @@ def test_a_v1_keyframe_still_reads_as_all_mono() -> None:
     """An older agent's v1 frames (no ``u_right``, ``odom_sigma``, ``stereo_baseline``) decode with those
     unset; a v1 frame carrying a v2 field is refused, naming it."""
     kf = _kf()
-    _, got = decode(_tamper(encode(kf, 4), v=1, body_u_right=None, body_odom_sigma=None))
+    v1 = _tamper(encode(kf, 4), v=1, body_u_right=None, body_odom_sigma=None, body_track_sigma=None)
+    _, got = decode(v1)
     assert isinstance(got, Keyframe) and got.u_right is None and got.odom_sigma is None
     assert_same(kf, got)
     stereo = replace(kf, u_right=np.where(np.arange(100) % 2 == 0, 300.0, np.nan).astype(np.float32))
     with pytest.raises(FieldError) as e:
-        decode(_tamper(encode(stereo, 4), v=1, body_odom_sigma=None))
+        decode(_tamper(encode(stereo, 4), v=1, body_odom_sigma=None, body_track_sigma=None))
     assert e.value.field == "body.u_right"
     weak = replace(kf, odom_sigma=np.array([0.5, 2.0]))
     with pytest.raises(FieldError) as e:
-        decode(_tamper(encode(weak, 4), v=1, body_u_right=None))
+        decode(_tamper(encode(weak, 4), v=1, body_u_right=None, body_track_sigma=None))
     assert e.value.field == "body.odom_sigma"
     _, both = decode(encode(replace(stereo, odom_sigma=np.array([0.5, 2.0])), 4))
     assert isinstance(both, Keyframe) and both.u_right is not None and both.odom_sigma is not None
@@ -518,3 +523,19 @@ def test_older_readers_get_frames_of_their_version() -> None:
     # a v1 peer: the rendezvous message does not exist for it
     with pytest.raises(ValueError):
         encode(_rendezvous(), 1, version=2)
+
+
+def test_a_v4_frame_cannot_carry_track_sigma_and_a_v4_reader_gets_the_keyframe_without_it() -> None:
+    """``Keyframe.track_sigma`` is protocol v5: a v4 frame carrying it is refused naming the field, a
+    keyframe downgraded for a v4 peer travels without it, and a v5 frame keeps it exactly."""
+    kf = replace(_kf(), track_sigma=np.array([0.006, 0.08]))
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(encode(kf, 3), v=4))
+    assert e.value.field == "body.track_sigma"
+    with pytest.raises(ValueError):
+        encode(kf, 3, version=4)
+    version, _, old = decode_versioned(encode(downgrade(kf, 4), 3, version=4))
+    assert version == 4 and isinstance(old, Keyframe) and old.track_sigma is None
+    _, new = decode(encode(kf, 3))
+    assert isinstance(new, Keyframe) and new.track_sigma is not None
+    np.testing.assert_array_equal(new.track_sigma, [0.006, 0.08])
