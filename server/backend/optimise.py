@@ -132,7 +132,7 @@ def pose_graph_problem(
         return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, new_edge_covs=covs)
     chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
     graph_edges = across_weak_tracking(graph_edges, snap.keys, chains, m)
-    sigmas = [odometry_sigmas(chains.between(snap.keys[i], snap.keys[j]), o) for i, j in graph_edges]
+    sigmas = [edge_sigmas(m, chains, snap.keys[i], snap.keys[j], o) for i, j in graph_edges]
     slack = max((3.0 * float(chains.weak_total(a)[0]) for a in {k[0] for k in snap.keys}), default=0.0)
     return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, sigmas, slack, covs)
 
@@ -161,14 +161,28 @@ def across_weak_tracking(
     return kept + sorted((int(a), int(b)) for a, b in odo)
 
 
+def edge_sigmas(m: Any, chains: Chains, a: KfKey, b: KfKey, o: OptimiseOptions) -> tuple[float, float, float]:
+    """:func:`odometry_sigmas` of the essential edge ``a`` - ``b``; between two agents (their fused points)
+    whose keyframes both say how well they tracked, the two keyframes' own errors in quadrature (times the
+    scale), so these edges are weighed on the same footing as the agents' odometry around them."""
+    chain = chains.between(a, b)
+    ta, tb = m.keyframes[a].track_sigma, m.keyframes[b].track_sigma
+    if chain is not None or o.pose_graph_track_scale <= 0 or ta is None or tb is None:
+        return odometry_sigmas(chain, o)
+    st = max(o.pose_graph_track_scale * float(np.hypot(ta[0], tb[0])), o.pose_graph_track_floor_m)
+    sr = max(o.pose_graph_track_scale * float(np.radians(np.hypot(ta[1], tb[1]))),
+             float(np.radians(o.pose_graph_track_floor_deg)))  # fmt: skip
+    return sr, st, 0.0
+
+
 def odometry_sigmas(chain: F64 | None, o: OptimiseOptions) -> tuple[float, float, float]:
     """(sigma_rot rad, sigma_trans m, extra yaw sigma rad) of an essential edge whose ends are
     ``chain`` (:meth:`Chains.between`) apart. The base: where every keyframe between them says how well
     it tracked, that error summed along the chain (times ``pose_graph_track_scale``, at least the
     ``pose_graph_track_floor_*``), so an agent that tracked badly bends at a loop and one that tracked
     well does not; else the options' fixed sigmas. Across weak tracking, the drift over the path travelled
-    or the base, whichever is larger, plus the weak sigma. Across agents (their fused points): the
-    options' fixed sigmas."""
+    or the base, whichever is larger, plus the weak sigma. Across agents (``chain`` None): the options'
+    fixed sigmas (:func:`edge_sigmas` weighs those by the two keyframes' tracking where both say it)."""
     base_r, base_t = o.pose_graph_sigma_rot, o.pose_graph_sigma_trans
     if chain is None:
         return base_r, base_t, 0.0

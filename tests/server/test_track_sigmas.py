@@ -15,7 +15,7 @@ import pytest
 
 from hivemap.maps.geometry import Sim3, se3, se3_inverse, so3_exp
 from hivemap.maps.odometry import Chains
-from hivemap.server.backend.optimise import odometry_sigmas
+from hivemap.server.backend.optimise import edge_sigmas, odometry_sigmas
 from hivemap.server.backend.options import OptimiseOptions
 from hivemap.server.optim import PoseGraphEdge, PoseGraphOptions, relative_sim3, solve_pose_graph_se3
 
@@ -116,3 +116,20 @@ def test_an_agent_that_does_not_say_how_it_tracked_keeps_the_fixed_sigmas(missin
         o.pose_graph_sigma_rot,
         o.pose_graph_sigma_trans,
     )
+
+
+def test_an_edge_across_agents_is_weighed_by_both_keyframes_tracking() -> None:
+    """Two agents' keyframes joined by fused points: both say how well they tracked, so the edge gets
+    their errors in quadrature (times the scale), as sure as the odometry around it; where either does
+    not say, the fixed sigmas."""
+    o = OptimiseOptions()
+    kfs = {("a", 0): _keyframe(np.eye(4), 0, (0.003, 0.04)), ("b", 0): _keyframe(np.eye(4), 0, (0.004, 0.03)),
+           ("c", 0): _keyframe(np.eye(4), 0, None)}  # fmt: skip
+    m = SimpleNamespace(keyframes=kfs)
+    chains = Chains(m)
+    sr, st, _ = edge_sigmas(m, chains, ("a", 0), ("b", 0), o)
+    assert st == pytest.approx(o.pose_graph_track_scale * 0.005)
+    assert sr == pytest.approx(o.pose_graph_track_scale * np.radians(0.05))
+    fixed = (o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)
+    assert edge_sigmas(m, chains, ("a", 0), ("c", 0), o)[:2] == fixed
+    assert edge_sigmas(m, chains, ("a", 0), ("b", 0), replace(o, pose_graph_track_scale=0.0))[:2] == fixed
