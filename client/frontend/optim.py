@@ -312,10 +312,12 @@ def bundle_adjust(
         agg_c = sp.csr_matrix((np.ones(len(hasc)), (fh, np.arange(len(hasc)))), shape=(nf, len(hasc)))
         Hcc = (agg_c @ np.matmul(JxW_T[hasc], Jx[hasc]).reshape(-1, 36)).reshape(nf, 6, 6)
         gc = agg_c @ np.matmul(JxW_T[hasc], e[hasc][:, :, None])[:, :, 0]
-        # camera-point blocks, dense (6 nf x P x 3): one observation per (keyframe, point)
-        Hcp4 = np.zeros((nf, P, 6, 3))
-        Hcp4[fh, pi[hasc]] = np.matmul(JxW_T[hasc], Jp[hasc])
-        Hcp = Hcp4.transpose(0, 2, 1, 3).reshape(6 * nf, 3 * P)
+        # camera-point blocks (one observation per (keyframe, point)) written straight into the dense
+        # (6 nf x 3 P) layout the Schur complement multiplies
+        Hcp_blk = np.matmul(JxW_T[hasc], Jp[hasc])  # (m, 6, 3)
+        blk_p = pi[hasc]
+        Hcp = np.zeros((6 * nf, 3 * P))
+        Hcp.reshape(nf, 6, P, 3)[fh, :, blk_p, :] = Hcp_blk
         diag_c = np.einsum("nii->ni", Hcc)
         diag_p = np.einsum("nii->ni", Hpp)
         if inertial is not None:
@@ -333,7 +335,9 @@ def bundle_adjust(
                 for j in range(nf):
                     blk = Hcc[j] + np.diag(lam * diag_c[j] + 1e-9)
                     Hcc_full[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = blk
-                Y = np.einsum("cpi,pij->cpj", Hcp.reshape(6 * nf, P, 3), Hpp_inv).reshape(6 * nf, 3 * P)
+                # Hcp Hpp^-1 on the observed blocks only (the rest is zero), by the same einsum arithmetic
+                Y = np.zeros((6 * nf, 3 * P))
+                Y.reshape(nf, 6, P, 3)[fh, :, blk_p, :] = np.einsum("kci,kij->kcj", Hcp_blk, Hpp_inv[blk_p])
                 S = Hcc_full - Y @ Hcp.T
                 rhs = -gc.ravel() + Y @ gp.ravel()
                 if inertial is not None:
