@@ -29,6 +29,7 @@ I64 = NDArray[np.int64]
 
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
+_DAMPING_6 = 1e-9 * np.eye(6)  # keeps a motion-only system solvable
 
 
 @dataclass(frozen=True)
@@ -41,25 +42,30 @@ class Intrinsics:
 
 
 def _skew_batch(x: F64) -> F64:
-    z = np.zeros(len(x))
-    return np.stack(
-        [
-            np.stack([z, -x[:, 2], x[:, 1]], 1),
-            np.stack([x[:, 2], z, -x[:, 0]], 1),
-            np.stack([-x[:, 1], x[:, 0], z], 1),
-        ],
-        1,
-    )
+    S = np.zeros((len(x), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -x[:, 2], x[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = x[:, 2], -x[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -x[:, 1], x[:, 0]
+    return S
+
+
+def _pose_jacobian(Jp: F64, pc: F64) -> F64:
+    """d[u,v,uR]/d[w, v] (N,3,6) of a left update, from d[u,v,uR]/d(pc) (N,3,3)."""
+    Jx = np.empty((len(pc), 3, 6))
+    Jx[:, :, :3] = -(Jp @ _skew_batch(pc))
+    Jx[:, :, 3:] = Jp
+    return Jx
 
 
 def project(k: Intrinsics, pc: F64) -> F64:
     """Camera-frame points (N,3) -> (N,3) [u, v, uR] undistorted pixels."""
     z = pc[:, 2]
     zs = np.where(np.abs(z) > 1e-9, z, 1e-9)
-    u = k.fx * pc[:, 0] / zs + k.cx
-    v = k.fy * pc[:, 1] / zs + k.cy
-    ur = u - k.fx * k.baseline / zs
-    return np.stack([u, v, ur], 1)
+    out = np.empty((len(pc), 3))
+    out[:, 0] = k.fx * pc[:, 0] / zs + k.cx
+    out[:, 1] = k.fy * pc[:, 1] / zs + k.cy
+    out[:, 2] = out[:, 0] - k.fx * k.baseline / zs
+    return out
 
 
 def _linearize(k: Intrinsics, pc: F64) -> F64:
@@ -79,7 +85,8 @@ def _linearize(k: Intrinsics, pc: F64) -> F64:
 
 def _residuals(k: Intrinsics, pc: F64, meas: F64) -> tuple[F64, F64]:
     """Residuals (N,3) (NaN uR rows zeroed) and row mask (N,3)."""
-    e = project(k, pc) - meas
+    e = project(k, pc)
+    e -= meas
     mask = np.ones_like(e)
     mono = np.isnan(meas[:, 2])
     mask[mono, 2] = 0.0
@@ -123,8 +130,7 @@ def pose_hessian(k: Intrinsics, T_cw: F64, X: F64, meas: F64, inv_sigma2: F64) -
     """Gauss-Newton information (6,6) of a pose from its (inlier) observations, tangent [w, v]."""
     pc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
     _, mask = _residuals(k, pc, meas)
-    Jp = _linearize(k, pc)
-    Jx = np.concatenate([-Jp @ _skew_batch(pc), Jp], axis=2)
+    Jx = _pose_jacobian(_linearize(k, pc), pc)
     W = mask * inv_sigma2[:, None]
     A = Jx.reshape(-1, 6)
     return (A * W.reshape(-1, 1)).T @ A  # type: ignore[no-any-return]
@@ -207,8 +213,7 @@ def optimize_pose(
             e, mask = _residuals(k, pc, meas[idx])
             chi2 = (e * e).sum(1) * inv_sigma2[idx]
             w = inv_sigma2[idx] * (_huber_weights(chi2, th[idx]) if rnd < rounds - 1 else 1.0)
-            Jp = _linearize(k, pc)
-            Jx = np.concatenate([-Jp @ _skew_batch(pc), Jp], axis=2)
+            Jx = _pose_jacobian(_linearize(k, pc), pc)
             W = mask * w[:, None]
             A = Jx.reshape(-1, 6)
             AW = A * W.reshape(-1, 1)
@@ -220,7 +225,7 @@ def optimize_pose(
                 H = H + JI @ Jr
                 g = g + JI @ r
             try:
-                d = np.linalg.solve(H + 1e-9 * np.eye(6), -g)
+                d = np.linalg.solve(H + _DAMPING_6, -g)
             except np.linalg.LinAlgError:
                 return T, inl
             T = left_update(T, d)
@@ -298,7 +303,7 @@ def bundle_adjust(
         w[pc[:, 2] <= 1e-3] = 0.0
         W = mask * w[:, None]
         Jpc = _linearize(k, pc)
-        Jx = np.concatenate([-np.matmul(Jpc, _skew_batch(pc)), Jpc], axis=2)  # (n,3,6)
+        Jx = _pose_jacobian(Jpc, pc)  # (n,3,6)
         Jp = np.matmul(Jpc, R)  # (n,3,3)
         JxW_T = (Jx * W[:, :, None]).transpose(0, 2, 1)  # (n,6,3)
         JpW_T = (Jp * W[:, :, None]).transpose(0, 2, 1)  # (n,3,3)
