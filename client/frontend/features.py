@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -119,7 +120,7 @@ class OrbExtractor:
         # OpenCV reports a level-l keypoint at x_l * s, but level pixel x_l sits at x_l * s + (s - 1) / 2
         # in the full image (pixel-centre resizing): remove that bias (1.3 px at level 7)
         s = self.options.scale_factor ** octv.astype(np.float64)
-        uv = (np.array([k.pt for k in kps], dtype=np.float64) + 0.5 * (s - 1.0)[:, None]).astype(np.float32)
+        uv = (_points(kps) + 0.5 * (s - 1.0)[:, None]).astype(np.float32)
         ang = np.array([k.angle for k in kps], dtype=np.float32)
         return uv, octv, desc, ang
 
@@ -138,8 +139,7 @@ class OrbExtractor:
         extractor retries each cell at its minimum threshold."""
         o = self.options
         n_cells = o.grid_cols * o.grid_rows
-        pts = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
-        cells = self._cells(pts, gray.shape)
+        cells = self._cells(_points(kps), gray.shape)
         count = np.bincount(cells, minlength=n_cells)
         sparse = count < max(1, o.n_features // n_cells) / 4.0
         if not sparse.any():
@@ -157,7 +157,7 @@ class OrbExtractor:
         extra = self._orb.detect(gray, cell_mask)
         if not extra:
             return kps
-        epts = np.array([k.pt for k in extra], np.float64).reshape(-1, 2)
+        epts = _points(extra)
         keep = [k for k, c in zip(kps, cells, strict=True) if not sparse[c]]
         new = [k for k, c in zip(extra, self._cells(epts, gray.shape), strict=True) if sparse[c]]
         log.debug("FAST refill at threshold %d: %d corners in %d sparse cells", th, len(new), sparse.sum())
@@ -177,9 +177,8 @@ class OrbExtractor:
         n = len(kps)
         if n <= o.n_features:
             return list(kps)
-        pts = np.array([k.pt for k in kps])
         resp = np.array([k.response for k in kps])
-        cell = self._cells(pts, shape)
+        cell = self._cells(_points(kps), shape)
         order = np.lexsort((-resp, cell))  # by cell, best response first
         cell_sorted = cell[order]
         first = np.searchsorted(cell_sorted, cell_sorted, side="left")
@@ -187,7 +186,14 @@ class OrbExtractor:
         per_cell = max(1, o.n_features // (o.grid_cols * o.grid_rows))
         chosen = order[rank < per_cell]
         if len(chosen) < o.n_features:
-            rest = np.setdiff1d(np.arange(n), chosen)
+            unchosen = np.ones(n, bool)
+            unchosen[chosen] = False
+            rest = np.flatnonzero(unchosen)
             rest = rest[np.argsort(-resp[rest])][: o.n_features - len(chosen)]
             chosen = np.concatenate([chosen, rest])
         return [kps[i] for i in chosen]
+
+
+def _points(kps: Sequence[cv2.KeyPoint]) -> NDArray[np.float64]:
+    """The keypoints' (x, y) (N, 2): OpenCV's float32 values converted in C, not attribute by attribute."""
+    return np.asarray(cv2.KeyPoint.convert(kps), dtype=np.float64).reshape(-1, 2)
