@@ -292,14 +292,23 @@ def bundle_adjust(
     if inertial is not None:
         cost += inertial.cost(poses, vel, bias)
     rel = 1.0
+    # the active observations and their aggregation into points and free cameras, the same every iteration
+    ci, pi, meas = prob.cam_idx[act], prob.pt_idx[act], prob.meas[act]
+    inv_s2, th = prob.inv_sigma2[act], th_all[act]
+    n = len(ci)
+    # per-point / per-camera sums as sparse aggregation products (much faster than np.add.at)
+    agg_p = sp.csr_matrix((np.ones(n), (pi, np.arange(n))), shape=(P, n))
+    fi = free_index[ci]
+    hasc = np.flatnonzero(fi >= 0)
+    fh = fi[hasc]
+    blk_p = pi[hasc]
+    agg_c = sp.csr_matrix((np.ones(len(hasc)), (fh, np.arange(len(hasc)))), shape=(nf, len(hasc)))
     for _ in range(iterations):
-        ci, pi, meas = prob.cam_idx[act], prob.pt_idx[act], prob.meas[act]
-        n = len(ci)
         R = poses[ci, :3, :3]
         pc = np.einsum("nij,nj->ni", R, points[pi]) + poses[ci, :3, 3]
         e, mask = _residuals(k, pc, meas)
-        chi2 = (e * e).sum(1) * prob.inv_sigma2[act]
-        w = prob.inv_sigma2[act] * _huber_weights(chi2, th_all[act])
+        chi2 = (e * e).sum(1) * inv_s2
+        w = inv_s2 * _huber_weights(chi2, th)
         w[pc[:, 2] <= 1e-3] = 0.0
         W = mask * w[:, None]
         Jpc = _linearize(k, pc)
@@ -307,20 +316,13 @@ def bundle_adjust(
         Jp = np.matmul(Jpc, R)  # (n,3,3)
         JxW_T = (Jx * W[:, :, None]).transpose(0, 2, 1)  # (n,6,3)
         JpW_T = (Jp * W[:, :, None]).transpose(0, 2, 1)  # (n,3,3)
-        # per-point / per-camera sums as sparse aggregation products (much faster than np.add.at)
-        agg_p = sp.csr_matrix((np.ones(n), (pi, np.arange(n))), shape=(P, n))
         Hpp = (agg_p @ np.matmul(JpW_T, Jp).reshape(n, 9)).reshape(P, 3, 3)
         gp = agg_p @ np.matmul(JpW_T, e[:, :, None])[:, :, 0]
-        fi = free_index[ci]
-        hasc = np.flatnonzero(fi >= 0)
-        fh = fi[hasc]
-        agg_c = sp.csr_matrix((np.ones(len(hasc)), (fh, np.arange(len(hasc)))), shape=(nf, len(hasc)))
         Hcc = (agg_c @ np.matmul(JxW_T[hasc], Jx[hasc]).reshape(-1, 36)).reshape(nf, 6, 6)
         gc = agg_c @ np.matmul(JxW_T[hasc], e[hasc][:, :, None])[:, :, 0]
         # camera-point blocks (one observation per (keyframe, point)) written straight into the dense
         # (6 nf x 3 P) layout the Schur complement multiplies
         Hcp_blk = np.matmul(JxW_T[hasc], Jp[hasc])  # (m, 6, 3)
-        blk_p = pi[hasc]
         Hcp = np.zeros((6 * nf, 3 * P))
         Hcp.reshape(nf, 6, P, 3)[fh, :, blk_p, :] = Hcp_blk
         diag_c = np.einsum("nii->ni", Hcc)
