@@ -205,14 +205,15 @@ def optimize_pose(
     th = chi2_thresholds(meas)
     inl = np.ones(len(X), bool)
     for rnd in range(rounds):
+        idx = np.flatnonzero(inl)  # the inliers change between rounds only
+        if len(idx) < 6:
+            return T, inl
+        X_in, meas_in, s2_in, th_in = X[idx], meas[idx], inv_sigma2[idx], th[idx]
         for _ in range(iterations):
-            idx = np.flatnonzero(inl)
-            if len(idx) < 6:
-                return T, inl
-            pc = X[idx] @ T[:3, :3].T + T[:3, 3]
-            e, mask = _residuals(k, pc, meas[idx])
-            chi2 = (e * e).sum(1) * inv_sigma2[idx]
-            w = inv_sigma2[idx] * (_huber_weights(chi2, th[idx]) if rnd < rounds - 1 else 1.0)
+            pc = X_in @ T[:3, :3].T + T[:3, 3]
+            e, mask = _residuals(k, pc, meas_in)
+            chi2 = (e * e).sum(1) * s2_in
+            w = s2_in * (_huber_weights(chi2, th_in) if rnd < rounds - 1 else 1.0)
             Jx = _pose_jacobian(_linearize(k, pc), pc)
             W = mask * w[:, None]
             A = Jx.reshape(-1, 6)
