@@ -29,7 +29,6 @@ I64 = NDArray[np.int64]
 
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
-_DAMPING_6 = 1e-9 * np.eye(6)  # keeps a motion-only system solvable
 
 
 @dataclass(frozen=True)
@@ -226,7 +225,7 @@ def optimize_pose(
                 H = H + JI @ Jr
                 g = g + JI @ r
             try:
-                d = np.linalg.solve(H + _DAMPING_6, -g)
+                d = np.asarray(np.linalg.solve(H + 1e-9 * np.eye(6), -g), dtype=np.float64)
             except np.linalg.LinAlgError:
                 return T, inl
             T = left_update(T, d)
