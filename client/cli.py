@@ -88,8 +88,14 @@ def agent_command(
     Streaming, SIGTERM/SIGINT stop the replay: unacknowledged messages stay in OUT/outbox.sqlite (sent
     at the next start with the same --out) and the agent exits 0. Exit 3: the server refused the agent;
     exit 4: the server could not be reached (--max-connect-attempts)."""
+    import cv2
+
     from hivemap.client.frontend.markers import MarkerOptions
     from hivemap.client.runner import RunnerOptions, parse_gnss_mode
+
+    # One OpenCV thread: agents share the cores with each other and the server, and OpenCV's worker
+    # pool spends more CPU on hand-offs than it saves in wall time (the results do not depend on it).
+    cv2.setNumThreads(1)
 
     try:
         mode = parse_gnss_mode(gnss)

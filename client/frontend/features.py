@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -85,7 +86,8 @@ class OrbExtractor:
         o = self.options
         for _attempt in range(3):
             self._orb.setFastThreshold(int(self.threshold))
-            kps = self._orb.detect(gray, mask)
+            # descriptors with the corners: one image pyramid instead of a second one in compute()
+            kps, desc = self._orb.detectAndCompute(gray, mask)
             n_raw = len(kps)
             if not adapt:
                 break
@@ -105,10 +107,10 @@ class OrbExtractor:
                 np.zeros(0, np.float32),
             )
         if adapt and o.fast_cell_refill:
-            kps = self._refill_sparse_cells(gray, kps, mask)
-        kps = self._grid_select(kps, gray.shape)
-        kps, desc = self._orb.compute(gray, kps)
-        if desc is None or len(kps) == 0:
+            kps, desc = self._refill_sparse_cells(gray, kps, desc, mask)
+        chosen = self._grid_select(kps, gray.shape)
+        kps, desc = self._as_computed(gray, [kps[i] for i in chosen], desc[chosen])
+        if len(kps) == 0:
             return (
                 np.zeros((0, 2), np.float32),
                 np.zeros(0, np.uint8),
@@ -119,7 +121,7 @@ class OrbExtractor:
         # OpenCV reports a level-l keypoint at x_l * s, but level pixel x_l sits at x_l * s + (s - 1) / 2
         # in the full image (pixel-centre resizing): remove that bias (1.3 px at level 7)
         s = self.options.scale_factor ** octv.astype(np.float64)
-        uv = (np.array([k.pt for k in kps], dtype=np.float64) + 0.5 * (s - 1.0)[:, None]).astype(np.float32)
+        uv = (_points(kps) + 0.5 * (s - 1.0)[:, None]).astype(np.float32)
         ang = np.array([k.angle for k in kps], dtype=np.float32)
         return uv, octv, desc, ang
 
@@ -130,23 +132,36 @@ class OrbExtractor:
         cy = np.minimum((pts[:, 1] * o.grid_rows / h).astype(int), o.grid_rows - 1)
         return np.asarray(cy * o.grid_cols + cx, dtype=np.int64)
 
+    def _as_computed(self, gray: U8, kps: list[cv2.KeyPoint], desc: U8) -> tuple[list[cv2.KeyPoint], U8]:
+        """The keypoints and descriptors as ``compute(gray, kps)`` returns them: without those within
+        ``edgeThreshold`` of the image border, ordered by pyramid level (stably). A descriptor depends on
+        its keypoint and the image only, so the rows ``detectAndCompute`` gave are the same."""
+        if not kps:
+            return kps, desc
+        h, w = gray.shape[:2]
+        b = self._orb.getEdgeThreshold()
+        pts = np.asarray(cv2.KeyPoint.convert(kps), dtype=np.float32).reshape(-1, 2)
+        inside = (pts[:, 0] >= b) & (pts[:, 0] < w - b) & (pts[:, 1] >= b) & (pts[:, 1] < h - b)
+        octaves = np.array([k.octave for k in kps])
+        order = [i for i in np.argsort(octaves, kind="stable") if inside[i]]
+        return [kps[i] for i in order], desc[order]
+
     def _refill_sparse_cells(
-        self, gray: U8, kps: tuple[cv2.KeyPoint, ...], mask: U8 | None
-    ) -> tuple[cv2.KeyPoint, ...]:
+        self, gray: U8, kps: tuple[cv2.KeyPoint, ...], desc: U8, mask: U8 | None
+    ) -> tuple[tuple[cv2.KeyPoint, ...], U8]:
         """Cells the image-wide threshold starves (a faint, foggy background beside one close, sharp
         object) are detected again at a threshold just above the sensor noise, as ORB-SLAM's
         extractor retries each cell at its minimum threshold."""
         o = self.options
         n_cells = o.grid_cols * o.grid_rows
-        pts = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
-        cells = self._cells(pts, gray.shape)
+        cells = self._cells(_points(kps), gray.shape)
         count = np.bincount(cells, minlength=n_cells)
         sparse = count < max(1, o.n_features // n_cells) / 4.0
         if not sparse.any():
-            return kps
+            return kps, desc
         th = self._refill_threshold(gray)
         if th >= self.threshold:
-            return kps
+            return kps, desc
         h, w = gray.shape[:2]
         cell_mask = np.zeros((o.grid_rows, o.grid_cols), np.uint8)
         cell_mask.flat[np.flatnonzero(sparse)] = 255
@@ -154,14 +169,14 @@ class OrbExtractor:
         if mask is not None:
             cell_mask = np.minimum(cell_mask, mask)
         self._orb.setFastThreshold(th)
-        extra = self._orb.detect(gray, cell_mask)
+        extra, extra_desc = self._orb.detectAndCompute(gray, cell_mask)
         if not extra:
-            return kps
-        epts = np.array([k.pt for k in extra], np.float64).reshape(-1, 2)
-        keep = [k for k, c in zip(kps, cells, strict=True) if not sparse[c]]
-        new = [k for k, c in zip(extra, self._cells(epts, gray.shape), strict=True) if sparse[c]]
+            return kps, desc
+        keep = np.flatnonzero(~sparse[cells])
+        new = np.flatnonzero(sparse[self._cells(_points(extra), gray.shape)])
         log.debug("FAST refill at threshold %d: %d corners in %d sparse cells", th, len(new), sparse.sum())
-        return tuple(keep + new)
+        out = tuple(kps[i] for i in keep) + tuple(extra[i] for i in new)
+        return out, np.concatenate([desc[keep], extra_desc[new]])
 
     def _refill_threshold(self, gray: U8) -> int:
         """A FAST threshold three sigmas of a pixel difference above the image's noise (Immerkaer's
@@ -172,14 +187,14 @@ class OrbExtractor:
         sigma = float(np.median(np.abs(resp))) / (6.0 * 0.6745)
         return int(np.clip(round(3.0 * np.sqrt(2.0) * sigma), o.min_fast_threshold, self.threshold))
 
-    def _grid_select(self, kps: tuple[cv2.KeyPoint, ...], shape: tuple[int, ...]) -> list[cv2.KeyPoint]:
+    def _grid_select(self, kps: tuple[cv2.KeyPoint, ...], shape: tuple[int, ...]) -> NDArray[np.int64]:
+        """Indices of the keypoints kept: the best per grid cell, then the best of the rest."""
         o = self.options
         n = len(kps)
         if n <= o.n_features:
-            return list(kps)
-        pts = np.array([k.pt for k in kps])
+            return np.arange(n)
         resp = np.array([k.response for k in kps])
-        cell = self._cells(pts, shape)
+        cell = self._cells(_points(kps), shape)
         order = np.lexsort((-resp, cell))  # by cell, best response first
         cell_sorted = cell[order]
         first = np.searchsorted(cell_sorted, cell_sorted, side="left")
@@ -187,7 +202,14 @@ class OrbExtractor:
         per_cell = max(1, o.n_features // (o.grid_cols * o.grid_rows))
         chosen = order[rank < per_cell]
         if len(chosen) < o.n_features:
-            rest = np.setdiff1d(np.arange(n), chosen)
+            unchosen = np.ones(n, bool)
+            unchosen[chosen] = False
+            rest = np.flatnonzero(unchosen)
             rest = rest[np.argsort(-resp[rest])][: o.n_features - len(chosen)]
             chosen = np.concatenate([chosen, rest])
-        return [kps[i] for i in chosen]
+        return chosen
+
+
+def _points(kps: Sequence[cv2.KeyPoint]) -> NDArray[np.float64]:
+    """The keypoints' (x, y) (N, 2): OpenCV's float32 values converted in C, not attribute by attribute."""
+    return np.asarray(cv2.KeyPoint.convert(kps), dtype=np.float64).reshape(-1, 2)

@@ -17,7 +17,10 @@ I64 = NDArray[np.int64]
 
 def hamming(a: NDArray[np.uint8], b: NDArray[np.uint8]) -> NDArray[np.int64]:
     """Hamming distance of 256-bit descriptors along the last axis (broadcasting)."""
-    return np.bitwise_count(np.bitwise_xor(a, b)).sum(axis=-1, dtype=np.int64)
+    # on four 64-bit words per descriptor: an eighth of the popcounts and sums of bytes
+    a64 = np.ascontiguousarray(a, np.uint8).view(np.uint64)
+    b64 = np.ascontiguousarray(b, np.uint8).view(np.uint64)
+    return np.bitwise_count(np.bitwise_xor(a64, b64)).sum(axis=-1, dtype=np.int64)
 
 
 @dataclass

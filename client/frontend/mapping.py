@@ -220,17 +220,23 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
     pids = pids[fe._pts.alive[pids]]
     if len(pids) < 10:
         return
-    fixed_count: dict[int, int] = {}
+    # every observation of the window's points: keyframe, point (index into pids), keypoint
     cams: list[int] = []
-    pts_i: list[int] = []
     kp_i: list[int] = []
-    for j, pid in enumerate(pids):
-        for k_id, i in fe._pts.obs[int(pid)].items():
-            if k_id not in wset:
-                fixed_count[k_id] = fixed_count.get(k_id, 0) + 1
-            cams.append(k_id)
-            pts_i.append(j)
-            kp_i.append(i)
+    n_obs = np.zeros(len(pids), np.int64)
+    for j, pid in enumerate(pids.tolist()):
+        seen = fe._pts.obs[pid]
+        cams.extend(seen)
+        kp_i.extend(seen.values())
+        n_obs[j] = len(seen)
+    cam_arr = np.array(cams, np.int64)
+    pt_all = np.repeat(np.arange(len(pids)), n_obs)
+    # keyframes outside the window by the number of those points they see, in the order first seen
+    others, first, counts = np.unique(
+        cam_arr[~np.isin(cam_arr, window)], return_index=True, return_counts=True
+    )
+    seen_order = np.argsort(first)
+    fixed_count = dict(zip(others[seen_order].tolist(), counts[seen_order].tolist(), strict=True))
     # nor does such a keyframe hold the window's gauge through its few shared points
     ranked = sorted(fixed_count.items(), key=lambda kv: -kv[1])
     fixed = [k for k, c in ranked if c >= o.ba_min_shared][: o.ba_fixed_max]
@@ -243,12 +249,14 @@ def local_ba(fe: Frontend, kf: KeyframeData) -> None:
         window.remove(oldest)
         fixed = [oldest]
     all_k = window + fixed
-    kidx = {k: n for n, k in enumerate(all_k)}
-    cam_arr = np.array(cams)
-    use = np.array([c in kidx for c in cams])
-    cam_idx = np.array([kidx.get(c, -1) for c in cams])[use]
-    pt_idx = np.array(pts_i)[use]
-    kp_arr = np.array(kp_i)[use]
+    # keyframe id -> its camera in the problem (-1: not in it)
+    problem_index = np.full(max(max(cams, default=0), max(all_k)) + 1, -1, np.int64)
+    problem_index[all_k] = np.arange(len(all_k))
+    cam_all = problem_index[cam_arr]
+    use = cam_all >= 0
+    cam_idx = cam_all[use]
+    pt_idx = pt_all[use]
+    kp_arr = np.array(kp_i, np.int64)[use]
     cam_ids = cam_arr[use]
     meas = np.empty((len(cam_idx), 3))
     inv_s2 = np.empty(len(cam_idx))

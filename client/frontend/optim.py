@@ -41,25 +41,30 @@ class Intrinsics:
 
 
 def _skew_batch(x: F64) -> F64:
-    z = np.zeros(len(x))
-    return np.stack(
-        [
-            np.stack([z, -x[:, 2], x[:, 1]], 1),
-            np.stack([x[:, 2], z, -x[:, 0]], 1),
-            np.stack([-x[:, 1], x[:, 0], z], 1),
-        ],
-        1,
-    )
+    S = np.zeros((len(x), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -x[:, 2], x[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = x[:, 2], -x[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -x[:, 1], x[:, 0]
+    return S
+
+
+def _pose_jacobian(Jp: F64, pc: F64) -> F64:
+    """d[u,v,uR]/d[w, v] (N,3,6) of a left update, from d[u,v,uR]/d(pc) (N,3,3)."""
+    Jx = np.empty((len(pc), 3, 6))
+    Jx[:, :, :3] = -(Jp @ _skew_batch(pc))
+    Jx[:, :, 3:] = Jp
+    return Jx
 
 
 def project(k: Intrinsics, pc: F64) -> F64:
     """Camera-frame points (N,3) -> (N,3) [u, v, uR] undistorted pixels."""
     z = pc[:, 2]
     zs = np.where(np.abs(z) > 1e-9, z, 1e-9)
-    u = k.fx * pc[:, 0] / zs + k.cx
-    v = k.fy * pc[:, 1] / zs + k.cy
-    ur = u - k.fx * k.baseline / zs
-    return np.stack([u, v, ur], 1)
+    out = np.empty((len(pc), 3))
+    out[:, 0] = k.fx * pc[:, 0] / zs + k.cx
+    out[:, 1] = k.fy * pc[:, 1] / zs + k.cy
+    out[:, 2] = out[:, 0] - k.fx * k.baseline / zs
+    return out
 
 
 def _linearize(k: Intrinsics, pc: F64) -> F64:
@@ -79,7 +84,8 @@ def _linearize(k: Intrinsics, pc: F64) -> F64:
 
 def _residuals(k: Intrinsics, pc: F64, meas: F64) -> tuple[F64, F64]:
     """Residuals (N,3) (NaN uR rows zeroed) and row mask (N,3)."""
-    e = project(k, pc) - meas
+    e = project(k, pc)
+    e -= meas
     mask = np.ones_like(e)
     mono = np.isnan(meas[:, 2])
     mask[mono, 2] = 0.0
@@ -123,8 +129,7 @@ def pose_hessian(k: Intrinsics, T_cw: F64, X: F64, meas: F64, inv_sigma2: F64) -
     """Gauss-Newton information (6,6) of a pose from its (inlier) observations, tangent [w, v]."""
     pc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
     _, mask = _residuals(k, pc, meas)
-    Jp = _linearize(k, pc)
-    Jx = np.concatenate([-Jp @ _skew_batch(pc), Jp], axis=2)
+    Jx = _pose_jacobian(_linearize(k, pc), pc)
     W = mask * inv_sigma2[:, None]
     A = Jx.reshape(-1, 6)
     return (A * W.reshape(-1, 1)).T @ A  # type: ignore[no-any-return]
@@ -199,16 +204,16 @@ def optimize_pose(
     th = chi2_thresholds(meas)
     inl = np.ones(len(X), bool)
     for rnd in range(rounds):
+        idx = np.flatnonzero(inl)  # the inliers change between rounds only
+        if len(idx) < 6:
+            return T, inl
+        X_in, meas_in, s2_in, th_in = X[idx], meas[idx], inv_sigma2[idx], th[idx]
         for _ in range(iterations):
-            idx = np.flatnonzero(inl)
-            if len(idx) < 6:
-                return T, inl
-            pc = X[idx] @ T[:3, :3].T + T[:3, 3]
-            e, mask = _residuals(k, pc, meas[idx])
-            chi2 = (e * e).sum(1) * inv_sigma2[idx]
-            w = inv_sigma2[idx] * (_huber_weights(chi2, th[idx]) if rnd < rounds - 1 else 1.0)
-            Jp = _linearize(k, pc)
-            Jx = np.concatenate([-Jp @ _skew_batch(pc), Jp], axis=2)
+            pc = X_in @ T[:3, :3].T + T[:3, 3]
+            e, mask = _residuals(k, pc, meas_in)
+            chi2 = (e * e).sum(1) * s2_in
+            w = s2_in * (_huber_weights(chi2, th_in) if rnd < rounds - 1 else 1.0)
+            Jx = _pose_jacobian(_linearize(k, pc), pc)
             W = mask * w[:, None]
             A = Jx.reshape(-1, 6)
             AW = A * W.reshape(-1, 1)
@@ -220,7 +225,7 @@ def optimize_pose(
                 H = H + JI @ Jr
                 g = g + JI @ r
             try:
-                d = np.linalg.solve(H + 1e-9 * np.eye(6), -g)
+                d = np.asarray(np.linalg.solve(H + 1e-9 * np.eye(6), -g), dtype=np.float64)
             except np.linalg.LinAlgError:
                 return T, inl
             T = left_update(T, d)
@@ -287,35 +292,39 @@ def bundle_adjust(
     if inertial is not None:
         cost += inertial.cost(poses, vel, bias)
     rel = 1.0
+    # the active observations and their aggregation into points and free cameras, the same every iteration
+    ci, pi, meas = prob.cam_idx[act], prob.pt_idx[act], prob.meas[act]
+    inv_s2, th = prob.inv_sigma2[act], th_all[act]
+    n = len(ci)
+    # per-point / per-camera sums as sparse aggregation products (much faster than np.add.at)
+    agg_p = sp.csr_matrix((np.ones(n), (pi, np.arange(n))), shape=(P, n))
+    fi = free_index[ci]
+    hasc = np.flatnonzero(fi >= 0)
+    fh = fi[hasc]
+    blk_p = pi[hasc]
+    agg_c = sp.csr_matrix((np.ones(len(hasc)), (fh, np.arange(len(hasc)))), shape=(nf, len(hasc)))
     for _ in range(iterations):
-        ci, pi, meas = prob.cam_idx[act], prob.pt_idx[act], prob.meas[act]
-        n = len(ci)
         R = poses[ci, :3, :3]
         pc = np.einsum("nij,nj->ni", R, points[pi]) + poses[ci, :3, 3]
         e, mask = _residuals(k, pc, meas)
-        chi2 = (e * e).sum(1) * prob.inv_sigma2[act]
-        w = prob.inv_sigma2[act] * _huber_weights(chi2, th_all[act])
+        chi2 = (e * e).sum(1) * inv_s2
+        w = inv_s2 * _huber_weights(chi2, th)
         w[pc[:, 2] <= 1e-3] = 0.0
         W = mask * w[:, None]
         Jpc = _linearize(k, pc)
-        Jx = np.concatenate([-np.matmul(Jpc, _skew_batch(pc)), Jpc], axis=2)  # (n,3,6)
+        Jx = _pose_jacobian(Jpc, pc)  # (n,3,6)
         Jp = np.matmul(Jpc, R)  # (n,3,3)
         JxW_T = (Jx * W[:, :, None]).transpose(0, 2, 1)  # (n,6,3)
         JpW_T = (Jp * W[:, :, None]).transpose(0, 2, 1)  # (n,3,3)
-        # per-point / per-camera sums as sparse aggregation products (much faster than np.add.at)
-        agg_p = sp.csr_matrix((np.ones(n), (pi, np.arange(n))), shape=(P, n))
         Hpp = (agg_p @ np.matmul(JpW_T, Jp).reshape(n, 9)).reshape(P, 3, 3)
         gp = agg_p @ np.matmul(JpW_T, e[:, :, None])[:, :, 0]
-        fi = free_index[ci]
-        hasc = np.flatnonzero(fi >= 0)
-        fh = fi[hasc]
-        agg_c = sp.csr_matrix((np.ones(len(hasc)), (fh, np.arange(len(hasc)))), shape=(nf, len(hasc)))
         Hcc = (agg_c @ np.matmul(JxW_T[hasc], Jx[hasc]).reshape(-1, 36)).reshape(nf, 6, 6)
         gc = agg_c @ np.matmul(JxW_T[hasc], e[hasc][:, :, None])[:, :, 0]
-        # camera-point blocks, dense (6 nf x P x 3): one observation per (keyframe, point)
-        Hcp4 = np.zeros((nf, P, 6, 3))
-        Hcp4[fh, pi[hasc]] = np.matmul(JxW_T[hasc], Jp[hasc])
-        Hcp = Hcp4.transpose(0, 2, 1, 3).reshape(6 * nf, 3 * P)
+        # camera-point blocks (one observation per (keyframe, point)) written straight into the dense
+        # (6 nf x 3 P) layout the Schur complement multiplies
+        Hcp_blk = np.matmul(JxW_T[hasc], Jp[hasc])  # (m, 6, 3)
+        Hcp = np.zeros((6 * nf, 3 * P))
+        Hcp.reshape(nf, 6, P, 3)[fh, :, blk_p, :] = Hcp_blk
         diag_c = np.einsum("nii->ni", Hcc)
         diag_p = np.einsum("nii->ni", Hpp)
         if inertial is not None:
@@ -333,7 +342,9 @@ def bundle_adjust(
                 for j in range(nf):
                     blk = Hcc[j] + np.diag(lam * diag_c[j] + 1e-9)
                     Hcc_full[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = blk
-                Y = np.einsum("cpi,pij->cpj", Hcp.reshape(6 * nf, P, 3), Hpp_inv).reshape(6 * nf, 3 * P)
+                # Hcp Hpp^-1 on the observed blocks only (the rest is zero), by the same einsum arithmetic
+                Y = np.zeros((6 * nf, 3 * P))
+                Y.reshape(nf, 6, P, 3)[fh, :, blk_p, :] = np.einsum("kci,kij->kcj", Hcp_blk, Hpp_inv[blk_p])
                 S = Hcc_full - Y @ Hcp.T
                 rhs = -gc.ravel() + Y @ gp.ravel()
                 if inertial is not None:

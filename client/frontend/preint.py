@@ -21,6 +21,7 @@ F64 = NDArray[np.float64]
 GRAVITY = np.array([0.0, 0.0, -9.81])  # the VIO frame is gravity-aligned (z up) before these are used
 ANCHOR_INFO_SCALE = 1e-2  # ORB-SLAM3's down-weighting of the edge into the held keyframe
 ANCHOR_HUBER_CHI2 = 16.92  # ORB-SLAM3's Huber threshold (9 DoF) of that edge
+_EYE3 = np.eye(3)
 
 
 def skew(x: F64) -> F64:
@@ -66,27 +67,34 @@ class Preintegrated:
         w = gyro - self.bias[:3]
         dR = self.dR
         aw = skew(a)
+        # dR a and dR [a]x once: the scaled products below (by -1 and 0.5) are exact multiples of them
+        dRa = dR @ a
+        dRaw = dR @ aw
+        dRaw_JRg = dRaw @ self.JRg
+        dR_dt = dR * dt
+        half_dR_dt2 = 0.5 * dR * dt * dt
         A = np.eye(9)
         B = np.zeros((9, 6))
-        self.dP = self.dP + self.dV * dt + 0.5 * dR @ a * dt * dt
-        self.dV = self.dV + dR @ a * dt
-        A[3:6, 0:3] = -dR @ aw * dt
-        A[6:9, 0:3] = -0.5 * dR @ aw * dt * dt
-        A[6:9, 3:6] = np.eye(3) * dt
-        B[3:6, 3:6] = dR * dt
-        B[6:9, 3:6] = 0.5 * dR * dt * dt
-        self.JPa = self.JPa + self.JVa * dt - 0.5 * dR * dt * dt
-        self.JPg = self.JPg + self.JVg * dt - 0.5 * dR @ aw @ self.JRg * dt * dt
-        self.JVa = self.JVa - dR * dt
-        self.JVg = self.JVg - dR @ aw @ self.JRg * dt
+        self.dP = self.dP + self.dV * dt + 0.5 * dRa * dt * dt
+        self.dV = self.dV + dRa * dt
+        A[3:6, 0:3] = -dRaw * dt
+        A[6:9, 0:3] = -0.5 * dRaw * dt * dt
+        A[6:9, 3:6] = _EYE3 * dt
+        B[3:6, 3:6] = dR_dt
+        B[6:9, 3:6] = half_dR_dt2
+        self.JPa = self.JPa + self.JVa * dt - half_dR_dt2
+        self.JPg = self.JPg + self.JVg * dt - 0.5 * dRaw_JRg * dt * dt
+        self.JVa = self.JVa - dR_dt
+        self.JVg = self.JVg - dRaw_JRg * dt
         dRi = so3_exp(w * dt)
         Jr = right_jacobian(w * dt)
         A[0:3, 0:3] = dRi.T
-        B[0:3, 0:3] = Jr * dt
-        # discrete noise of one sample: density^2 / dt
-        N = np.diag([self.gyro_sigma2 / dt] * 3 + [self.acc_sigma2 / dt] * 3)
-        self.cov = A @ self.cov @ A.T + B @ N @ B.T
-        self.JRg = dRi.T @ self.JRg - Jr * dt
+        Jr_dt = Jr * dt
+        B[0:3, 0:3] = Jr_dt
+        # discrete noise of one sample: density^2 / dt (a diagonal, so B N is B's columns scaled)
+        n_diag = np.array([self.gyro_sigma2 / dt] * 3 + [self.acc_sigma2 / dt] * 3)
+        self.cov = A @ self.cov @ A.T + (B * n_diag) @ B.T
+        self.JRg = dRi.T @ self.JRg - Jr_dt
         U, _, Vt = np.linalg.svd(dR @ dRi)
         self.dR = U @ Vt
         self.dt += dt
