@@ -269,11 +269,6 @@ class FrameList:
 def _load_gray(path: Path) -> NDArray[np.uint8]:
     import cv2
 
-    from hivemap.client import png
-
-    fast = png.read_gray8(path) if png.FAST and path.suffix.lower() == ".png" else None
-    if fast is not None:
-        return fast
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DatasetError("cannot read image (missing or corrupt)", path)
