@@ -127,7 +127,7 @@ def pose_graph_problem(
                 initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
     kfs = [m.keyframes[k] for k in snap.keys]
-    tracked = o.pose_graph_track_scale > 0 and any(kf.track_sigma is not None for kf in kfs)
+    tracked = o.pose_graph_tracked and any(kf.track_sigma is not None for kf in kfs)
     if not tracked and not any(kf.odom_sigma is not None for kf in kfs):
         return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, new_edge_covs=covs)
     chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
@@ -167,7 +167,7 @@ def edge_sigmas(m: Any, chains: Chains, a: KfKey, b: KfKey, o: OptimiseOptions) 
     scale), so these edges are weighed on the same footing as the agents' odometry around them."""
     chain = chains.between(a, b)
     ta, tb = m.keyframes[a].track_sigma, m.keyframes[b].track_sigma
-    if chain is not None or o.pose_graph_track_scale <= 0 or ta is None or tb is None:
+    if chain is not None or not o.pose_graph_tracked or ta is None or tb is None:
         return odometry_sigmas(chain, o)
     st = max(o.pose_graph_track_scale * float(np.hypot(ta[0], tb[0])), o.pose_graph_track_floor_m)
     sr = max(o.pose_graph_track_scale * float(np.radians(np.hypot(ta[1], tb[1]))),
@@ -177,17 +177,17 @@ def edge_sigmas(m: Any, chains: Chains, a: KfKey, b: KfKey, o: OptimiseOptions) 
 
 def odometry_sigmas(chain: F64 | None, o: OptimiseOptions) -> tuple[float, float, float]:
     """(sigma_rot rad, sigma_trans m, extra yaw sigma rad) of an essential edge whose ends are
-    ``chain`` (:meth:`Chains.between`) apart. The base: where every keyframe between them says how well
-    it tracked, that error summed along the chain (times ``pose_graph_track_scale``, at least the
-    ``pose_graph_track_floor_*``), so an agent that tracked badly bends at a loop and one that tracked
-    well does not; else the options' fixed sigmas. Across weak tracking, the drift over the path travelled
+    ``chain`` (:meth:`Chains.between`) apart. The base: with ``pose_graph_tracked``, where every keyframe
+    between them says how well it tracked, that error summed along the chain (times
+    ``pose_graph_track_scale``, at least the ``pose_graph_track_floor_*``), so an agent that tracked badly
+    bends at a loop and one that tracked well does not; else the options' fixed sigmas. Across weak tracking, the drift over the path travelled
     or the base, whichever is larger, plus the weak sigma. Across agents (``chain`` None): the options'
     fixed sigmas (:func:`edge_sigmas` weighs those by the two keyframes' tracking where both say it)."""
     base_r, base_t = o.pose_graph_sigma_rot, o.pose_graph_sigma_trans
     if chain is None:
         return base_r, base_t, 0.0
     path, turn, weak_m, weak_deg, track_m, track_deg, untracked = (float(x) for x in chain)
-    if o.pose_graph_track_scale > 0 and untracked == 0 and (track_m > 0 or track_deg > 0):
+    if o.pose_graph_tracked and untracked == 0 and (track_m > 0 or track_deg > 0):
         base_t = max(o.pose_graph_track_scale * track_m, o.pose_graph_track_floor_m)
         base_r = max(o.pose_graph_track_scale * float(np.radians(track_deg)),
                      float(np.radians(o.pose_graph_track_floor_deg)))  # fmt: skip

@@ -118,9 +118,12 @@ class OptimiseOptions:
     # in quadrature, the error the front-end reported (``Keyframe.odom_sigma``)
     pose_graph_drift_trans: float = 0.02
     pose_graph_drift_rot: float = 0.02
-    # An agent's odometry edges are as sure as its tracking says (``Keyframe.track_sigma``, summed along
-    # its keyframes), times this scale (the front-end's covariance is its observations' alone, which the
-    # map points' own error adds to), at least the floors; 0: the fixed sigmas above for every agent.
+    # With ``pose_graph_tracked``, an agent's odometry edges are as sure as its tracking says
+    # (``Keyframe.track_sigma``, summed along its keyframes) times the scale (the front-end's covariance is
+    # its observations' alone, which the map points' own error adds to), at least the floors. Off: the
+    # fixed sigmas above for every agent; on the worlds measured so far it did not change accuracy
+    # beyond the runs' spread (docs/decisions.md), so it waits for the evidence.
+    pose_graph_tracked: bool = False
     pose_graph_track_scale: float = 2.0
     pose_graph_track_floor_m: float = 0.002
     pose_graph_track_floor_deg: float = 0.02

@@ -77,12 +77,11 @@ def _errors(solved: dict[str, np.ndarray]) -> dict[str, float]:
 
 
 def test_the_agent_that_tracked_badly_takes_the_loops_correction() -> None:
-    o = OptimiseOptions()
-    assert o.pose_graph_track_scale > 0
+    o = replace(OptimiseOptions(), pose_graph_tracked=True)
     drift = float(np.linalg.norm(_drifted(_square(), 0.3)[-1][:3, 3] - _square()[-1][:3, 3]))
     assert drift > 1.0  # what the drifted agent's odometry alone puts it off by
     tracked = _errors(_solve(o, {"good": (0.002, 0.02), "drifted": (0.02, 0.4)}))
-    fixed = _errors(_solve(replace(o, pose_graph_track_scale=0.0), {"good": None, "drifted": None}))
+    fixed = _errors(_solve(replace(o, pose_graph_tracked=False), {"good": None, "drifted": None}))
     # fixed sigmas: the loops split the drift, bending the good agent by decimetres
     assert fixed["good"] > 0.15, fixed
     # weighed by tracking: the good agent stays within 3 cm, the drifted one comes within 0.15 m
@@ -95,7 +94,7 @@ def test_the_agent_that_tracked_badly_takes_the_loops_correction() -> None:
 def test_an_agent_that_does_not_say_how_it_tracked_keeps_the_fixed_sigmas(missing: str) -> None:
     """An older agent sends no ``track_sigma``: its edges keep the options' fixed sigmas, the other's are
     weighed by its tracking (a chain with any keyframe lacking it is not summed)."""
-    o = OptimiseOptions()
+    o = replace(OptimiseOptions(), pose_graph_tracked=True)
     kfs = {
         (a, k): _keyframe(np.eye(4), k, None if a == missing else (0.004, 0.05))
         for a in ("good", "drifted")
@@ -121,8 +120,8 @@ def test_an_agent_that_does_not_say_how_it_tracked_keeps_the_fixed_sigmas(missin
 def test_an_edge_across_agents_is_weighed_by_both_keyframes_tracking() -> None:
     """Two agents' keyframes joined by fused points: both say how well they tracked, so the edge gets
     their errors in quadrature (times the scale), as sure as the odometry around it; where either does
-    not say, the fixed sigmas."""
-    o = OptimiseOptions()
+    not say, and by default (off), the fixed sigmas."""
+    o = replace(OptimiseOptions(), pose_graph_tracked=True)
     kfs = {("a", 0): _keyframe(np.eye(4), 0, (0.003, 0.04)), ("b", 0): _keyframe(np.eye(4), 0, (0.004, 0.03)),
            ("c", 0): _keyframe(np.eye(4), 0, None)}  # fmt: skip
     m = SimpleNamespace(keyframes=kfs)
@@ -132,4 +131,4 @@ def test_an_edge_across_agents_is_weighed_by_both_keyframes_tracking() -> None:
     assert sr == pytest.approx(o.pose_graph_track_scale * np.radians(0.05))
     fixed = (o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)
     assert edge_sigmas(m, chains, ("a", 0), ("c", 0), o)[:2] == fixed
-    assert edge_sigmas(m, chains, ("a", 0), ("b", 0), replace(o, pose_graph_track_scale=0.0))[:2] == fixed
+    assert edge_sigmas(m, chains, ("a", 0), ("b", 0), OptimiseOptions())[:2] == fixed
