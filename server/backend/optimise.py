@@ -182,7 +182,8 @@ def odometry_sigmas(chain: F64 | None, o: OptimiseOptions) -> tuple[float, float
     ``pose_graph_track_scale``, at least the ``pose_graph_track_floor_*``), so an agent that tracked badly
     bends at a loop and one that tracked well does not; else the options' fixed sigmas. Across weak
     tracking, the drift over the path travelled or the base, whichever is larger, plus the weak sigma.
-    Across agents (``chain`` None): the options' fixed sigmas (:func:`edge_sigmas` weighs those by the two keyframes' tracking where both say it)."""
+    Across agents (``chain`` None): the options' fixed sigmas (:func:`edge_sigmas` weighs those by the
+    two keyframes' tracking where both say it)."""
     base_r, base_t = o.pose_graph_sigma_rot, o.pose_graph_sigma_trans
     if chain is None:
         return base_r, base_t, 0.0
