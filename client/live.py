@@ -160,7 +160,7 @@ def run_live(
                 ls.advisory_log.append({
                     "t": round(fr.t, 3), "goals": np.round(adv.goals[:, :2], 2).tolist(),
                     "safe": np.round(adv.safe_velocity, 3).tolist(),
-                    "desired": np.round(adv.desired_velocity, 3).tolist(),
+                    "desired": np.round(adv.desired_velocity, 3).tolist(), "radius": round(adv.radius_m, 3),
                 })  # fmt: skip
             if idle_since is not None and fr.t - idle_since >= idle_stop_s:
                 ls.stopped_by = "explored"

@@ -178,7 +178,7 @@ class Controller:
         if np.linalg.norm(goal[:2] - p[:2]) < o.goal_reached_m:
             return True
         path, pg = self._path, self._path_goal
-        return (
+        return bool(
             path is not None and pg is not None and np.linalg.norm(pg - goal[:2]) <= o.replan_goal_m
             and np.linalg.norm(path[-1] - p[:2]) < o.goal_reached_m / 2
         )  # fmt: skip
