@@ -7,8 +7,8 @@ agents (``hivemap agent --sim WORLD:AGENT --live``) that go where the server's a
 Each run reports coverage of the site over time (:mod:`hivemap.eval.coverage`, from ground-truth camera
 poses, occlusion by the rendered depth), the time to the target coverage, each agent's path length and
 ATE (its ``local.tum``, SE(3)-aligned as GNSS-denied runs are; the server's global keyframes too), and per
-pair of agents their minimum distance against the sum of their inflated radii (the largest the server's
-advisories gave each), leaving out the take-off from the shared start.
+pair of agents their clearance against the sum of their inflated radii (those of the latest advisories),
+leaving out the take-off from the shared start.
 """
 
 from __future__ import annotations
@@ -195,33 +195,58 @@ def coverage_of(world: Any, sc: Any, agents: list[tuple[str, str]], work: Path,
     return out
 
 
+def _radius_at(log_: list[dict[str, Any]], t: Any) -> Any:
+    """The inflated radius the latest advisory at each time ``t`` (s from the start) gave (the first one
+    before it arrived); None without advisories."""
+    if not log_:
+        return None
+    lt = np.array([float(a["t"]) for a in log_])
+    r = np.array([float(a.get("radius", 0.0)) for a in log_])
+    return r[np.clip(np.searchsorted(lt, t, side="right") - 1, 0, len(r) - 1)]
+
+
 def pair_distances(agents: list[tuple[str, str]], work: Path) -> list[dict[str, Any]]:
-    """Per pair: minimum distance (after both left the start zone, and overall) vs the inflated radii."""
+    """Per pair as the server's ORCA models agents (upright cylinders of their inflated radius): the
+    smallest horizontal clearance ``distance - (r_a + r_b)`` at times when their vertical gap is within
+    ``r_a + r_b`` too, radii those of the latest advisories then; and the minimum 3-D distance. Both leave
+    out the take-off: times when neither agent is yet ``START_ZONE_M`` (horizontally) from its start."""
     from hivemap.eval.trajectory import read_tum
 
-    pos, radius = {}, {}
+    pos, logs = {}, {}
     for aid, _ in agents:
         tr = read_tum(work / aid / "groundtruth.tum")
-        pos[aid] = (np.round(np.asarray(tr.timestamps) * 1e3).astype(np.int64), np.asarray(tr.positions_xyz))
-        log_ = json.loads((work / aid / "live.json").read_text()).get("advisory_log", [])
-        radius[aid] = max((float(a.get("radius", 0.0)) for a in log_), default=None)
+        stamps = np.asarray(tr.timestamps)
+        pos[aid] = (np.round(stamps * 1e3).astype(np.int64), np.asarray(tr.positions_xyz), stamps[0])
+        logs[aid] = json.loads((work / aid / "live.json").read_text()).get("advisory_log", [])
     out = []
     ids = [a for a, _ in agents]
     for i, a in enumerate(ids):
         for b in ids[i + 1 :]:
-            (ta, pa), (tb, pb) = pos[a], pos[b]
+            (ta, pa, t0), (tb, pb, _) = pos[a], pos[b]
             common, ia, ib = np.intersect1d(ta, tb, return_indices=True)
             if not len(common):
                 continue
-            d = np.linalg.norm(pa[ia] - pb[ib], axis=1)
-            away = (np.linalg.norm(pa[ia] - pa[0], axis=1) > START_ZONE_M) | (
-                np.linalg.norm(pb[ib] - pb[0], axis=1) > START_ZONE_M
+            qa, qb = pa[ia], pb[ib]
+            d3 = np.linalg.norm(qa - qb, axis=1)
+            dh = np.linalg.norm(qa[:, :2] - qb[:, :2], axis=1)
+            away = (np.linalg.norm(qa[:, :2] - pa[0, :2], axis=1) > START_ZONE_M) | (
+                np.linalg.norm(qb[:, :2] - pb[0, :2], axis=1) > START_ZONE_M
             )
-            ra, rb = radius[a], radius[b]
-            need = None if ra is None or rb is None else ra + rb
-            dmin = float(d[away].min()) if away.any() else None
-            out.append({"a": a, "b": b, "min_m": dmin, "min_all_m": float(d.min()), "radii_m": need,
-                        "clear": None if need is None or dmin is None else dmin >= need})  # fmt: skip
+            t = common / 1e3 - t0
+            ra, rb = _radius_at(logs[a], t), _radius_at(logs[b], t)
+            row: dict[str, Any] = {"a": a, "b": b, "min_m": float(d3[away].min()) if away.any() else None,
+                                   "min_all_m": float(d3.min()), "margin_m": None, "radii_m": None,
+                                   "clear": None}  # fmt: skip
+            if ra is not None and rb is not None:
+                need = ra + rb
+                near = away & (np.abs(qa[:, 2] - qb[:, 2]) < need)
+                row["clear"] = True
+                if near.any():
+                    k = np.flatnonzero(near)[int(np.argmin((dh - need)[near]))]
+                    row.update(
+                        margin_m=float(dh[k] - need[k]), radii_m=float(need[k]), clear=bool(dh[k] >= need[k])
+                    )
+            out.append(row)
     return out
 
 
@@ -251,12 +276,16 @@ def explore_section(out: Path, results: dict[tuple[str, str], dict[str, Any]], d
         md.append(f"| {s} | {m} | {len(ags)} | {d.get('explore_duration_s', 0):.0f} | {c['final']:.1%} | "
                   f"{'-' if tt is None else f'{tt:.1f}'} (target {d['coverage']['target']:.0%}) | {paths} | "
                   f"{ates} |")  # fmt: skip
-    md += ["", "| world | mode | pair | min distance [m] (incl. take-off) | inflated radii sum [m] | clear |",
-           "|---|---|---|---|---|---|"]  # fmt: skip
+    md += ["", "Pairs: the smallest horizontal clearance (distance - the two inflated radii of the latest "
+           "advisories) while their vertical gap is within those radii too, as the server's ORCA sees "
+           "agents; and the minimum 3-D distance. Both after the take-off (one agent 3 m from its start).",
+           "",
+           "| world | mode | pair | min clearance [m] | radii sum then [m] | clear | min distance [m] "
+           "(incl. take-off) |", "|---|---|---|---|---|---|---|"]  # fmt: skip
     for (s, m), d in runs.items():
         for p in d.get("pairs", []):
-            md.append(f"| {s} | {m} | {p['a']}-{p['b']} | {_f(p['min_m'])} ({_f(p['min_all_m'])}) | "
-                      f"{_f(p['radii_m'])} | {p['clear']} |")  # fmt: skip
+            md.append(f"| {s} | {m} | {p['a']}-{p['b']} | {_f(p.get('margin_m'))} | {_f(p['radii_m'])} | "
+                      f"{p['clear']} | {_f(p['min_m'])} ({_f(p['min_all_m'])}) |")  # fmt: skip
     md.append("")
     img = _coverage_plot(runs, dest)
     md += [f"![coverage over time]({img})", ""]

@@ -35,7 +35,9 @@ class ControlOptions:
     node_spacing_m: float = 1.0  # the road graph's nodes are this far apart along each centre line
     join_m: float = 1.5  # nodes of different lines closer than this are joined (crossings)
     goal_reached_m: float = 2.0  # a goal this close (horizontally) counts as reached: on to the next
-    arrive_gain: float = 0.5  # 1/s: the speed falls to this times the remaining distance near the goal
+    # 1/s: the speed falls to this times the remaining distance near the last goal (through the others the
+    # agent keeps its speed: the next one is the way on)
+    arrive_gain: float = 0.5
     advisory_ttl_s: float = 2.0  # sim seconds an advisory is obeyed after it arrived
     orca_eps_mps: float = 0.05  # safe and desired velocity differ by more: ORCA changed it, obey it
     replan_goal_m: float = 2.0  # the path is replanned when the goal moved more than this
@@ -205,7 +207,9 @@ class Controller:
             d = carrot - p[:2]
             n = float(np.linalg.norm(d))
             if n > 1e-6:
-                v[:2] = d / n * min(self.speed, o.arrive_gain * remaining)
+                adv = self._advisory
+                last = adv is None or self.goal_index >= len(adv.goals) - 1
+                v[:2] = d / n * (min(self.speed, o.arrive_gain * remaining) if last else self.speed)
         adv = self._advisory
         fresh = adv is not None and t - adv.t <= o.advisory_ttl_s
         if fresh and adv is not None:

@@ -79,6 +79,12 @@ def test_controller_obeys_a_safe_velocity_advisory() -> None:
     # advisories expire after advisory_ttl_s: back to the pursuit of the goal
     v, _ = c.command(2.0 + c.options.advisory_ttl_s + 0.1, p, 0.0)
     assert np.allclose(v, [2.0, 0.0, 0.0])
+    # near a goal the agent slows (0.5/s times the remaining 3 m) unless another goal follows
+    near = np.array([[3.0, 0.0, 0.0]])
+    c.advise(WorldAdvisory(9.0, near, np.zeros(3), np.zeros(3), 0.8))
+    assert np.allclose(c.command(9.0, p, 0.0)[0], [1.5, 0.0, 0.0])
+    c.advise(WorldAdvisory(9.0, np.vstack([near, goal]), np.zeros(3), np.zeros(3), 0.8))
+    assert np.allclose(c.command(9.0, p, 0.0)[0], [2.0, 0.0, 0.0])
     # and the motion follows the obeyed command: after the horizon its velocity is the safe one
     m = LiveMotion("u", "ugv", p, -math.pi / 4, MotionLimits(horizon_s=1.0, max_accel=10.0))
     m.replan(0.0, np.array([1.0, -1.0, 0.0]), -math.pi / 4)
