@@ -11,6 +11,7 @@ overrides the horizontal command for ``advisory_ttl_s``.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Sequence
@@ -39,6 +40,9 @@ class ControlOptions:
     # agent keeps its speed: the next one is the way on)
     arrive_gain: float = 0.5
     advisory_ttl_s: float = 2.0  # sim seconds an advisory is obeyed after it arrived
+    # goals reached in the last reached_memory_s are dropped from new advisories (the server reassigns a
+    # frontier until it is seen, and one off the road stays unseen from the road's end)
+    reached_memory_s: float = 30.0
     orca_eps_mps: float = 0.05  # safe and desired velocity differ by more: ORCA changed it, obey it
     replan_goal_m: float = 2.0  # the path is replanned when the goal moved more than this
     climb_mps: float = 1.0  # UAV vertical speed limit
@@ -146,17 +150,28 @@ class Controller:
         self._path: F64 | None = None
         self._path_goal: F64 | None = None
         self._advisory: WorldAdvisory | None = None
+        self._reached: list[tuple[float, F64]] = []  # (sim time, goal xy)
         self.obeyed = 0  # commands that took the advisory's safe velocity
 
     def advise(self, adv: WorldAdvisory) -> None:
-        """A new advisory (world frame): its goals replace the current ones."""
-        old = self._advisory
-        same = old is not None and len(old.goals) == len(adv.goals) and (
-            len(adv.goals) == 0 or np.linalg.norm(old.goals[:, :2] - adv.goals[:, :2], axis=1).max() < 1.0
-        )  # fmt: skip
-        if not same:
-            self.goal_index = 0
-        self._advisory = adv
+        """A new advisory (world frame): its goals replace the current ones, less those reached lately; the
+        goal being pursued stays first while the advisory still has it (within ``replan_goal_m``): the
+        auction's order changes as the agents move, and turning back and forth covers nothing."""
+        o = self.options
+        self._reached = [(t, xy) for t, xy in self._reached if adv.t - t <= o.reached_memory_s]
+        goals = np.asarray(adv.goals, dtype=np.float64).reshape(-1, 3)
+        if self._reached and len(goals):
+            done = np.array([xy for _, xy in self._reached])
+            d = np.linalg.norm(goals[:, None, :2] - done[None, :, :], axis=2).min(axis=1)
+            goals = goals[d >= o.goal_reached_m]
+        current = self.goal
+        if current is not None and len(goals):
+            d = np.linalg.norm(goals[:, :2] - current[:2], axis=1)
+            k = int(np.argmin(d))
+            if d[k] <= o.replan_goal_m:
+                goals = np.concatenate([goals[k : k + 1], np.delete(goals, k, axis=0)])
+        self.goal_index = 0
+        self._advisory = dataclasses.replace(adv, goals=goals)
 
     @property
     def goal(self) -> F64 | None:
@@ -174,7 +189,7 @@ class Controller:
                 z = max(z, box_top(b) + self.options.clearance_m)
         return z
 
-    def _reached(self, goal: F64, p: F64) -> bool:
+    def _is_reached(self, goal: F64, p: F64) -> bool:
         """The goal is near, or as near as the roads go: its path ends here."""
         o = self.options
         if np.linalg.norm(goal[:2] - p[:2]) < o.goal_reached_m:
@@ -192,7 +207,8 @@ class Controller:
         p = np.asarray(position, dtype=np.float64)
         v = np.zeros(3)
         goal = self.goal
-        while goal is not None and self._reached(goal, p):
+        while goal is not None and self._is_reached(goal, p):
+            self._reached.append((t, goal[:2].copy()))
             self.goal_index += 1
             self.goals_reached += 1
             goal = self.goal

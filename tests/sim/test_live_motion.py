@@ -85,6 +85,21 @@ def test_controller_obeys_a_safe_velocity_advisory() -> None:
     assert np.allclose(c.command(9.0, p, 0.0)[0], [1.5, 0.0, 0.0])
     c.advise(WorldAdvisory(9.0, np.vstack([near, goal]), np.zeros(3), np.zeros(3), 0.8))
     assert np.allclose(c.command(9.0, p, 0.0)[0], [2.0, 0.0, 0.0])
+    # commitment: while pursuing a goal, a new advisory that still has it (reordered) keeps it first
+    a_, b_ = np.array([10.0, 0.0, 0.0]), np.array([-10.0, 0.0, 0.0])
+    c.advise(WorldAdvisory(20.0, np.stack([a_, b_]), np.zeros(3), np.zeros(3), 0.8))
+    c.command(20.0, p, 0.0)
+    c.advise(WorldAdvisory(21.0, np.stack([b_, a_ + 0.5]), np.zeros(3), np.zeros(3), 0.8))
+    assert c.goal is not None and np.allclose(c.goal, a_ + 0.5)
+    # a goal reached is dropped from the advisories of the next reached_memory_s, then allowed again
+    c.command(22.0, np.array([10.0, 0.0, 0.9]), 0.0)
+    assert c.goal is not None and np.allclose(c.goal, b_)
+    c.advise(WorldAdvisory(23.0, np.stack([a_, b_]), np.zeros(3), np.zeros(3), 0.8))
+    assert c.goal is not None and np.allclose(c.goal, b_)
+    t_late = 23.0 + c.options.reached_memory_s
+    c.advise(WorldAdvisory(t_late, np.stack([a_, b_]), np.zeros(3), np.zeros(3), 0.8))
+    c.command(t_late, np.array([-10.0, 0.0, 0.9]), 0.0)  # b reached: a again, the memory of it is gone
+    assert c.goal is not None and np.allclose(c.goal, a_)
     # and the motion follows the obeyed command: after the horizon its velocity is the safe one
     m = LiveMotion("u", "ugv", p, -math.pi / 4, MotionLimits(horizon_s=1.0, max_accel=10.0))
     m.replan(0.0, np.array([1.0, -1.0, 0.0]), -math.pi / 4)
