@@ -51,6 +51,7 @@ class LiveSummary:
     goals_received: int = 0  # advisories that carried goals
     goals_reached: int = 0
     obeyed: int = 0  # commands that took the advisory's safe velocity
+    stopped_for_road: int = 0  # of those, a UGV's that stopped rather than leave the road
     replans: int = 0
     wall_s: float = 0.0
     advisory_log: list[dict[str, Any]] = field(default_factory=list)  # (sim t, goal world xy, safe velocity)
@@ -188,6 +189,7 @@ def run_live(
     c = sim.controller
     ls.frames, ls.sim_s, ls.path_length_m = n_frames, sim.t, sim.path_length()
     ls.goals_reached, ls.obeyed, ls.replans = c.goals_reached, c.obeyed, sim.motion.replans
+    ls.stopped_for_road = c.stopped_for_road
     ls.wall_s = summary.wall_s
     (out / "live.json").write_text(json.dumps(asdict(ls), indent=1))
     log.info("live agent %s: %d frames (%.1f s simulated, %.1f m), %d advisories, stopped by %s",

@@ -124,6 +124,7 @@ class LiveSim:
         self.controller = Controller(
             self.spec.kind, self.spec.speed_mps, paths, self.spec.cruise_height_m if uav else 0.0,
             self.world.boxes if uav else (), options.control,
+            None if uav else float(self.world.road_width) / 2,
         )  # fmt: skip
         from hivemap.sim.sensor_files import stereo_extrinsics
 

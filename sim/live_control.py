@@ -49,6 +49,10 @@ class ControlOptions:
     z_gain: float = 0.8  # 1/s: vertical speed per metre of height error
     clearance_m: float = 2.0  # UAV height above the tops of obstacles under it
     min_turn_speed: float = 0.2  # below this speed the heading is kept
+    # a UGV obeying a safe velocity that would take it within road_margin_m of the road's edge in
+    # road_check_s stops instead: ORCA knows nothing of the roads, and standing still is what a car can do
+    road_check_s: float = 1.0
+    road_margin_m: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -139,11 +143,13 @@ class Controller:
         cruise_height_m: float = 0.0,
         obstacles: Sequence[object] = (),
         options: ControlOptions | None = None,
+        road_half_width_m: float | None = None,
     ) -> None:
         self.kind, self.speed = kind, float(speed_mps)
         self.paths = paths
         self.cruise = float(cruise_height_m)
         self.obstacles = list(obstacles)
+        self.road_half_width = road_half_width_m  # set: drivable ground only (a UGV)
         self.options = options or ControlOptions()
         self.goal_index = 0
         self.goals_reached = 0
@@ -152,6 +158,7 @@ class Controller:
         self._advisory: WorldAdvisory | None = None
         self._reached: list[tuple[float, F64]] = []  # (sim time, goal xy)
         self.obeyed = 0  # commands that took the advisory's safe velocity
+        self.stopped_for_road = 0  # of those, commands that stopped rather than leave the road
 
     def advise(self, adv: WorldAdvisory) -> None:
         """A new advisory (world frame): its goals replace the current ones, less those reached lately; the
@@ -235,6 +242,13 @@ class Controller:
                 ns = float(np.linalg.norm(safe))
                 v[:2] = safe if ns <= self.speed else safe / ns * self.speed
                 self.obeyed += 1
+                hw = self.road_half_width
+                if hw is not None:
+                    ahead = p[:2] + v[:2] * o.road_check_s
+                    off = float(self.paths.tree.query(ahead)[0]) > hw - o.road_margin_m
+                    if off:
+                        v[:2] = 0.0
+                        self.stopped_for_road += 1
         heading: float | None = None
         sp = float(np.linalg.norm(v[:2]))
         if sp > o.min_turn_speed:

@@ -79,6 +79,16 @@ def test_controller_obeys_a_safe_velocity_advisory() -> None:
     # advisories expire after advisory_ttl_s: back to the pursuit of the goal
     v, _ = c.command(2.0 + c.options.advisory_ttl_s + 0.1, p, 0.0)
     assert np.allclose(v, [2.0, 0.0, 0.0])
+    # a UGV 1 m left of a road's centre line (7 m wide) stops rather than follow a safe velocity that takes it
+    # within 1 m of the edge in 1 s (to y = 1 + 1.96 > 2.5); one that keeps it on the road it follows
+    ugv = Controller("ugv", 2.0, paths, road_half_width_m=3.5)
+    q = np.array([0.0, 1.0, 0.9])
+    ugv.advise(WorldAdvisory(0.0, goal, np.array([2.0, 0.0, 0.0]), np.array([0.5, 2.5, 0.0]), 0.8))
+    v, _ = ugv.command(0.0, q, math.atan2(2.5, 0.5))
+    assert np.allclose(v, 0.0) and ugv.stopped_for_road == 1
+    ugv.advise(WorldAdvisory(0.0, goal, np.array([2.0, 0.0, 0.0]), np.array([1.0, 0.5, 0.0]), 0.8))
+    v, _ = ugv.command(0.0, q, math.atan2(0.5, 1.0))
+    assert np.allclose(v, [1.0, 0.5, 0.0]) and ugv.stopped_for_road == 1
     # near a goal the agent slows (0.5/s times the remaining 3 m) unless another goal follows
     near = np.array([[3.0, 0.0, 0.0]])
     c.advise(WorldAdvisory(9.0, near, np.zeros(3), np.zeros(3), 0.8))
