@@ -83,7 +83,10 @@ def main(
 app.command("server", help="Run the hivemap server (WebSocket ingest, back-end, REST, viewer).")(
     server_command
 )
-app.command("agent", help="Run one agent: replay a dataset offline or stream it to a server.")(agent_command)
+app.command(
+    "agent",
+    help="Run one agent: replay a dataset offline or stream it to a server, or a live simulated agent.",
+)(agent_command)
 app.add_typer(sim_app, name="sim", help="Render simulated multi-agent datasets.")
 app.add_typer(vocab_app, name="vocab", help="Train and inspect the ORB vocabulary.")
 app.add_typer(eval_app, name="eval", help="Evaluate trajectories and run the paper's experiments.")

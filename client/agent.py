@@ -153,6 +153,7 @@ class Agent:
             if mk.enabled:
                 self.rendezvous = RendezvousSource(rig.left, carriers, agent_id, mk)
         self._rendezvous_callbacks: list[Callable[[Rendezvous], None]] = []
+        self._advisory_callbacks: list[Callable[[Any], None]] = []
 
     # -- construction ---------------------------------------------------------------------------------
     @classmethod
@@ -286,6 +287,26 @@ class Agent:
         """Call ``callback(Rendezvous)`` for each marker carrier seen (the front-end's session numbering)."""
         self._rendezvous_callbacks.append(callback)
 
+    def on_team_advisory(self, callback: Callable[[Any], None]) -> None:
+        """Ask the server for team advisories (``hivemap.protocol.TeamAdvisory``: exploration goals and a
+        safe velocity, in the frame of the agent's map) and call ``callback`` with each, on the link's thread.
+        Call before ``connect``."""
+        if self._stream is not None:
+            raise RuntimeError("on_team_advisory() before connect(): the hello asks for advisories")
+        self._advisory_callbacks.append(callback)
+
+    def _advisory(self, msg: Any) -> None:
+        for cb in list(self._advisory_callbacks):
+            cb(msg)
+
+    @property
+    def mission_session(self) -> int | None:
+        """The mission session of the latest tracked frame (the ``session`` of its corrections and
+        advisories); None before tracking starts."""
+        with self._lock:
+            c = self.core
+            return None if not c.vio_session else self._first_session + int(c.vio_session[-1])
+
     def submit_correction(self, msg: Any) -> None:
         """A server ``Correction`` (``hivemap.protocol``), applied before the next frame. ``connect`` does
         this itself; call it when you run your own link. Thread-safe."""
@@ -398,6 +419,7 @@ class _Stream:
             server, agent.agent_id, agent.kind, agent.camera.to_dict(), token, self.box,
             on_correction=agent.submit_correction, cam_from_antenna=lever, session=self.first_session,
             options=LinkOptions(max_connect_attempts=max_attempts), stereo_baseline=agent.rig.baseline,
+            on_team_advisory=agent._advisory if agent._advisory_callbacks else None,
         )  # fmt: skip
         # the link's log lines carry the agent tag of the context that connected (hivemap.client.logtags)
         ctx = contextvars.copy_context()

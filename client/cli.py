@@ -10,12 +10,35 @@ import typer
 
 def agent_command(
     dataset: Annotated[
-        Path,
+        Path | None,
         typer.Option(
             "--dataset",
             help="Agent dataset: a EuRoC-layout dir, a ROS 1 .bag or a ROS 2 bag dir (sqlite3/MCAP).",
         ),
-    ],
+    ] = None,
+    sim: Annotated[
+        str | None,
+        typer.Option(
+            "--sim",
+            help="Instead of a dataset: a simulated agent SCENARIO:AGENT (e.g. factory01:uav1), with --live.",
+        ),
+    ] = None,
+    live: Annotated[
+        bool,
+        typer.Option(
+            "--live",
+            help="--sim: render frames, IMU and GNSS on the fly while the agent moves towards the server's "
+            "exploration goals, obeying its collision advisories (issue 26).",
+        ),
+    ] = False,
+    duration: Annotated[
+        float, typer.Option("--duration", min=0.0, help="--live: mission time, simulated seconds.")
+    ] = 120.0,
+    hold: Annotated[
+        float | None,
+        typer.Option("--hold", min=0.0, help="--live: standstill at the start, s (default: the scenario's)."),
+    ] = None,
+    backend: Annotated[str, typer.Option("--backend", help="--live: renderer, auto|gl|numpy.")] = "auto",
     out: Annotated[
         Path | None,
         typer.Option("--out", help="Output dir (default ./out/<id>)."),
@@ -24,7 +47,13 @@ def agent_command(
     gnss: Annotated[
         str, typer.Option("--gnss", help="GNSS mode: denied, every:20s, random:4 or all (paper Table 8).")
     ] = "denied",
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the random GNSS mode.")] = 0,
+    seed: Annotated[
+        int | None,
+        typer.Option(
+            "--seed",
+            help="Seed of the random GNSS mode; with --sim the world seed (default: the scenario's).",
+        ),
+    ] = None,
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after N frames.")] = None,
     server: Annotated[
         str | None, typer.Option("--server", help="Stream to this server, e.g. ws://HOST:PORT/ws.")
@@ -103,14 +132,23 @@ def agent_command(
         raise typer.BadParameter(str(exc), param_hint="--gnss") from exc
     if offline == (server is not None):
         raise typer.BadParameter("give exactly one of --offline or --server URL")
+    if (dataset is None) == (sim is None):
+        raise typer.BadParameter("give exactly one of --dataset or --sim SCENARIO:AGENT")
+    if (sim is not None) != live:
+        raise typer.BadParameter("--sim and --live go together (a rendered dataset replays with --dataset)")
+    if sim is not None:
+        _live_agent(sim, seed, duration, hold, backend, out, offline, server, agent_id, token, mode,
+                    max_connect_attempts, wait_corrections, no_imu_factors)  # fmt: skip
+        return
+    assert dataset is not None
     from hivemap.client.bag import BagTopics, dataset_source
 
     topics = BagTopics(cam0_topic, cam1_topic or None, imu_topic, gnss_topic or None)
     source = dataset_source(dataset, calib or [], topics)  # DatasetError: one line (hivemap.cli.errors)
     options = RunnerOptions(
-        gnss=mode, seed=seed, max_frames=max_frames, progress=not no_progress, imu_factors=not no_imu_factors,
-        max_connect_attempts=max_connect_attempts, corrections_max_wait_s=wait_corrections,
-        markers=MarkerOptions(enabled=not no_markers),
+        gnss=mode, seed=seed or 0, max_frames=max_frames, progress=not no_progress,
+        imu_factors=not no_imu_factors, max_connect_attempts=max_connect_attempts,
+        corrections_max_wait_s=wait_corrections, markers=MarkerOptions(enabled=not no_markers),
     )  # fmt: skip
     out_dir = (
         out
@@ -150,4 +188,65 @@ def agent_command(
         f"agent {summary.agent_id}: {stopped} {summary.keyframes} keyframes of {summary.frames} frames to "
         f"{server}, {summary.tracking_losses} tracking losses, {summary.unsent} messages unsent "
         f"in {out_dir / 'outbox.sqlite'} -> {out_dir}"
+    )
+
+
+def _live_agent(
+    sim: str, seed: int | None, duration: float, hold: float | None, backend: str, out: Path | None,
+    offline: bool, server: str | None, agent_id: str | None, token: str | None, mode: object,
+    max_connect_attempts: int, wait_corrections: float, no_imu_factors: bool,
+) -> None:  # fmt: skip
+    """``hivemap agent --sim SCENARIO:AGENT --live``: see :mod:`hivemap.client.live`."""
+    import signal
+    import threading
+
+    from hivemap.client.runner import RunnerOptions
+    from hivemap.sim.live import LiveOptions
+
+    scenario, sep, agent = sim.rpartition(":")
+    if not sep or not scenario or not agent:
+        raise typer.BadParameter(
+            f"expected SCENARIO:AGENT, e.g. factory01:uav1, got {sim!r}", param_hint="--sim"
+        )
+    if server is not None:
+        from hivemap.client.link import check_server_url
+
+        if (bad := check_server_url(server)) is not None:
+            typer.echo(f"hivemap agent: --server: {bad}", err=True)
+            raise typer.Exit(2)
+        if not token:
+            raise typer.BadParameter("--token is required with --server", param_hint="--token")
+    sim_options = LiveOptions(scenario, agent, seed, duration, hold, backend)
+    options = RunnerOptions(
+        gnss=mode, progress=False, imu_factors=not no_imu_factors, max_connect_attempts=max_connect_attempts,
+        corrections_max_wait_s=wait_corrections,
+    )  # type: ignore[arg-type]  # fmt: skip
+    stopping = threading.Event()
+    stopped_by: list[str] = []
+
+    def on_signal(sig: int, _frame: object) -> None:
+        stopped_by.append(signal.Signals(sig).name)
+        stopping.set()
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, on_signal)
+    from hivemap.client.link import LinkRefused
+    from hivemap.client.live import run_live
+    from hivemap.client.streaming import StreamFailed
+
+    out_dir = out if out is not None else Path("out") / (agent_id or agent)
+    try:
+        summary, ls = run_live(sim_options, out_dir, None if offline else server, agent_id, token or "",
+                               options, stopping)  # fmt: skip
+    except KeyError as exc:  # an agent the scenario does not have
+        typer.echo(f"hivemap agent: --sim: {exc.args[0]}", err=True)
+        raise typer.Exit(2) from exc
+    except StreamFailed as exc:
+        typer.echo(f"hivemap agent: {exc}; {exc.unsent} messages unsent in {exc.outbox}", err=True)
+        raise typer.Exit(3 if isinstance(exc.__cause__, LinkRefused) else 4) from exc
+    why = stopped_by[0] if stopped_by else ls.stopped_by
+    typer.echo(
+        f"agent {summary.agent_id}: live {ls.scenario} (world seed {ls.world_seed}), {ls.frames} frames, "
+        f"{ls.sim_s:.1f} s simulated, {ls.path_length_m:.1f} m, {summary.keyframes} keyframes, "
+        f"{ls.advisories} advisories, {ls.goals_reached} goals reached, stopped by {why} -> {out_dir}"
     )

@@ -146,7 +146,11 @@ def experiment_command(
     out: Annotated[Path, typer.Option("--out", help="Output dir (results/, report.md, report.html).")],
     modes: Annotated[
         str,
-        typer.Option("--modes", help="Comma-separated: single,single+gnss,denied,challenged1,challenged2."),
+        typer.Option(
+            "--modes",
+            help="Comma-separated: single,single+gnss,denied,challenged1,challenged2; explore (live agents "
+            "on the server's exploration goals) and explore1 (the first UAV alone) on request.",
+        ),
     ] = "single,single+gnss,denied,challenged1,challenged2",
     data: Annotated[
         Path, typer.Option("--data", help="Rendered scenarios dir (rendered when missing).")
@@ -208,6 +212,9 @@ def experiment_command(
             " the same images, no detection. Run each into its own --out to compare.",
         ),
     ] = "on",
+    explore_duration: Annotated[
+        float, typer.Option("--explore-duration", min=1.0, help="explore modes: mission time, simulated s.")
+    ] = 120.0,
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment
@@ -237,6 +244,7 @@ def experiment_command(
         report_dir=report_dir,
         server_toml=server_config.read_text() if server_config is not None else "",
         markers=markers == "on",
+        explore_duration_s=explore_duration,
     )
     try:
         report = run_experiment(opts)

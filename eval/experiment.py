@@ -89,6 +89,7 @@ class ExperimentOptions:
     server_toml: str = ""  # appended to every run's server config (back-end options under comparison)
     # issue 25: agents detect the marker carriers their datasets describe (off: same images, no detection)
     markers: bool = True
+    explore_duration_s: float = 120.0  # issue 26: mission time of the live agents of the explore modes
 
     def worlds(self) -> list[tuple[str, str, int | None]]:
         """(results key, scenario, world seed) of every world to run: ``factory01-s7`` for seed 7."""
@@ -437,11 +438,12 @@ def run_experiment(opts: ExperimentOptions) -> Path:
     from tqdm import tqdm
 
     from hivemap.client.dataset import load_scenario
+    from hivemap.eval.explore import EXPLORE_MODES, explore_agents, run_explore
     from hivemap.eval.report import write_report
 
     for m in opts.modes:
-        if m not in MODES:
-            raise ValueError(f"unknown mode {m!r}; expected one of {', '.join(MODES)}")
+        if m not in MODES and m not in EXPLORE_MODES:
+            raise ValueError(f"unknown mode {m!r}; expected one of {', '.join(MODES + EXPLORE_MODES)}")
     out = Path(opts.out)
     worlds = opts.worlds()
     keys = [k for k, _, _ in worlds]
@@ -455,11 +457,21 @@ def run_experiment(opts: ExperimentOptions) -> Path:
             raise FileNotFoundError(f"no results of {', '.join(keys)} in {out / 'results'}")
         return write_report(out, keys, list(opts.modes), opts.report_dir)
     out.mkdir(parents=True, exist_ok=True)
-    needed = {k for k, _ in todo}
+    # the explore modes' live agents render as they go: no dataset to render first
+    needed = {k for k, m in todo if m not in EXPLORE_MODES}
     scen_dirs = {k: ensure_scenario(n, Path(opts.data), s) for k, n, s in worlds if k in needed}
+    source = {k: (n, s) for k, n, s in worlds}
     n_runs = 0
     plan = []
     for name, mode in todo:
+        if mode in EXPLORE_MODES:
+            from hivemap.sim.scenario_file import resolve_scenario
+
+            sc = resolve_scenario(*source[name])
+            agents = explore_agents(sc, mode, opts.agents)
+            plan.append((name, mode, agents, source[name][1]))
+            n_runs += len(agents)
+            continue
         man = load_scenario(scen_dirs[name])
         agents = [(a.id, a.kind) for a in man.agents if not opts.agents or a.id in opts.agents]
         plan.append((name, mode, agents, man.seed))
@@ -472,12 +484,15 @@ def run_experiment(opts: ExperimentOptions) -> Path:
             shutil.rmtree(mode_dir, ignore_errors=True)
             work.mkdir(parents=True, exist_ok=True)
             t0 = time.time()
-            fn = run_colocation if mode in COLOCATION else run_single
-            data = fn(scen_dirs[name], agents, mode, work, mode_dir, opts, bar, seed)
+            if mode in EXPLORE_MODES:
+                data = run_explore(source[name][0], source[name][1], mode, work, mode_dir, opts, bar)
+            else:
+                fn = run_colocation if mode in COLOCATION else run_single
+                data = fn(scen_dirs[name], agents, mode, work, mode_dir, opts, bar, seed)
             data.update(
                 scenario=name,
                 mode=mode,
-                scenario_dir=str(scen_dirs[name]),
+                scenario_dir=str(scen_dirs.get(name, "")),
                 scenario_seed=seed,
                 alignment="per agent: none when it used GNSS, else se3",
                 max_diff=MAX_DIFF,

@@ -14,6 +14,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from hivemap.eval.explore import explore_section
 from hivemap.eval.globalmap import globalmap_section
 from hivemap.eval.html import to_html
 from hivemap.eval.peer import peer_section
@@ -409,6 +410,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str], report_dir: 
     md += team_section(out, results)
     md += globalmap_section(results)
     md += rendezvous_section(results)
+    md += explore_section(out, results, dest)
     md += table67(results)
     # ---------------------------------------------------------------- plots
     md += ["## Trajectories (top view, estimate SE(3)-aligned vs ground truth; * merge, o loop)", ""]

@@ -40,16 +40,29 @@ def start_poses(
     import numpy as np
 
     from hivemap.client.dataset import load_scenario
+
+    if o.mode == "none":
+        return start_poses_from({}, o, world_seed)
+    scenario = load_scenario(scen)
+    truth = {}
+    for a in agent_ids:
+        ds = scenario.load_agent(a)
+        truth[a] = np.asarray(ds.groundtruth.world_from_body[0]) @ np.asarray(ds.T_BS["cam0"])
+    return start_poses_from(truth, o, world_seed)
+
+
+def start_poses_from(truth: dict[str, Any], o: StartPoseOptions, world_seed: int | None) -> dict[str, Any]:
+    """:func:`start_poses` from the agents' true cam0 start poses (agent -> 4x4), e.g. live agents'."""
+    import numpy as np
+
     from hivemap.maps.geometry import rotation_angle_deg, se3, so3_exp
 
     out: dict[str, Any] = {"mode": o.mode, "sigma_m": o.sigma_m, "sigma_deg": o.sigma_deg, "seed": o.seed,
                            "poses": {}, "offsets": {}}  # fmt: skip
     if o.mode == "none":
         return out
-    scenario = load_scenario(scen)
-    for a in agent_ids:
-        ds = scenario.load_agent(a)
-        T = np.asarray(ds.groundtruth.world_from_body[0]) @ np.asarray(ds.T_BS["cam0"])
+    for a, T_true in truth.items():
+        T = np.asarray(T_true, dtype=np.float64)
         if o.mode == "perturbed":
             rng = np.random.default_rng([o.seed, int(world_seed or 0), zlib.crc32(a.encode())])
             dR = so3_exp(np.radians(o.sigma_deg) * rng.standard_normal(3))

@@ -53,6 +53,9 @@ def _mistakes(tiny: Path, tmp: Path) -> list[tuple[str, list[str], str]]:
         ("malformed markers.yaml", ["agent", "--dataset", str(bad_markers), *offline], "markers.yaml"),
         ("URL without scheme",
          ["agent", "--dataset", str(tiny), "--server", "localhost:8765", "--token", "t"], "--server"),
+        ("live agent without an agent", ["agent", "--sim", "tiny", "--live", *offline], "SCENARIO:AGENT"),
+        ("live agent the scenario lacks", ["agent", "--sim", "tiny:uav9", "--live", *offline], "uav9"),
+        ("--sim without --live", ["agent", "--sim", "tiny:uav1", *offline], "--live"),
         ("bad TOML", ["server", "--config", str(bad_toml), "--port", "0"], "bad.toml: invalid TOML"),
         ("bad TOML value", ["server", "--config", str(bad_field), "--port", "0"], "field 'max_frame_bytes'"),
     ]  # fmt: skip
