@@ -361,22 +361,9 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
             cmd = _agent_cmd(scen / aid, out, g, opts)
             cmd += ["--server", f"ws://127.0.0.1:{port}/ws", "--agent-id", aid, "--token", tokens[aid]]
             procs[aid] = subprocess.Popen(cmd, stdout=lf, stderr=subprocess.STDOUT, env=env)
-        deadline = time.monotonic() + opts.agent_timeout_s
-        pending = dict(procs)
-        while pending and time.monotonic() < deadline:
-            for aid, p in list(pending.items()):
-                if p.poll() is not None:
-                    results[aid].end_wall = time.time()
-                    del pending[aid]
-                    bar.update(1)
-            time.sleep(0.2)
-        for p in pending.values():
-            stop(p)
+        wait_agents(procs, results, opts.agent_timeout_s, bar)
         time.sleep(opts.settle_s)
-        agents_info = {a["agent_id"]: a for a in httpx.get(url + "/agents", timeout=30).json()["agents"]}
-        ev_query = {"limit": EXPERIMENT_EVENT_BUFFER}
-        events = httpx.get(url + "/events", params=ev_query, timeout=30).json()["events"]
-        maps = httpx.get(url + "/maps", timeout=30).json()["maps"]
+        agents_info, events, maps = server_state(url)
         gt_cam = {aid: groundtruth_trajectory(scen / aid, sensor="cam0") for aid, _ in agents}
         t_first = min(float(g.timestamps[0]) for g in gt_cam.values())
         timeline = merge_timeline(events, t_first)
@@ -431,6 +418,34 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
         slog.close()
         for lf in logs:
             lf.close()
+
+
+def wait_agents(procs: dict[str, subprocess.Popen[bytes]], results: dict[str, AgentResult], timeout_s: float,
+                bar: Any, poll_s: float = 0.2) -> None:  # fmt: skip
+    """Until every agent process has ended (its end time into its result) or ``timeout_s`` has passed,
+    then stop the ones still running."""
+    deadline = time.monotonic() + timeout_s
+    pending = dict(procs)
+    while pending and time.monotonic() < deadline:
+        for aid, p in list(pending.items()):
+            if p.poll() is not None:
+                results[aid].end_wall = time.time()
+                del pending[aid]
+                bar.update(1)
+        time.sleep(poll_s)
+    for p in pending.values():
+        stop(p)
+
+
+def server_state(url: str) -> tuple[dict[str, Any], list[Any], list[Any]]:
+    """The server's agents (by id), all its events and its maps, as a finished run is read."""
+    import httpx
+
+    agents = {a["agent_id"]: a for a in httpx.get(url + "/agents", timeout=30).json()["agents"]}
+    query = {"limit": EXPERIMENT_EVENT_BUFFER}
+    events = httpx.get(url + "/events", params=query, timeout=30).json()["events"]
+    maps = httpx.get(url + "/maps", timeout=30).json()["maps"]
+    return agents, events, maps
 
 
 def run_experiment(opts: ExperimentOptions) -> Path:

@@ -103,21 +103,9 @@ def run_explore(
             lf = open(work / f"{aid}.log", "wb")  # noqa: SIM115
             logs.append(lf)
             procs[aid] = subprocess.Popen(cmd, stdout=lf, stderr=subprocess.STDOUT, env=env)
-        deadline = time.monotonic() + opts.agent_timeout_s
-        pending = dict(procs)
-        while pending and time.monotonic() < deadline:
-            for aid, pr in list(pending.items()):
-                if pr.poll() is not None:
-                    results[aid].end_wall = time.time()
-                    del pending[aid]
-                    bar.update(1)
-            time.sleep(0.5)
-        for pr in pending.values():
-            ex.stop(pr)
+        ex.wait_agents(procs, results, opts.agent_timeout_s, bar, poll_s=0.5)
         time.sleep(opts.settle_s)
-        agents_info = {a["agent_id"]: a for a in httpx.get(url + "/agents", timeout=30).json()["agents"]}
-        events = httpx.get(url + "/events", params={"limit": ex.EXPERIMENT_EVENT_BUFFER}, timeout=30).json()
-        maps = httpx.get(url + "/maps", timeout=30).json()["maps"]
+        agents_info, events, maps = ex.server_state(url)
         for aid, _ in agents:
             res, out = results[aid], work / aid
             res.run = ex._read_run(out)
@@ -152,7 +140,7 @@ def run_explore(
         "pairs": pair_distances([(a, k) for a, k in agents if a in ok], work),
         "start_poses": start_table,
         "explore_duration_s": opts.explore_duration_s,
-        "events": events.get("events", []),
+        "events": events,
         "maps": maps,
         "server_start_wall": t_server,
     }
