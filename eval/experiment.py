@@ -325,24 +325,10 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
     from hivemap.eval.trajectory import groundtruth_trajectory
     from hivemap.eval.uncertainty import covariance_coverage
 
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
     tokens = {aid: f"exp-{aid}-token" for aid, _ in agents}
-    sdir = work / "server"
-    shutil.rmtree(sdir, ignore_errors=True)
-    sdir.mkdir(parents=True)
-    cfg = sdir / "server.toml"
     start_table = start_poses(scen, list(tokens), opts.start_poses, world_seed)
-    write_server_config(
-        cfg, tokens, start_table, event_buffer=EXPERIMENT_EVENT_BUFFER, extra=opts.server_toml
-    )
+    url, ws_url, server, slog = start_server(work, tokens, start_table, opts.server_toml)
     env = clean_env()
-    slog = open(sdir / "server.log", "wb")  # noqa: SIM115
-    server = subprocess.Popen(
-        [*HIVEMAP, "server", "--host", "127.0.0.1", "--port", str(port),
-         "--data-dir", str(sdir / "data"), "--config", str(cfg)],
-        stdout=slog, stderr=subprocess.STDOUT, env=env,
-    )  # fmt: skip
     procs: dict[str, subprocess.Popen[bytes]] = {}
     results: dict[str, AgentResult] = {}
     logs = []
@@ -359,7 +345,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
             lf = open(work / f"{aid}.log", "wb")  # noqa: SIM115
             logs.append(lf)
             cmd = _agent_cmd(scen / aid, out, g, opts)
-            cmd += ["--server", f"ws://127.0.0.1:{port}/ws", "--agent-id", aid, "--token", tokens[aid]]
+            cmd += ["--server", ws_url, "--agent-id", aid, "--token", tokens[aid]]
             procs[aid] = subprocess.Popen(cmd, stdout=lf, stderr=subprocess.STDOUT, env=env)
         wait_agents(procs, results, opts.agent_timeout_s, bar)
         time.sleep(opts.settle_s)
@@ -418,6 +404,26 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
         slog.close()
         for lf in logs:
             lf.close()
+
+
+def start_server(
+    work: Path, tokens: dict[str, str], start_table: dict[str, Any] | None, extra: str
+) -> tuple[str, str, subprocess.Popen[bytes], Any]:
+    """A fresh server for one run in ``work/server`` (its config, data and log there), on a free local
+    port: (REST url, agents' WebSocket url, its process, its open log file, to close when it stops)."""
+    port = free_port()
+    sdir = work / "server"
+    shutil.rmtree(sdir, ignore_errors=True)
+    sdir.mkdir(parents=True)
+    cfg = sdir / "server.toml"
+    write_server_config(cfg, tokens, start_table, event_buffer=EXPERIMENT_EVENT_BUFFER, extra=extra)
+    slog = open(sdir / "server.log", "wb")  # noqa: SIM115
+    server = subprocess.Popen(
+        [*HIVEMAP, "server", "--host", "127.0.0.1", "--port", str(port),
+         "--data-dir", str(sdir / "data"), "--config", str(cfg)],
+        stdout=slog, stderr=subprocess.STDOUT, env=clean_env(),
+    )  # fmt: skip
+    return f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}/ws", server, slog
 
 
 def wait_agents(procs: dict[str, subprocess.Popen[bytes]], results: dict[str, AgentResult], timeout_s: float,

@@ -67,21 +67,10 @@ def run_explore(
         T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
         T[:3, 3] = p
         truth[aid] = T @ stereo_extrinsics(sc.agent(aid))[0]
-    port = ex.free_port()
-    url = f"http://127.0.0.1:{port}"
     tokens = {aid: f"exp-{aid}-token" for aid, _ in agents}
-    sdir = work / "server"
-    shutil.rmtree(sdir, ignore_errors=True)
-    sdir.mkdir(parents=True)
-    cfg = sdir / "server.toml"
     start_table = start_poses_from(truth, opts.start_poses, seed)
-    ex.write_server_config(cfg, tokens, start_table, ex.EXPERIMENT_EVENT_BUFFER, TEAM_TOML + opts.server_toml)
+    url, ws_url, server, slog = ex.start_server(work, tokens, start_table, TEAM_TOML + opts.server_toml)
     env = ex.clean_env()
-    slog = open(sdir / "server.log", "wb")  # noqa: SIM115
-    server = subprocess.Popen(
-        [*ex.HIVEMAP, "server", "--host", "127.0.0.1", "--port", str(port), "--data-dir", str(sdir / "data"),
-         "--config", str(cfg)], stdout=slog, stderr=subprocess.STDOUT, env=env,
-    )  # fmt: skip
     procs: dict[str, subprocess.Popen[bytes]] = {}
     logs = []
     results: dict[str, Any] = {}
@@ -96,7 +85,7 @@ def run_explore(
             )
             results[aid].start_wall = time.time()
             cmd = [*ex.HIVEMAP, "agent", "--sim", f"{name}:{aid}", "--live", "--duration",
-                   str(opts.explore_duration_s), "--server", f"ws://127.0.0.1:{port}/ws", "--agent-id", aid,
+                   str(opts.explore_duration_s), "--server", ws_url, "--agent-id", aid,
                    "--token", tokens[aid], "--out", str(out), "--wait-corrections", "30"]  # fmt: skip
             if seed is not None:
                 cmd += ["--seed", str(seed)]

@@ -169,10 +169,19 @@ def edge_sigmas(m: Any, chains: Chains, a: KfKey, b: KfKey, o: OptimiseOptions) 
     ta, tb = m.keyframes[a].track_sigma, m.keyframes[b].track_sigma
     if chain is not None or not o.pose_graph_tracked or ta is None or tb is None:
         return odometry_sigmas(chain, o)
-    st = max(o.pose_graph_track_scale * float(np.hypot(ta[0], tb[0])), o.pose_graph_track_floor_m)
-    sr = max(o.pose_graph_track_scale * float(np.radians(np.hypot(ta[1], tb[1]))),
-             float(np.radians(o.pose_graph_track_floor_deg)))  # fmt: skip
+    sr, st = tracked_sigmas(float(np.hypot(ta[0], tb[0])), float(np.hypot(ta[1], tb[1])), o)
     return sr, st, 0.0
+
+
+def tracked_sigmas(track_m: float, track_deg: float, o: OptimiseOptions) -> tuple[float, float]:
+    """(sigma_rot rad, sigma_trans m) of an edge whose tracking error is ``track_m`` / ``track_deg``:
+    times ``pose_graph_track_scale``, at least the ``pose_graph_track_floor_*``."""
+    st = max(o.pose_graph_track_scale * track_m, o.pose_graph_track_floor_m)
+    sr = max(
+        o.pose_graph_track_scale * float(np.radians(track_deg)),
+        float(np.radians(o.pose_graph_track_floor_deg)),
+    )
+    return sr, st
 
 
 def odometry_sigmas(chain: F64 | None, o: OptimiseOptions) -> tuple[float, float, float]:
@@ -189,9 +198,7 @@ def odometry_sigmas(chain: F64 | None, o: OptimiseOptions) -> tuple[float, float
         return base_r, base_t, 0.0
     path, turn, weak_m, weak_deg, track_m, track_deg, untracked = (float(x) for x in chain)
     if o.pose_graph_tracked and untracked == 0 and (track_m > 0 or track_deg > 0):
-        base_t = max(o.pose_graph_track_scale * track_m, o.pose_graph_track_floor_m)
-        base_r = max(o.pose_graph_track_scale * float(np.radians(track_deg)),
-                     float(np.radians(o.pose_graph_track_floor_deg)))  # fmt: skip
+        base_r, base_t = tracked_sigmas(track_m, track_deg, o)
     if weak_m <= 0 and weak_deg <= 0:
         # tracked well: the ends' shared points set their relative pose, which the drift does not bend
         return base_r, base_t, 0.0

@@ -217,20 +217,30 @@ def test_writes_join_the_callers_transaction(tmp_path: Path) -> None:
     store.close()
 
 
+def _older_file(
+    path: Path, stack: MapStack, version: int, columns: tuple[str, ...], drop_tables: tuple[str, ...] = ()
+) -> None:
+    """``stack`` saved at ``path`` as a store of schema ``version`` would hold it: without the keyframe
+    ``columns`` and the tables that came later."""
+    store = MapStore(path)
+    store.save_stack(stack)
+    store.close()
+    con = sqlite3.connect(path)
+    for col in columns:
+        con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
+    for table in drop_tables:
+        con.execute(f"DROP TABLE {table}")
+    con.execute("UPDATE map_schema SET version = ?", (version,))
+    con.commit()
+    con.close()
+
+
 def test_version_1_file_is_migrated_and_keeps_its_maps(tmp_path: Path) -> None:
     """A store written before keyframes carried ``up_cam`` (schema 1), stereo observations (2) or
     ``odom_sigma`` (3) opens, keeps every map, and stores them from then on."""
     path = tmp_path / "v1.sqlite"
     stack = build_stack(11, 40, 2000)
-    store = MapStore(path)
-    store.save_stack(stack)
-    store.close()
-    con = sqlite3.connect(path)  # make it a version-1 file: no up_cam column
-    for col in ("up_cam", "u_right", "stereo_baseline", "odom_sigma", "track_sigma"):
-        con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
-    con.execute("UPDATE map_schema SET version = 1")
-    con.commit()
-    con.close()
+    _older_file(path, stack, 1, ("up_cam", "u_right", "stereo_baseline", "odom_sigma", "track_sigma"))
     store = MapStore(path)
     assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == SCHEMA_VERSION
     loaded = store.load_stack()
@@ -256,15 +266,7 @@ def test_version_2_file_is_migrated_and_its_keyframes_load_as_mono(tmp_path: Pat
     path = tmp_path / "v2.sqlite"
     stack = build_stack(12, 40, 2000)
     assert any(kf.u_right is not None for m in stack.maps.values() for kf in m.keyframes.values())
-    store = MapStore(path)
-    store.save_stack(stack)
-    store.close()
-    con = sqlite3.connect(path)
-    for col in ("u_right", "stereo_baseline", "odom_sigma", "track_sigma"):
-        con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
-    con.execute("UPDATE map_schema SET version = 2")
-    con.commit()
-    con.close()
+    _older_file(path, stack, 2, ("u_right", "stereo_baseline", "odom_sigma", "track_sigma"))
     store = MapStore(path)
     loaded = store.load_stack()
     for m in stack.maps.values():
@@ -290,15 +292,7 @@ def test_version_3_file_is_migrated_and_keeps_its_keyframes(tmp_path: Path, drop
     stack = build_stack(13, 40, 2000)
     kfs = [kf for m in stack.maps.values() for kf in m.keyframes.values()]
     assert any(kf.odom_sigma is not None for kf in kfs) and any(kf.u_right is not None for kf in kfs)
-    store = MapStore(path)
-    store.save_stack(stack)
-    store.close()
-    con = sqlite3.connect(path)
-    for col in dropped:
-        con.execute(f"ALTER TABLE map_keyframes DROP COLUMN {col}")
-    con.execute("UPDATE map_schema SET version = 3")
-    con.commit()
-    con.close()
+    _older_file(path, stack, 3, dropped)
     store = MapStore(path)
     assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == SCHEMA_VERSION
     loaded = store.load_stack()
@@ -454,14 +448,7 @@ def test_version_4_file_gains_the_rendezvous_table_and_keeps_its_maps(tmp_path: 
     stores observations from then on, across a reopen."""
     path = tmp_path / "v4.sqlite"
     stack = build_stack(17, 20, 800)
-    store = MapStore(path)
-    store.save_stack(stack)
-    store.close()
-    con = sqlite3.connect(path)
-    con.execute("DROP TABLE map_rendezvous")
-    con.execute("UPDATE map_schema SET version = 4")
-    con.commit()
-    con.close()
+    _older_file(path, stack, 4, (), drop_tables=("map_rendezvous",))
     store = MapStore(path)
     assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == SCHEMA_VERSION
     assert_stacks_equal(stack, store.load_stack())
@@ -481,14 +468,7 @@ def test_version_5_file_is_migrated_and_stores_track_sigma(tmp_path: Path) -> No
     path = tmp_path / "v5.sqlite"
     stack = build_stack(14, 40, 2000)
     assert any(kf.track_sigma is not None for m in stack.maps.values() for kf in m.keyframes.values())
-    store = MapStore(path)
-    store.save_stack(stack)
-    store.close()
-    con = sqlite3.connect(path)
-    con.execute("ALTER TABLE map_keyframes DROP COLUMN track_sigma")
-    con.execute("UPDATE map_schema SET version = 5")
-    con.commit()
-    con.close()
+    _older_file(path, stack, 5, ("track_sigma",))
     store = MapStore(path)
     assert store.conn.execute("SELECT version FROM map_schema").fetchone()[0] == SCHEMA_VERSION
     loaded = store.load_stack()
