@@ -20,7 +20,8 @@ from hivemap.sim.carriers import CODE_CELLS, FACE_CELLS, CarrierDesign, team_geo
 from hivemap.sim.dataset import cached_world, stereo_extrinsics
 from hivemap.sim.scenario_file import resolve_scenario
 from hivemap.sim.scenarios import UGV_ROOF_HEIGHT
-from hivemap.sim.trajectories import plan_trajectories, takeoff_delays
+from hivemap.sim.takeoff import takeoff_plan
+from hivemap.sim.trajectories import plan_trajectories
 
 DESIGNS = {
     "cube30+roof1x2": CarrierDesign(ugv_back=False, ugv_sides=False),
@@ -112,15 +113,20 @@ def main() -> None:
     ap.add_argument("--designs", default=",".join(DESIGNS), help="comma-separated, names as in DESIGNS")
     ap.add_argument("--min-px", type=float, default=20.0)
     ap.add_argument("--takeoff-interval", type=float, default=0.0, help="Scenario.takeoff_interval_s")
+    ap.add_argument("--takeoff-climb", type=float, default=0.0, help="Scenario.takeoff_climb_m")
     args = ap.parse_args()
     for seed in args.seeds.split(","):
         sc = resolve_scenario(args.scenario, None if seed == "default" else int(seed))
-        sc = dataclasses.replace(sc, takeoff_interval_s=args.takeoff_interval)
-        delays = takeoff_delays(sc)
+        sc = dataclasses.replace(
+            sc, takeoff_interval_s=args.takeoff_interval, takeoff_climb_m=args.takeoff_climb
+        )
+        leave = {k: v.leave_t for k, v in takeoff_plan(sc).items()}
         for name in args.designs.split(","):
             vis = visibility(sc, DESIGNS[name], args.min_px)
             head = f"{args.scenario} seed {seed} (world {sc.seed}), design {name}"
-            print(f"\n## {head}, take-off interval {args.takeoff_interval:g} s")
+            print(
+                f"\n## {head}, take-off interval {args.takeoff_interval:g} s, climb {args.takeoff_climb:g} m"
+            )
             print(
                 "| observer -> carrier | s seen in the pair's first 15 s | s seen overall | first seen (s) "
                 "| distance (m) | px (median) |"
@@ -130,8 +136,8 @@ def main() -> None:
                 tt = np.asarray(r["t"])
                 if len(tt) == 0:
                     continue
-                # the window starts when the later of the two leaves (the UGV at hold_s)
-                t_off = sc.hold_s + max(delays.get(o, 0.0), delays.get(c, 0.0))
+                # the window starts when the later of the two leaves its start
+                t_off = max(leave[o], leave[c])
                 early = float(((tt >= t_off) & (tt < t_off + WINDOW_S)).sum()) / RATE_HZ
                 d = np.asarray(r["dist"])
                 print(

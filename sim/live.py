@@ -81,14 +81,13 @@ class _GaussMarkov:
 
 def start_pose(world: Any, scenario: Any, agent_id: str) -> tuple[F64, float, float]:
     """(position, yaw, hold seconds) where and how long the scenario's planned agent starts."""
-    from hivemap.sim.trajectories import plan_trajectories, takeoff_delays
+    from hivemap.sim.takeoff import takeoff_plan
+    from hivemap.sim.trajectories import plan_trajectories
 
     plan = plan_trajectories(world, scenario)
     T = plan.trajectories[agent_id].world_from_body(0.0)[0]
     yaw = math.atan2(T[1, 0], T[0, 0])
-    has_ugv = any(a.kind == "ugv" for a in scenario.agents)
-    hold = scenario.hold_s + (takeoff_delays(scenario).get(agent_id, 0.0) if has_ugv else 0.0)
-    return T[:3, 3].copy(), yaw, hold
+    return T[:3, 3].copy(), yaw, takeoff_plan(scenario)[agent_id].leave_t
 
 
 def road_lines(world: Any, kind: str) -> list[F64]:

@@ -183,8 +183,11 @@ def _make_trajectory(
     route: Route | None,
     meta: dict[str, Any],
     knot_dt: float = 0.2,
+    climb: tuple[float, float, float] | None = None,
 ) -> Trajectory:
-    """Time-parameterise a dense smooth 3D path (M, 3) into a Trajectory."""
+    """Time-parameterise a dense smooth 3D path (M, 3) into a Trajectory. ``climb = (t0, duration, dz)``:
+    before ``hold`` the agent rises straight up by ``dz`` to the path's start over ``[t0, t0 + duration]``
+    (zero velocity and acceleration at both ends, so the turn onto the path is smooth)."""
     seg = np.linalg.norm(np.diff(pts3, axis=0), axis=1)
     keep = np.concatenate([[True], seg > 1e-9])
     pts3 = pts3[keep]
@@ -196,8 +199,14 @@ def _make_trajectory(
     t_a, t_b = hold, T - 1.0  # moving interval (rest before and after)
     n = int(np.ceil((t_b - t_a) / knot_dt))
     tk = np.linspace(t_a, t_b, n + 1)
+    if climb is not None:
+        t0 = climb[0]
+        tk = np.concatenate([np.linspace(t0, t_a, int(np.ceil((t_a - t0) / knot_dt)) + 1)[:-1], tk])
+        t_a = t0
     sk = s_of_t(tk)
     Xk = path(sk)
+    if climb is not None:
+        Xk[:, 2] -= climb[2] * (1.0 - _smoothstep5(np.clip((tk - climb[0]) / climb[1], 0.0, 1.0)))
     z3 = np.zeros(3)
     pos = make_interp_spline(tk, Xk, k=5, bc_type=([(1, z3), (2, z3)], [(1, z3), (2, z3)]))
     tan = path(sk, 1)

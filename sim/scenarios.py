@@ -118,12 +118,16 @@ class Scenario:
     origin_alt: float = 23.0  # ellipsoidal height, m
     start_time_ns: int = 1_700_000_000_000_000_000  # timestamp of t = 0 (2023-11-14T22:13:20Z)
     hold_s: float = 2.0  # all agents stand still this long at the start (static IMU init)
-    # issue 25: agents carry fiducial marker carriers (sim/carriers.py). Off by default: the front-end does
-    # not yet mask them, and a carrier in view is a moving object its tracking takes as static
+    # issue 25: agents carry fiducial marker carriers (sim/carriers.py). Off in the presets, whose formation
+    # take-off puts a carrier right in front of a camera
     markers: bool = False
     # issue 25: with a UGV, the UAVs leave its roof one after the other, the front one first, this many
     # seconds apart, the first one this long after the UGV starts (0: all with the UGV, in formation)
     takeoff_interval_s: float = 0.0
+    # issue 25: with a UGV, the UAVs first climb straight up off its roof by this much (the front one 0.5 m
+    # more per UAV behind it) and hover while the UGV drives off below them, so they see its carrier from
+    # metres away and never from under a metre (0: they ramp up along their route)
+    takeoff_climb_m: float = 0.0
 
     def agent(self, agent_id: str) -> AgentSpec:
         for a in self.agents:

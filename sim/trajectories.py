@@ -53,6 +53,7 @@ from hivemap.sim.scenarios import (
     AgentSpec,
     Scenario,
 )
+from hivemap.sim.takeoff import CLIMB_S, spot, takeoff_plan
 
 log = logging.getLogger(__name__)
 
@@ -86,20 +87,6 @@ def _xy_path(route: Route, g: RoadGraph, road_width: float) -> tuple[F64, F64, l
     # Re-measure arc length after smoothing and map edge spans (defined on the raw polyline) onto it.
     s2 = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy_s, axis=0), axis=1))])
     return xy_s, s2 * (s[-1] / max(s2[-1], 1e-9)) if s2[-1] > 0 else s2, spans
-
-
-def _spot(a: AgentSpec) -> int:
-    """A UAV's take-off spot on the UGV's roof: (spot - 2) * 0.35 m along the heading (``_agent_path``)."""
-    return int(a.agent_id[-1]) if a.agent_id[-1].isdigit() else 0
-
-
-def takeoff_delays(scenario: Scenario) -> dict[str, float]:
-    """Per UAV, how long after the UGV it leaves the roof (``Scenario.takeoff_interval_s``): the front
-    one first, so no UAV's camera looks at the carrier of the UAV right in front of it, and the UGV drives
-    ahead of the UAVs in their first seconds (issue 25: they see its markers)."""
-    dt = scenario.takeoff_interval_s
-    uavs = sorted((a for a in scenario.agents if a.kind == "uav"), key=_spot, reverse=True)
-    return {a.agent_id: (k + 1) * dt for k, a in enumerate(uavs)} if dt > 0 else {}
 
 
 def _uav_heights(
@@ -259,16 +246,17 @@ def _choose_meetings(
 
 
 def _agent_path(
-    world: Any, g: RoadGraph, r: Route, a: AgentSpec, road_width: float, with_ugv: bool
+    world: Any, g: RoadGraph, r: Route, a: AgentSpec, road_width: float, with_ugv: bool, climb_m: float = 0.0
 ) -> tuple[F64, list[tuple[float, float]], F64]:
-    """Dense smooth 3D path (M, 3) of one agent, the edge spans and the xy arc length."""
+    """Dense smooth 3D path (M, 3) of one agent, the edge spans and the xy arc length. A UAV's path starts
+    ``climb_m`` above the UGV's roof (the climb itself is timed in ``_make_trajectory``)."""
     xy, s, spans = _xy_path(r, g, road_width)
     if a.kind == "ugv":
         z = np.full(len(s), UGV_BODY_HEIGHT)
     else:
-        z_start = UGV_ROOF_HEIGHT + 0.1 if with_ugv else UAV_GROUND_HEIGHT
+        z_start = UGV_ROOF_HEIGHT + 0.1 + climb_m if with_ugv else UAV_GROUND_HEIGHT
         low_spans = [spans[i] for i in r.low_edges]
-        idx = _spot(a)
+        idx = spot(a)
         z = _uav_heights(world, xy, s, a, z_start, low_spans, phase=0.9 * idx)
         if with_ugv:
             # Take-off spots on the UGV roof: 0.35 m apart along the heading.
@@ -449,14 +437,15 @@ def plan_trajectories(
         loops[k] = sorted({de for de in cov if cov.count(de) > 1})
 
     # --- Geometry and timing.
-    delays = takeoff_delays(scenario)
+    takeoffs = takeoff_plan(scenario)
     start_xy = None
     start_heading = 0.0
     for a in scenario.agents:
         r = routes[a.agent_id]
-        target = targets.get(a.agent_id, a.path_length_m)
+        # the vertical climb is part of the agent's path length, so its route is no longer than without it
+        target = targets.get(a.agent_id, a.path_length_m) - takeoffs[a.agent_id].climb_m
         for _ in range(3):  # adjust the route length so that the smoothed 3D path has the target length
-            pts3, spans, s = _agent_path(world, g, r, a, road_width, bool(ugv))
+            pts3, spans, s = _agent_path(world, g, r, a, road_width, bool(ugv), takeoffs[a.agent_id].climb_m)
             l3 = float(np.sum(np.linalg.norm(np.diff(pts3, axis=0), axis=1)))
             if abs(l3 - target) < 0.05:
                 break
@@ -467,8 +456,9 @@ def plan_trajectories(
             d = pts3[min(8, len(pts3) - 1), :2] - pts3[0, :2]
             start_heading = float(np.arctan2(d[1], d[0]))
         meta = {"spans": spans, "xy_len": float(s[-1])}
-        hold = scenario.hold_s + (delays.get(a.agent_id, 0.0) if ugv else 0.0)
-        trajs[a.agent_id] = _make_trajectory(a, pts3, hold, r, meta)
+        to = takeoffs[a.agent_id]
+        climb = (to.climb_t, CLIMB_S, to.climb_m) if to.climb_m > 0 else None
+        trajs[a.agent_id] = _make_trajectory(a, pts3, to.leave_t, r, meta, climb=climb)
     return TrajectoryPlan(
         trajs,
         g,

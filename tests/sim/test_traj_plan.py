@@ -163,3 +163,42 @@ def test_disjoint_agents_never_share_a_view(world):
     # 45 deg down from 6 m sees the ground < 23 m ahead: paths > 45 m apart cannot share a ground view
     d = np.linalg.norm(pa[:, None, :2] - pb[None, :, :2], axis=2)
     assert d.min() > 45.0
+
+
+def test_climb_takeoff_goes_straight_up_front_uav_highest_ugv_waits(world):
+    # issue 25: with takeoff_climb_m each UAV rises vertically off the roof, the front one first and
+    # highest, and the UGV leaves only when all are up, so no camera sees a carrier from under a metre.
+    import dataclasses
+
+    from hivemap.sim.takeoff import CLIMB_S, takeoff_plan
+
+    sc = dataclasses.replace(get_scenario("factory01"), takeoff_interval_s=3.0, takeoff_climb_m=3.0)
+    plan = plan_trajectories(world, sc)
+    to = takeoff_plan(sc)
+    tr = plan.trajectories
+    uavs = sorted((k for k in tr if tr[k].kind == "uav"), key=lambda k: to[k].climb_t)  # front first
+    assert len(uavs) == 3 and [to[k].climb_m for k in uavs] == [4.0, 3.5, 3.0]
+    t_up = max(to[k].climb_t for k in uavs) + CLIMB_S
+    ugv = tr["ugv"]
+    t = np.arange(0.0, t_up, DT)
+    assert np.abs(ugv.velocity(t)).max() < 1e-6  # the UGV waits under the climbing UAVs
+    assert np.linalg.norm(ugv.velocity(t_up + 3.0)[0]) > 0.3
+    for k in uavs:
+        t = np.arange(0.0, to[k].leave_t, DT)
+        p = tr[k].position(t)
+        assert np.abs(p[:, :2] - p[0, :2]).max() < 0.02, k  # straight up
+        assert np.abs(tr[k].velocity(t[t < to[k].climb_t])).max() < 1e-6, k
+        assert p[-1, 2] == pytest.approx(UGV_ROOF_HEIGHT + 0.1 + to[k].climb_m, abs=0.02), k
+        assert np.linalg.norm(tr[k].velocity(to[k].leave_t + 3.0)[0]) > 0.3, k
+    for front, behind in zip(uavs, uavs[1:], strict=False):
+        t = np.arange(to[behind].climb_t, to[front].leave_t, DT)
+        assert (tr[front].position(t)[:, 2] > tr[behind].position(t)[:, 2] + 0.2).all()
+    for k in uavs:  # smooth: bounded acceleration and jerk through the climb and the turn onto the route
+        t = np.arange(0.0, to[k].leave_t + 8.0, 0.005)
+        a = tr[k].acceleration(t)
+        assert np.linalg.norm(a, axis=1).max() < 3.0, k
+        assert np.abs(np.diff(a, axis=0)).max() < 0.03, k
+    # the climb counts in the path length, so the route is as long as without it (Table 4, within 2 %)
+    base = plan_trajectories(world, get_scenario("factory01")).trajectories
+    for k in uavs:
+        assert tr[k].path_length() == pytest.approx(base[k].path_length(), rel=0.02), k
