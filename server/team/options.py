@@ -74,6 +74,13 @@ class OrcaOptions:
     # without a covariance from the server's graph, these sigmas (per horizontal axis) are assumed
     default_position_sigma_m: float = 0.1
     default_velocity_sigma_mps: float = 0.05
+    # neighbours are carried at their velocities to the time of the advised agent's position, at most
+    # this far (a keyframe much older than the others says little of where its agent is now)
+    max_predict_s: float = 3.0
+    # the agents reach a new velocity over a second or two, not at once as ORCA assumes, and fall behind
+    # the path it planned by up to about this: ORCA keeps this much more apart than the inflated radii
+    # (the tracking error bound epsilon of Alonso-Mora et al.'s NH-ORCA); the reported radius excludes it
+    tracking_margin_m: float = 0.5
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,13 @@ The linear programs are the reference RVO2 library's (van den Berg et al.) throu
 bindings, which install from a wheel: no hand-written ORCA. ORCA is planar: it acts on the horizontal
 velocity; two agents are neighbours only when their vertical gap is within their inflated radii (a UAV
 flying over a UGV does not have to swerve), and the vertical velocity is passed through.
+
+Positions are of each agent's latest keyframe, and agents' keyframes are of different times (their
+keyframe spacing; simulated agents' clocks also drift apart). Each agent's problem is therefore solved with
+its neighbours' positions carried at their velocities to the time of its own position: the pair's geometry
+at one instant, as the agents meet it. And the agents reach a new velocity over a second or more rather
+than at once, so ORCA solves with each inflated radius plus ``tracking_margin_m`` (NH-ORCA's tracking
+error bound, Alonso-Mora et al.).
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ class AgentMotion:
     max_speed: float
     position_cov: F64 | None = None
     velocity_cov: F64 | None = None
+    timestamp: float | None = None  # s, the team's clock: when the agent was at ``position``
 
 
 @dataclass(frozen=True)
@@ -66,8 +74,21 @@ def inflated_radius(agent: AgentMotion, options: OrcaOptions) -> float:
 
 
 def _vertical_margin(agent: AgentMotion, options: OrcaOptions) -> float:
+    """Half the height of the agent's cylinder: its inflated radius (two agents count as near when their
+    vertical gap is within the sum of their inflated radii, as the explore evaluation counts them) plus
+    its vertical position uncertainty."""
     sz = _sigma_max(agent.position_cov, slice(2, 3))
-    return agent.radius + options.k_sigma * sz
+    return inflated_radius(agent, options) + options.k_sigma * sz
+
+
+def _position_at(agent: AgentMotion, t: float | None, options: OrcaOptions) -> F64:
+    """The agent's position carried at its velocity to time ``t`` (no further than
+    ``options.max_predict_s``); as it is without both times."""
+    p = np.asarray(agent.position, dtype=np.float64)
+    if t is None or agent.timestamp is None:
+        return p
+    dt = float(np.clip(t - agent.timestamp, -options.max_predict_s, options.max_predict_s))
+    return p + dt * np.asarray(agent.velocity, dtype=np.float64)
 
 
 def _clamp(v: F64, speed: float) -> F64:
@@ -85,11 +106,13 @@ def advisories(agents: Sequence[AgentMotion], options: OrcaOptions) -> list[Advi
     for i, a in enumerate(agents):
         desired = np.asarray(a.desired, dtype=np.float64)
         wanted = _clamp(desired[:2], a.max_speed)
+        # everyone where they are at agent i's time (its own position unchanged)
+        at = [_position_at(b, a.timestamp, o) for b in agents]
         nbrs = []
-        for j, b in enumerate(agents):
+        for j in range(len(agents)):
             if j == i:
                 continue
-            d = np.asarray(b.position, dtype=np.float64) - np.asarray(a.position, dtype=np.float64)
+            d = at[j] - at[i]
             if abs(d[2]) > vmargin[i] + vmargin[j]:
                 continue
             if float(np.linalg.norm(d[:2])) <= o.neighbor_dist_m + radii[i] + radii[j]:
@@ -97,7 +120,7 @@ def advisories(agents: Sequence[AgentMotion], options: OrcaOptions) -> list[Advi
         if not nbrs:
             out.append(Advisory(a.agent_id, np.array([*wanted, desired[2]]), desired, radii[i], ()))
             continue
-        v = _solve(i, nbrs, agents, radii, wanted, o)
+        v = _solve(i, nbrs, agents, at, [r + o.tracking_margin_m for r in radii], wanted, o)
         out.append(
             Advisory(a.agent_id, np.array([v[0], v[1], desired[2]]), desired, radii[i],
                      tuple(agents[j].agent_id for j in nbrs))
@@ -106,20 +129,26 @@ def advisories(agents: Sequence[AgentMotion], options: OrcaOptions) -> list[Advi
 
 
 def _solve(
-    i: int, nbrs: list[int], agents: Sequence[AgentMotion], radii: list[float], wanted: F64, o: OrcaOptions
+    i: int,
+    nbrs: list[int],
+    agents: Sequence[AgentMotion],
+    at: list[F64],
+    radii: list[float],
+    wanted: F64,
+    o: OrcaOptions,
 ) -> F64:
     """Agent ``i``'s ORCA velocity among ``nbrs``: one RVO2 step in a simulator holding just them, in
     coordinates centred on agent ``i`` (RVO2 computes in single precision)."""
     sim = pyrvo.RVOSimulator()
     sim.set_time_step(o.time_step_s)
-    centre = np.asarray(agents[i].position, dtype=np.float64)[:2]
+    centre = at[i][:2]
     # the neighbour range must cover every neighbour chosen above, whatever RVO2's own k-d tree does
-    reach = float(max(np.linalg.norm(np.asarray(agents[j].position)[:2] - centre) for j in nbrs))
+    reach = float(max(np.linalg.norm(at[j][:2] - centre) for j in nbrs))
     reach += 2.0 * max(radii) + 1.0
     handles = []
     for j in [i, *nbrs]:
         b = agents[j]
-        p = np.asarray(b.position, dtype=np.float64)[:2] - centre
+        p = at[j][:2] - centre
         v = np.asarray(b.velocity, dtype=np.float64)[:2]
         handles.append(
             sim.add_agent((float(p[0]), float(p[1])), reach, len(nbrs), o.time_horizon_s, o.time_horizon_s,

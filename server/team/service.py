@@ -53,6 +53,7 @@ class _AgentSnap:
     map_id: int
     position: F64
     velocity: F64
+    timestamp: float | None = None  # of the keyframe ``position`` is from (None: unknown)
 
 
 class TeamService:
@@ -155,7 +156,8 @@ class TeamService:
             if len(kfs) > 1 and kfs[-1].timestamp > kfs[-2].timestamp:
                 q = np.asarray(kfs[-2].world_from_cam, dtype=np.float64)[:3, 3]
                 v = (p - q) / (kfs[-1].timestamp - kfs[-2].timestamp)
-            out.append(_AgentSnap(agent.agent_id, agent.kind, m.id, p, v))  # type: ignore[union-attr]
+            map_id: int = m.id  # type: ignore[union-attr]
+            out.append(_AgentSnap(agent.agent_id, agent.kind, map_id, p, v, float(kfs[-1].timestamp)))
         return out
 
     async def assignments(self) -> schemas.TeamAssignments:
@@ -226,7 +228,9 @@ class TeamService:
                 if dist > 0:  # at cruise speed, slowing to arrive within one advisory period
                     desired = to_goal / dist * min(speed, dist / o.orca.time_step_s)
             radius = o.orca.radius_ugv_m if ugv else o.orca.radius_uav_m
-            motions.append(AgentMotion(a.agent_id, a.position, a.velocity, desired, radius, speed, P, V))
+            motions.append(
+                AgentMotion(a.agent_id, a.position, a.velocity, desired, radius, speed, P, V, a.timestamp)
+            )
         advs = advisories(motions, o.orca)
         ids = [f.id for f in fr.frontiers]
         out_agents = []

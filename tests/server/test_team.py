@@ -270,3 +270,34 @@ def test_team_options_from_toml() -> None:
         from_table({"orca": {"nope": 1}})
     with pytest.raises(ConfigError, match="team.frontiers.voxel_m"):
         from_table({"frontiers": {"voxel_m": "big"}})
+
+
+def test_orca_gate_is_the_inflated_cylinder_and_neighbours_are_carried_to_ones_time() -> None:
+    P, V = np.diag([0.01, 0.01, 0.0]), np.diag([0.0025, 0.0025, 0.0])  # inflated: 0.5 + 2 (0.1 + 0.05)
+
+    def uav(name: str, p: tuple[float, ...], v: tuple[float, ...], t: float | None) -> AgentMotion:
+        return AgentMotion(name, np.array(p), np.array(v), np.array(v), 0.5, 2.0, P, V, timestamp=t)
+
+    # a east along y = 0 at 10 m, b north along x = 6 at 8.8 m: both at (6, 0) in 3 s. The gap of 1.2 m
+    # is within the two inflated radii (1.6 m): near, as the explore evaluation counts a pair
+    a, b = (
+        uav("a", (0.0, 0.0, 10.0), (2.0, 0.0, 0.0), 100.0),
+        uav("b", (6.0, -6.0, 8.8), (0.0, 2.0, 0.0), 100.0),
+    )
+    now = advisories([a, b], OPT)
+    assert inflated_radius(a, OPT) == pytest.approx(0.8)
+    assert now[0].neighbours == ("b",) and now[1].neighbours == ("a",)
+    assert not np.allclose(now[0].safe_velocity, a.desired)
+    # 1.7 m apart in height: not near, each keeps its desired velocity
+    high = uav("b", (6.0, -6.0, 8.3), (0.0, 2.0, 0.0), 100.0)
+    assert advisories([a, high], OPT)[0].neighbours == ()
+    # b's latest keyframe 1 s older than a's (2 m back): a's advisory is the one for b where it is at a's
+    # time; b's own is for a carried 1 s back to b's time
+    old = uav("b", (6.0, -8.0, 8.8), (0.0, 2.0, 0.0), 99.0)
+    lagged = advisories([a, old], OPT)
+    assert np.allclose(lagged[0].safe_velocity, now[0].safe_velocity, atol=1e-5)
+    back = advisories([uav("a", (-2.0, 0.0, 10.0), (2.0, 0.0, 0.0), 99.0), old], OPT)
+    assert np.allclose(lagged[1].safe_velocity, back[1].safe_velocity, atol=1e-5)
+    # without both times: as given (the lag makes b look 2 m further from the crossing)
+    untimed = uav("a", (0.0, 0.0, 10.0), (2.0, 0.0, 0.0), None)
+    assert not np.allclose(advisories([untimed, old], OPT)[0].safe_velocity, now[0].safe_velocity, atol=1e-3)

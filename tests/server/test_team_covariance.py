@@ -23,7 +23,9 @@ from hivemap.server.backend import preset
 from hivemap.server.backend_synth import UGV_FROM_WORLD, agent_stream, make_world
 from hivemap.server.team.options import OrcaOptions, TeamOptions
 
-ORCA = OrcaOptions()
+# no tracking margin: the hand computation below is RVO2's branch for agents apart by their inflated radii,
+# and the margin would make the UAV and the UGV, 4 m apart, overlap
+ORCA = OrcaOptions(tracking_margin_m=0.0)
 SCALES = (1.0, 5.0)  # the pose graph's edge sigmas, times the defaults (5: the radii do not overlap yet)
 
 
@@ -31,7 +33,7 @@ def _run(data_dir: Path, scale: float) -> dict[str, Any]:
     """Stream both agents, wait for their latest keyframes' covariances; /agents and /team/assignments."""
     o = preset("monocular", scheduler=FAST)
     sigmas = {"pose_graph_sigma_rot": 0.01 * scale, "pose_graph_sigma_trans": 0.05 * scale}
-    team = TeamOptions(min_interval_s=0)
+    team = TeamOptions(min_interval_s=0, orca=ORCA)
     srv = Server(data_dir, replace(o, optimise=replace(o.optimise, **sigmas)), team=team)
     agents = []
     try:
