@@ -2,9 +2,10 @@
 
 Design (issue 25, chosen from the visibility table in docs/decisions.md): each UAV carries a cube of
 markers hanging under its body (four side faces and the bottom face, one marker each), the UGV a flat
-board of markers on its roof, beside and behind the UAVs' take-off spots. Every marker of a ``cv2.aruco``
-4x4 dictionary is printed with a one-cell white quiet zone, so a face of side ``s`` holds a marker of
-``s * 6 / 8`` (6 cells of code and black border out of 8).
+board of markers on its roof, beside and behind the UAVs' take-off spots, panels on its back and sides,
+and small roof markers beside the take-off spots for cameras too close for the others. Every marker of a
+``cv2.aruco`` 4x4 dictionary is printed with a one-cell white quiet zone, so a face of side ``s`` holds a
+marker of ``s * 6 / 8`` (6 cells of code and black border out of 8).
 
 ``team_carriers(scenario)`` gives every agent's :class:`~hivemap.maps.markers.Carrier` (ids assigned in
 the scenario's agent order); ``carrier_quads`` gives the textured quads (body frame) the renderer draws.
@@ -35,7 +36,8 @@ class CarrierDesign:
     """Carrier sizes. UAV cube: side ``uav_cube_m``, its top ``uav_hang_m`` below the body origin. UGV
     board: ``ugv_rows`` x 2 markers of face side ``ugv_face_m`` on the roof (``roof_z`` above the body
     origin), the two columns ``ugv_gap_m`` apart (the UAVs stand on the centre line), rows centred at
-    ``ugv_rows_x`` along the body x axis."""
+    ``ugv_rows_x`` along the body x axis; small roof markers of face ``ugv_small_face_m`` in rows at
+    ``ugv_small_rows_x``, in the same two columns."""
 
     uav_cube_m: float = 0.30
     uav_hang_m: float = 0.05
@@ -43,6 +45,10 @@ class CarrierDesign:
     ugv_gap_m: float = 0.30
     ugv_rows_x: tuple[float, ...] = (-0.65,)
     roof_z: float = 0.5  # UGV_ROOF_HEIGHT - UGV_BODY_HEIGHT
+    # small roof markers beside the UAVs' take-off spots, in front of the board: the board's and the
+    # panels' markers are bigger than the image of a camera 1-2 m from the UGV, these fit it whole
+    ugv_small_face_m: float = 0.25
+    ugv_small_rows_x: tuple[float, ...] = (-0.2, 0.1, 0.4, 0.7)
     ugv_back: bool = True  # two panels of face ``ugv_panel_m`` on the back, facing -x
     ugv_sides: bool = True  # two panels on each side
     ugv_panel_m: float = 0.7
@@ -93,23 +99,35 @@ def uav_faces(d: CarrierDesign) -> tuple[F64, F64]:
     return np.array(faces), top[None]
 
 
-def ugv_faces(d: CarrierDesign) -> tuple[F64, F64]:
-    """(marker faces (F, 4, 3), plain board quads) of the UGV: roof markers facing up (image top to the
-    front) beside the UAVs' centre line, and optionally panels on the back (facing -x) and the sides."""
-    s = d.ugv_face_m
-    z = np.array([0.0, 0.0, 1.0])
-    x, y = np.eye(3)[0], np.eye(3)[1]
-    faces, plain = [], []
-    for rx in d.ugv_rows_x:
-        for side in (1.0, -1.0):
-            yy = side * (d.ugv_gap_m / 2 + s / 2)
-            faces.append(_face(np.array([rx, yy, d.roof_z + 0.002]), z, x, s))
-    if d.ugv_rows_x:
-        half_y = d.ugv_gap_m / 2 + s + 0.05
-        x0, x1 = min(d.ugv_rows_x) - s / 2 - 0.05, max(d.ugv_rows_x) + s / 2 + 0.05
-        plain.append(
+def _roof_rows(
+    d: CarrierDesign, rows_x: tuple[float, ...], s: float, back_m: float
+) -> tuple[list[F64], list[F64]]:
+    """Roof markers of face ``s`` (image top to the front) in rows at ``rows_x``, one each side of the UAVs'
+    centre line, and the plain board under them (5 cm beyond the markers at the sides and the front,
+    ``back_m`` behind them)."""
+    z, x = np.array([0.0, 0.0, 1.0]), np.eye(3)[0]
+    faces = [
+        _face(np.array([rx, side * (d.ugv_gap_m / 2 + s / 2), d.roof_z + 0.002]), z, x, s)
+        for rx in rows_x
+        for side in (1.0, -1.0)
+    ]
+    if not rows_x:
+        return faces, []
+    half_y = d.ugv_gap_m / 2 + s + 0.05
+    x0, x1 = min(rows_x) - s / 2 - back_m, max(rows_x) + s / 2 + 0.05
+    return faces, [
+        np.array(
             [[x1, half_y, d.roof_z], [x1, -half_y, d.roof_z], [x0, -half_y, d.roof_z], [x0, half_y, d.roof_z]]
         )
+    ]
+
+
+def ugv_faces(d: CarrierDesign) -> tuple[F64, F64]:
+    """(marker faces (F, 4, 3), plain board quads) of the UGV: the roof board's markers, optionally panels
+    on the back (facing -x) and the sides, then the small roof markers."""
+    z = np.array([0.0, 0.0, 1.0])
+    x, y = np.eye(3)[0], np.eye(3)[1]
+    faces, plain = _roof_rows(d, d.ugv_rows_x, d.ugv_face_m, 0.05)
     p = d.ugv_panel_m
     zc = d.roof_z - p / 2
     if d.ugv_back:
@@ -119,7 +137,9 @@ def ugv_faces(d: CarrierDesign) -> tuple[F64, F64]:
         for side in (1.0, -1.0):
             for rx in (-p / 2, p / 2):
                 faces.append(_face(np.array([rx, side * (d.ugv_half_width_m + 0.002), zc]), side * y, z, p))
-    return np.array(faces), np.array(plain, dtype=np.float64).reshape(-1, 4, 3)
+    # appended last, so the board's and the panels' ids stay what they were
+    small, small_plain = _roof_rows(d, d.ugv_small_rows_x, d.ugv_small_face_m, 0.0)  # meets the board
+    return np.array(faces + small), np.array(plain + small_plain, dtype=np.float64).reshape(-1, 4, 3)
 
 
 def carrier_geometry(spec: AgentSpec, first_id: int, d: CarrierDesign) -> CarrierGeometry:
@@ -147,8 +167,10 @@ def team_carriers(
     """The layout written to each dataset: markers' corners (black border) in each agent's body frame."""
     out = {}
     for aid, g in team_geometry(scenario, d).items():
-        size = float(np.linalg.norm(g.faces[0][1] - g.faces[0][0])) * CODE_CELLS / FACE_CELLS
-        markers = tuple(Marker(i, size, _inset(f)) for i, f in zip(g.ids, g.faces, strict=True))
+        markers = tuple(
+            Marker(i, float(np.linalg.norm(f[1] - f[0])) * CODE_CELLS / FACE_CELLS, _inset(f))
+            for i, f in zip(g.ids, g.faces, strict=True)
+        )
         out[aid] = Carrier(aid, d.dictionary, np.asarray(body_from_cam[aid], dtype=np.float64), markers)
     return out
 

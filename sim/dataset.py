@@ -74,6 +74,11 @@ class AgentReport:
 def fingerprint(scenario: Scenario, spec: AgentSpec, duration: float, traj: Trajectory | None = None) -> str:
     """Hash of everything an agent's files depend on (config, and the planned camera poses)."""
     d = {"v": FORMAT_VERSION, "scenario": asdict(scenario), "agent": asdict(spec), "duration": duration}
+    if scenario.markers:
+        from hivemap.sim.carriers import CarrierDesign
+
+        # the carriers' layout is drawn in every frame: a render begun with another one is not resumed
+        d["carriers"] = asdict(CarrierDesign())
     h = hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode())
     if traj is not None:
         t = sample_times(duration, scenario.camera.rate_hz)

@@ -175,14 +175,14 @@ class CarrierMask:
         """Grown quads in cam0; in cam1 the same shifted by the disparity their size in pixels implies."""
         if not quads:
             return None
-        size_m = max((m.size_m for m in self.detector.carriers[aid].markers), default=0.0)
+        size_m = min((m.size_m for m in self.detector.carriers[aid].markers), default=0.0)
         cam = self.rig.left
         left, right = [], []
         for q in quads:
             centre = q.mean(axis=0)
             grown = centre + QUIET_ZONE_GROW * (q - centre)
             side_px = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
-            # the largest marker of the layout gives the nearest distance, i.e. the largest disparity;
+            # the smallest marker of the layout gives the nearest distance, i.e. the largest disparity;
             # the mask in cam1 spans from no shift to that shift, so it holds for any of the markers
             dist = cam.fx * size_m / max(side_px, 1.0) if size_m > 0 else math.inf
             disp = cam.fx * self.rig.baseline / max(dist, 0.05)

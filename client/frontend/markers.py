@@ -1,6 +1,7 @@
 """Marker carriers in a camera image: the carrier agent's cam0 in the observer's cam0 (seed 000).
 
-Markers are detected with ``cv2.aruco`` (sub-pixel corners) in the distorted image; every visible corner
+Markers are detected with ``cv2.aruco`` (sub-pixel corners) in the distorted image, their corners then
+taken from lines fitted along the black border's four edges (``marker_corners``); every visible corner
 of one carrier goes into ONE PnP (as seed 000 does on its RhOct), initialised by SQPnP (IPPE on a planar
 carrier, such as a roof board, to see both of its solutions), then refined by Levenberg-Marquardt under
 the camera's distortion. The covariance is the Gauss-Newton one, ``sigma^2 (J^T J)^-1``, with ``J`` the
@@ -28,6 +29,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.client.frontend.marker_corners import refine_quad
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import se3
 from hivemap.maps.markers import Carrier, carrier_of_marker
@@ -50,6 +52,9 @@ class MarkerOptions:
     # rendered or printed marker; the solve's own residual is used when larger
     pixel_sigma_px: float = 0.5
     corner_refine_win: int = 5  # cv2 sub-pixel refinement window (half size, px)
+    # then each corner from lines fitted along the marker's four border edges (``marker_corners``): a
+    # small marker's corners from its whole edges, not from a few pixels around each corner
+    edge_refine: bool = True
     # adaptive-threshold windows (px) cv2.aruco tries, min to max by step: 5 and 15 found as many markers
     # as cv2's 3, 13 and 23 in half the time (one pass less; docs/decisions.md, issue 25), which counts
     # now that the carrier mask runs the detector on every frame
@@ -241,6 +246,9 @@ class MarkerDetector:
                 if carrier is None or carrier.agent_id == self.own_agent_id:
                     continue
                 quad = np.asarray(c, np.float64).reshape(4, 2) + offset
+                if self.options.edge_refine:
+                    refined = refine_quad(gray, quad, self.camera, offset)
+                    quad = quad if refined is None else refined
                 quads.setdefault(carrier.agent_id, []).append(quad)
                 if mid not in twice:
                     by_carrier.setdefault(carrier.agent_id, []).append((mid, quad))

@@ -75,6 +75,40 @@ def test_rendered_carrier_is_detected_at_its_projected_corners(world, backend: s
         assert abs(float(depth[c[1], c[0]]) - pts[:, 2].mean()) < 0.05
 
 
+@pytest.mark.parametrize("backend", ["gl", "numpy"])
+def test_ugv_close_up_shows_its_small_roof_markers_whole(world, backend: str) -> None:
+    """A camera 0.3 m over the UGV's roof, 1 m from its centre, 45 deg down (a UAV at take-off): the roof
+    board's markers do not fit the image, the small ones in front of it are found at their corners."""
+    scene = _scene(world)
+    x, y = float(world.roads[0][0, 0]), float(world.roads[1][0, 1])
+    body = se3(so3_exp([0, 0, 0.3]), [x, y, 0.9])
+    R = body[:3, :3] @ R_LEVEL @ so3_exp([-np.radians(45.0), 0, 0])
+    world_from_cam = se3(R, body[:3, :3] @ [-0.7, 0.0, 0.8] + body[:3, 3])
+    r = make_renderer(world, CAM, backend, extra_layers=scene.layers)
+    gray, _ = r.render(world_from_cam, scene.quads({"ugv": body}, "uav1"))
+    r.close()
+    ugv = team_carriers(SC, {a.agent_id: stereo_extrinsics(a)[0] for a in SC.agents})["ugv"]
+    by_id = {m.marker_id: m for m in ugv.markers}
+    found = _detect(gray)
+    small = {i for i in found if by_id[i].size_m < 0.2}
+    assert len(small) >= 2 and set(found) <= ugv.ids(), found
+    cam_from_body = np.linalg.inv(world_from_cam) @ body
+    for i, uv in found.items():
+        proj, ok = CAM.project(by_id[i].corners_body @ cam_from_body[:3, :3].T + cam_from_body[:3, 3])
+        assert ok.all() and np.linalg.norm(proj - uv, axis=1).max() < 2.0, (i, proj, uv)
+
+
+def test_ugv_layout_has_each_markers_own_size() -> None:
+    """Board, panels and small roof markers: each marker's size is its own black border's side."""
+    ugv = team_carriers(SC, {a.agent_id: stereo_extrinsics(a)[0] for a in SC.agents})["ugv"]
+    for m in ugv.markers:
+        assert np.allclose(
+            np.linalg.norm(np.diff(m.corners_body, axis=0, append=m.corners_body[:1]), axis=1), m.size_m
+        )
+    assert sorted({round(m.size_m, 4) for m in ugv.markers}) == [0.1875, 0.4125, 0.525]
+    assert [m.marker_id for m in ugv.markers][:8] == list(range(15, 23))  # the board and panels as before
+
+
 def test_docked_uav_carrier_is_not_drawn(world) -> None:
     """On the UGV's roof a UAV's cube sits in the landing well: the same view with the UAV 1.5 m up (its
     take-off height on the roof) shows no marker."""
