@@ -89,8 +89,8 @@ def merge_maps(
         best: tuple[int, KfKey, KfKey] | None = None
         for k in members:
             for nb, w in tgt._covis[k].items():
-                if nb not in src_set and (best is None or w > best[0]):
-                    best = (w, k, nb)
+                if nb not in src_set and (best is None or w > best[0]) and tgt._root_of(nb) != root:
+                    best = (w, k, nb)  # nb's tree is another one: a target orphan may hang in this one
         if best is not None:
             _, k, nb = best
             tgt._reroot(k)

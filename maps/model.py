@@ -127,11 +127,15 @@ class Map:
         kf.parent = parent
         if parent is not None:
             self._children[parent].add(child)
+            # an orphan is a parentless root waiting for a link: one that got a parent (a merge re-rooting
+            # its tree) and stayed listed would later be hung below its own descendants, a cycle
+            self._orphans.discard(child)
         self._tree_changed.add(child)
 
     def _attach_orphan(self, orphan: KfKey, other: KfKey) -> None:
-        if self._root_of(other) != orphan:
+        if self.keyframes[orphan].parent is not None:
             self._orphans.discard(orphan)
+        elif self._root_of(other) != orphan:
             self._set_parent_unchecked(orphan, other)
 
     def _reroot(self, key: KfKey) -> None:
