@@ -410,6 +410,16 @@ class HiveServer(Ingest, MapEdits):
         except Rejected:
             release()
             raise
+        except Exception as exc:
+            # A bug met by one message must not take the connection down: the agent would resend the same
+            # message forever and the back-pressure slot would never come back, so every later message of
+            # every agent would wait. The message is refused for good (not a transient code, so the agent
+            # drops it rather than resend it) and the rest go on.
+            release()
+            logger.exception("%s seq %d: applying %s failed", agent.agent_id, seq, type(msg).__name__)
+            raise Rejected(
+                "apply_failed", f"the server could not apply this {type(msg).__name__}: {exc!r}"
+            ) from exc
 
         def done(exc: BaseException | None) -> None:
             release()

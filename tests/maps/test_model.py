@@ -255,7 +255,8 @@ def _tiny_kf(agent: str, kid: int, point_keys: list, rng: np.random.Generator) -
     n = len(point_keys)
     return Keyframe(
         agent, kid, float(kid), se3(so3_exp(rng.normal(0, 0.1, 3)), rng.normal(0, 1, 3)), DEFAULT_CAMERA,
-        rng.uniform(0, 400, (n, 2)), rng.integers(0, 8, n), rng.integers(0, 256, (n, 32)), point_keys=point_keys,
+        rng.uniform(0, 400, (n, 2)), rng.integers(0, 8, n), rng.integers(0, 256, (n, 32)),
+        point_keys=point_keys,
     )  # fmt: skip
 
 
