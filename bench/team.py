@@ -421,7 +421,7 @@ def _pct(x: list[float], q: float) -> float:
 
 def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | None, drain_s: float,
             start_poses: bool, profile: Path | None = None,
-            extra_toml: tuple[str, ...] = ()) -> dict[str, Any]:  # fmt: skip
+            extra_toml: tuple[str, ...] = (), keep: Path | None = None) -> dict[str, Any]:  # fmt: skip
     streams = make_streams(rec, n, speed, duration_s)
     work = Path(tempfile.mkdtemp(prefix="hivemap-team-"))
     cfg = work / "server.toml"
@@ -499,6 +499,8 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
     }  # fmt: skip
     res.update(quality(rec, events))
     res["kept_up"] = bool(res["dropped"] == 0 and res["unfinished"] == 0 and res["lag_p95"] <= LAG_OK_S)
+    if keep is not None:  # the server's store and log, to look at the map it made
+        shutil.copytree(work, keep / f"n{n}", dirs_exist_ok=True)
     shutil.rmtree(work, ignore_errors=True)
     return res
 
@@ -546,6 +548,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile", type=Path, default=None, help="cProfile the queries into DIR/N.prof")
     p.add_argument("--server-toml", action="append", default=[], metavar="LINE",
                    help="a line appended to the server's config, e.g. '[backend.scheduler]'")  # fmt: skip
+    p.add_argument("--keep", type=Path, default=None, help="keep each run's server store and log in DIR/nN")
     s = sub.add_parser("serve", help=argparse.SUPPRESS)
     s.add_argument("--port", type=int, required=True)
     s.add_argument("--data-dir", type=Path, required=True)
@@ -568,7 +571,7 @@ def main(argv: list[str] | None = None) -> int:
             args.profile.mkdir(parents=True, exist_ok=True)
             prof = args.profile / f"{n}.prof"
         res = run_one(args.recording, n, args.cores, args.speed, args.duration, args.drain,
-                      not args.no_start_poses, prof, tuple(args.server_toml))  # fmt: skip
+                      not args.no_start_poses, prof, tuple(args.server_toml), args.keep)  # fmt: skip
         results.append(res)
         print(f"N={n:3d} cores={args.cores}: " + summary(res), flush=True)
     ok = [r["agents"] for r in results if r["kept_up"]]
