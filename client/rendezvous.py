@@ -6,7 +6,9 @@ already emitted: its ``Keyframe`` message went into the outbox before this frame
 server always knows the reference keyframe when the rendezvous arrives (the newest keyframes wait for
 local BA before they are emitted). ``ref_from_cam`` is the frame's cam0 in that keyframe's cam0, both
 as the front-end estimates them now. Only frames tracked well (state ``ok``) are used: a weak or
-relocalised pose would carry its error into the team's graph.
+relocalised pose would carry its error into the team's graph. So is the reference: a keyframe made while
+tracking was weak or lost (at the IMU's pose) is centimetres and tenths of a degree off its successor
+frames, which the server would weigh with the marker pose's millimetre covariance.
 """
 
 from __future__ import annotations
@@ -103,4 +105,6 @@ def _reference(frontend: Any, res: Any) -> tuple[int, F64] | None:
     if not emitted:
         return None
     kf = frontend.keyframes[max(emitted)]
+    if getattr(kf, "odom_sigma", None) is not None:  # not tracked well since its predecessor
+        return None
     return int(kf.id), se3_inverse(kf.T_wc) @ np.asarray(res.world_from_cam, dtype=np.float64)
