@@ -31,6 +31,9 @@ MARKER_SHADE = 0.9  # white paper a little darker than full white, so fog/light 
 BODY_SHADE = 0.35  # the carrier's plain body (cube top, board edge)
 
 
+SMALL_ROOF_ROWS_X = (-0.2, 0.1, 0.4, 0.7)  # the small roof markers' rows, for ``CarrierDesign``
+
+
 @dataclass(frozen=True)
 class CarrierDesign:
     """Carrier sizes. UAV cube: side ``uav_cube_m``, its top ``uav_hang_m`` below the body origin. UGV
@@ -45,10 +48,12 @@ class CarrierDesign:
     ugv_gap_m: float = 0.30
     ugv_rows_x: tuple[float, ...] = (-0.65,)
     roof_z: float = 0.5  # UGV_ROOF_HEIGHT - UGV_BODY_HEIGHT
-    # small roof markers beside the UAVs' take-off spots, in front of the board: the board's and the
-    # panels' markers are bigger than the image of a camera 1-2 m from the UGV, these fit it whole
+    # small roof markers beside the UAVs' take-off spots, in front of the board (``SMALL_ROOF_ROWS_X``):
+    # the board's and the panels' markers are bigger than the image of a camera 1-2 m from the UGV, these
+    # fit it whole. Off by default: with the board under them they fill a climbing UAV's near view, and
+    # masked they leave its tracker nothing for its first second off the roof (docs/decisions.md)
     ugv_small_face_m: float = 0.25
-    ugv_small_rows_x: tuple[float, ...] = (-0.2, 0.1, 0.4, 0.7)
+    ugv_small_rows_x: tuple[float, ...] = ()
     ugv_back: bool = True  # two panels of face ``ugv_panel_m`` on the back, facing -x
     ugv_sides: bool = True  # two panels on each side
     ugv_panel_m: float = 0.7

@@ -13,7 +13,14 @@ import pytest
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import se3, so3_exp
 from hivemap.maps.markers import LAYOUT_FILE, load_layout
-from hivemap.sim.carriers import DICTIONARY, CarrierScene, team_carriers, team_geometry
+from hivemap.sim.carriers import (
+    DICTIONARY,
+    SMALL_ROOF_ROWS_X,
+    CarrierDesign,
+    CarrierScene,
+    team_carriers,
+    team_geometry,
+)
 from hivemap.sim.dataset import render_scenario, stereo_extrinsics
 from hivemap.sim.render import GLRenderer, NumpyRenderer, make_renderer
 from hivemap.sim.scenarios import get_scenario
@@ -29,8 +36,12 @@ def world():  # type: ignore[no-untyped-def]
     return generate_world(1, 48.0)
 
 
-def _scene(world):  # type: ignore[no-untyped-def]
-    return CarrierScene(team_geometry(SC), len(world.layers), world.layers.shape[1], DICTIONARY)
+DEFAULT = CarrierDesign()
+SMALL = CarrierDesign(ugv_small_rows_x=SMALL_ROOF_ROWS_X)  # the opt-in small roof markers
+
+
+def _scene(world, d: CarrierDesign = DEFAULT):  # type: ignore[no-untyped-def]
+    return CarrierScene(team_geometry(SC, d), len(world.layers), world.layers.shape[1], DICTIONARY)
 
 
 def _detect(gray: np.ndarray) -> dict[int, np.ndarray]:
@@ -79,7 +90,7 @@ def test_rendered_carrier_is_detected_at_its_projected_corners(world, backend: s
 def test_ugv_close_up_shows_its_small_roof_markers_whole(world, backend: str) -> None:
     """A camera 0.3 m over the UGV's roof, 1 m from its centre, 45 deg down (a UAV at take-off): the roof
     board's markers do not fit the image, the small ones in front of it are found at their corners."""
-    scene = _scene(world)
+    scene = _scene(world, SMALL)
     x, y = float(world.roads[0][0, 0]), float(world.roads[1][0, 1])
     body = se3(so3_exp([0, 0, 0.3]), [x, y, 0.9])
     R = body[:3, :3] @ R_LEVEL @ so3_exp([-np.radians(45.0), 0, 0])
@@ -87,7 +98,7 @@ def test_ugv_close_up_shows_its_small_roof_markers_whole(world, backend: str) ->
     r = make_renderer(world, CAM, backend, extra_layers=scene.layers)
     gray, _ = r.render(world_from_cam, scene.quads({"ugv": body}, "uav1"))
     r.close()
-    ugv = team_carriers(SC, {a.agent_id: stereo_extrinsics(a)[0] for a in SC.agents})["ugv"]
+    ugv = team_carriers(SC, {a.agent_id: stereo_extrinsics(a)[0] for a in SC.agents}, SMALL)["ugv"]
     by_id = {m.marker_id: m for m in ugv.markers}
     found = _detect(gray)
     small = {i for i in found if by_id[i].size_m < 0.2}
@@ -100,7 +111,7 @@ def test_ugv_close_up_shows_its_small_roof_markers_whole(world, backend: str) ->
 
 def test_ugv_layout_has_each_markers_own_size() -> None:
     """Board, panels and small roof markers: each marker's size is its own black border's side."""
-    ugv = team_carriers(SC, {a.agent_id: stereo_extrinsics(a)[0] for a in SC.agents})["ugv"]
+    ugv = team_carriers(SC, {a.agent_id: stereo_extrinsics(a)[0] for a in SC.agents}, SMALL)["ugv"]
     for m in ugv.markers:
         assert np.allclose(
             np.linalg.norm(np.diff(m.corners_body, axis=0, append=m.corners_body[:1]), axis=1), m.size_m
