@@ -251,15 +251,6 @@ def test_chained_merges_keep_history_and_transforms_compose() -> None:
     assert_consistent(merged)
 
 
-def _tiny_kf(agent: str, kid: int, point_keys: list, rng: np.random.Generator) -> Keyframe:
-    n = len(point_keys)
-    return Keyframe(
-        agent, kid, float(kid), se3(so3_exp(rng.normal(0, 0.1, 3)), rng.normal(0, 1, 3)), DEFAULT_CAMERA,
-        rng.uniform(0, 400, (n, 2)), rng.integers(0, 8, n), rng.integers(0, 256, (n, 32)),
-        point_keys=point_keys,
-    )  # fmt: skip
-
-
 def test_merges_never_make_a_cycle_in_the_spanning_tree() -> None:
     # Two ways an online map got a cycle (the server then refused every later keyframe of that map):
     # (1) a merge re-roots a source orphan tree, its old root gets a parent but stayed an "orphan", and a
@@ -269,12 +260,12 @@ def test_merges_never_make_a_cycle_in_the_spanning_tree() -> None:
     stack = MapStack()
     tgt, src = stack.new_map(), stack.new_map()
     tgt.add_point(MapPoint("t", 0, [0, 0, 5]))
-    tgt.add_keyframe(_tiny_kf("t", 0, [("t", 0)], rng))
+    tgt.add_keyframe(make_kf("t", 0, [("t", 0)], rng))
     for i in range(5):
         src.add_point(MapPoint("s", i, [1, 0, 5]))
     for kid, pts in enumerate([[0], [1], [1, 2], [3, 4], [2, 3, None]]):
         # s0 the source's root; s1 below s2; s4 the root of an orphan tree holding s2 and s3
-        src.add_keyframe(_tiny_kf("s", kid, [("s", p) if p is not None else None for p in pts], rng))
+        src.add_keyframe(make_kf("s", kid, [("s", p) if p is not None else None for p in pts], rng))
     assert (
         src.parent(("s", 1)) == ("s", 2) and src.parent(("s", 2)) == ("s", 4) and src.parent(("s", 4)) is None
     )
@@ -282,20 +273,20 @@ def test_merges_never_make_a_cycle_in_the_spanning_tree() -> None:
     assert merged.parent(("s", 3)) == ("t", 0) and merged.parent(("s", 4)) == ("s", 3)  # re-rooted at s3
     merged.add_observation(("s", 1), ("s", 4), 2)  # s4's first covisibility with its grandchild s1
     assert merged.check_consistency() == []
-    merged.add_keyframe(_tiny_kf("t", 1, [("t", 0), ("s", 1)], rng))
+    merged.add_keyframe(make_kf("t", 1, [("t", 0), ("s", 1)], rng))
     assert merged.check_consistency() == []
 
     stack = MapStack()
     tgt, src = stack.new_map(), stack.new_map()
     for i in range(2):
         tgt.add_point(MapPoint("t", i, [0, 0, 5]))
-    tgt.add_keyframe(_tiny_kf("t", 0, [("t", 0)], rng))
-    tgt.add_keyframe(_tiny_kf("t", 1, [("t", 1)], rng))  # an orphan of the target
+    tgt.add_keyframe(make_kf("t", 0, [("t", 0)], rng))
+    tgt.add_keyframe(make_kf("t", 1, [("t", 1)], rng))  # an orphan of the target
     for i in range(2):
         src.add_point(MapPoint("s", i, [1, 0, 5]))
-    src.add_keyframe(_tiny_kf("s", 0, [("s", 0)], rng))
-    src.add_keyframe(_tiny_kf("s", 1, [("s", 0), ("s", 1)], rng))
+    src.add_keyframe(make_kf("s", 0, [("s", 0)], rng))
+    src.add_keyframe(make_kf("s", 1, [("s", 0), ("s", 1)], rng))
     merged = stack.merge(tgt.id, src.id, Sim3(np.eye(3), np.zeros(3), 1.0), [(("t", 1), ("s", 1))])
     assert merged.check_consistency() == []
-    merged.add_keyframe(_tiny_kf("t", 2, [("t", 1), ("s", 0)], rng))
+    merged.add_keyframe(make_kf("t", 2, [("t", 1), ("s", 0)], rng))
     assert merged.check_consistency() == []
