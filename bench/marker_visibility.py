@@ -23,13 +23,12 @@ from hivemap.sim.scenarios import UGV_ROOF_HEIGHT
 from hivemap.sim.takeoff import takeoff_plan
 from hivemap.sim.trajectories import plan_trajectories
 
-NO_SMALL = {"ugv_small_rows_x": ()}  # the small roof markers are opt-in (SMALL_ROOF_ROWS_X)
 DESIGNS = {
-    "cube30+roof1x2": CarrierDesign(ugv_back=False, ugv_sides=False, **NO_SMALL),
-    "cube20+roof1x2": CarrierDesign(uav_cube_m=0.20, ugv_back=False, ugv_sides=False, **NO_SMALL),
-    "cube40+roof1x2": CarrierDesign(uav_cube_m=0.40, ugv_back=False, ugv_sides=False, **NO_SMALL),
-    "cube30+roof2x2": CarrierDesign(ugv_rows_x=(-0.65, 0.65), ugv_back=False, ugv_sides=False, **NO_SMALL),
-    "cube30+roof1x2+back60": CarrierDesign(ugv_sides=False, ugv_panel_m=0.6, **NO_SMALL),
+    "cube30+roof1x2": CarrierDesign(ugv_back=False, ugv_sides=False),
+    "cube20+roof1x2": CarrierDesign(uav_cube_m=0.20, ugv_back=False, ugv_sides=False),
+    "cube40+roof1x2": CarrierDesign(uav_cube_m=0.40, ugv_back=False, ugv_sides=False),
+    "cube30+roof2x2": CarrierDesign(ugv_rows_x=(-0.65, 0.65), ugv_back=False, ugv_sides=False),
+    "cube30+roof1x2+back60": CarrierDesign(ugv_sides=False, ugv_panel_m=0.6),
     "chosen: cube30+roof1x2+back70+sides70": CarrierDesign(),
     "cube30+roof1x2+back70+sides70+roof small 4x2": CarrierDesign(ugv_small_rows_x=SMALL_ROOF_ROWS_X),
 }

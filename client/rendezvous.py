@@ -105,6 +105,6 @@ def _reference(frontend: Any, res: Any) -> tuple[int, F64] | None:
     if not emitted:
         return None
     kf = frontend.keyframes[max(emitted)]
-    if getattr(kf, "odom_sigma", None) is not None:  # not tracked well since its predecessor
+    if kf.odom_sigma is not None:  # not tracked well since its predecessor
         return None
     return int(kf.id), se3_inverse(kf.T_wc) @ np.asarray(res.world_from_cam, dtype=np.float64)

@@ -87,9 +87,15 @@ def merge_maps(
         if root not in src_set:
             continue  # already attached (through an orphan link)
         best: tuple[int, KfKey, KfKey] | None = None
+        # members share neighbours and each walk is a tree's depth; per tree, as attaching one moves roots
+        root_of: dict[KfKey, KfKey] = {}
         for k in members:
             for nb, w in tgt._covis[k].items():
-                if nb not in src_set and (best is None or w > best[0]) and tgt._root_of(nb) != root:
+                if nb in src_set or (best is not None and w <= best[0]):
+                    continue
+                if nb not in root_of:
+                    root_of[nb] = tgt._root_of(nb)
+                if root_of[nb] != root:
                     best = (w, k, nb)  # nb's tree is another one: a target orphan may hang in this one
         if best is not None:
             _, k, nb = best
