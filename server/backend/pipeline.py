@@ -215,6 +215,10 @@ class Pipeline:
         if map_id in self._opt_running:
             self._opt_again.setdefault(map_id, []).extend(edges)
             return
+        # busy from now, not from when the task first runs: requests in the same stretch of the loop (a
+        # batch of rendezvous edges) would otherwise start optimisations side by side, each applying its
+        # correction from the same snapshot on top of the others'
+        self._opt_running.add(map_id)
         task = asyncio.create_task(self._optimise(map_id, edges, t_det, fuse or [], pre))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
@@ -227,7 +231,7 @@ class Pipeline:
         fuse: list[tuple[Any, Any]],
         pre: tuple[Sim3, list[KfKey]] | None = None,
     ) -> None:
-        self._opt_running.add(map_id)
+        self._opt_running.add(map_id)  # already, if through _schedule_optimisation
         try:
             while True:
                 await self._optimise_once(map_id, edges, t_det, fuse, pre)

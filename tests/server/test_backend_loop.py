@@ -191,3 +191,35 @@ def test_loop_levelled_by_neighbouring_up_directions(tmp_path: Path, window: int
         gt = np.linalg.inv(true[rec["candidate"][1]]) @ true[rec["query"][1]]
         measured = Sim3.from_matrix(np.asarray(rec["candidate_from_query"]))
         assert rotation_angle_deg(measured.R.T @ gt[:3, :3]) < 0.3, rec
+
+
+def test_optimisations_requested_together_run_one_after_another(srv: Server) -> None:
+    """Several optimisations requested in one stretch of the event loop (a batch of rendezvous
+    observations, each adding an edge) run one after another: run side by side, each would apply its
+    correction, computed from the same snapshot, on top of the others' and turn the map by a multiple."""
+    first, second, true2, _ = loop_passes()
+    with stream(srv, "ugv1", "ugv", first + second):
+        srv.wait_idle()
+    ids = list(range(1000, 1010))
+    drift = Sim3(so3_exp(np.radians([0.0, 0.0, 3.0])), np.array([0.4, -0.3, 0.1]))
+
+    def drift_and_request() -> int:
+        m = next(iter(srv.hive.stack.maps.values()))
+        edge = srv.backend.evidence.kept_edges(m.id, m.keyframes)[0].edge
+        # the second pass drifts off again (as if the loop had not been closed yet), then three requests
+        srv.backend._apply_corrections(m, {k: drift for k in m.keyframes if k[1] >= 1000}, {})
+        for _ in range(3):
+            srv.backend._schedule_optimisation(m.id, [edge], 0.0)
+        return int(m.id)
+
+    srv.call(drift_and_request)
+    srv.wait_idle()
+    poses = srv.call(
+        lambda: {
+            k[1]: kf.world_from_cam.copy()
+            for m in srv.hive.stack.maps.values()
+            for k, kf in m.keyframes.items()
+        }
+    )
+    after = np.linalg.norm(np.array([poses[i][:3, 3] for i in ids]) - true2[:, :3, 3], axis=1)
+    assert after.max() < 0.1, after
