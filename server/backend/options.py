@@ -191,6 +191,10 @@ class RendezvousOptions:
     # and one agreement search per map pair per ``agree_interval_s`` (wall time)
     min_interval_s: float = 0.5
     agree_interval_s: float = 1.0
+    # an edge within one map that the map already satisfies (chi-square at most this, the 6-dof median)
+    # asks for no optimisation of its own: it is in the next one's robust graph. A hovering observer
+    # otherwise had the map re-optimised, and every agent corrected, twice a second; < 0: every edge asks
+    settled_chi2: float = 5.35
     # the observed agent's pose at the observation's time: interpolated between its keyframes; past its
     # last keyframe extrapolated at the last keyframes' velocity only this far, else held
     extrapolate_max_s: float = 0.3

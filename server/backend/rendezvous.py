@@ -25,7 +25,7 @@ from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
 from hivemap.server.backend import evidence_store, surgery
 from hivemap.server.backend.evidence import Evidence, MergeHypothesis
 from hivemap.server.backend.optimise import NewEdge
-from hivemap.server.backend.rendezvous_fit import Oriented, bracket, chi2, consensus, edge_of
+from hivemap.server.backend.rendezvous_fit import Oriented, bracket, chi2, consensus, edge_chi2, edge_of
 from hivemap.server.rendezvous import RendezvousObs
 
 logger = logging.getLogger(__name__)
@@ -165,6 +165,14 @@ def add_to_map(bk: Any, obs: RendezvousObs, edge: NewEdge, map_id: int) -> None:
            "observed_agent": obs.observed_agent, "timestamp": obs.timestamp}  # fmt: skip
     if bk.options.optimise.gnc:
         bk.evidence.add_loop(map_id, edge, rec, [], kind=KIND)
+        m = bk.server.stack.maps.get(map_id)
+        settled = bk.options.rendezvous.settled_chi2
+        if m is not None and settled >= 0.0:
+            kc, kq = m.keyframes[edge.candidate], m.keyframes[edge.query]
+            c = edge_chi2(edge, kc.world_from_cam, kq.world_from_cam)
+            if c <= settled:
+                obs.reason = f"agrees with the map (chi-square {c:.1f}): judged by its next robust pose graph"
+                return
     bk._schedule_optimisation(map_id, [edge], time.monotonic())
 
 

@@ -200,6 +200,16 @@ def chi2(T: F64, x: Oriented, floors: tuple[float, float] = (0.0, 0.0)) -> float
     return float(np.sum(whitened(T, x, floors) ** 2))
 
 
+def edge_chi2(edge: NewEdge, world_from_candidate: F64, world_from_query: F64) -> float:
+    """Chi-square of an edge within one map at the keyframes' current poses: its residual ``[rot,
+    trans]`` (query side, as the pose graph's Between factor) under its covariance, else its sigmas."""
+    E = se3_inverse(edge.measured.matrix()) @ se3_inverse(world_from_candidate) @ world_from_query
+    r = np.concatenate([so3_log(E[:3, :3]), E[:3, 3]])
+    if edge.covariance is not None:
+        return float(r @ np.linalg.solve(np.asarray(edge.covariance, dtype=np.float64), r))
+    return float(np.sum((r[:3] / edge.sigma_rot) ** 2) + np.sum((r[3:] / edge.sigma_trans) ** 2))
+
+
 def least_squares(
     T0: F64, obs: Sequence[Oriented], floors: tuple[float, float] = (0.0, 0.0), iterations: int = 10
 ) -> F64:
