@@ -231,7 +231,6 @@ class Pipeline:
         fuse: list[tuple[Any, Any]],
         pre: tuple[Sim3, list[KfKey]] | None = None,
     ) -> None:
-        self._opt_running.add(map_id)  # already, if through _schedule_optimisation
         try:
             while True:
                 await self._optimise_once(map_id, edges, t_det, fuse, pre)

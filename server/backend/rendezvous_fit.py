@@ -186,14 +186,20 @@ def implied(x: Oriented) -> F64:
     return c_from_q if x.candidate_in_target else se3_inverse(c_from_q)
 
 
+def _error(edge: NewEdge, candidate_from_query: F64) -> F64:
+    """(6,) ``[rot, trans]`` error of the edge at this relative pose of its keyframes (query side, as the
+    pose graph's Between factor)."""
+    E = se3_inverse(edge.measured.matrix()) @ candidate_from_query
+    return np.concatenate([so3_log(E[:3, :3]), E[:3, 3]])
+
+
 def whitened(T: F64, x: Oriented, floors: tuple[float, float] = (0.0, 0.0)) -> F64:
     """(6,) the observation's whitened residual under target_from_source ``T``, its sigmas at least
     ``floors`` (rad, m)."""
     c_from_q = T if x.candidate_in_target else se3_inverse(T)
-    predicted = se3_inverse(x.world_from_candidate) @ c_from_q @ x.world_from_query
-    E = se3_inverse(x.edge.measured.matrix()) @ predicted
+    r = _error(x.edge, se3_inverse(x.world_from_candidate) @ c_from_q @ x.world_from_query)
     sr, st = max(x.edge.sigma_rot, floors[0]), max(x.edge.sigma_trans, floors[1])
-    return np.concatenate([so3_log(E[:3, :3]) / sr, E[:3, 3] / st])
+    return np.concatenate([r[:3] / sr, r[3:] / st])
 
 
 def chi2(T: F64, x: Oriented, floors: tuple[float, float] = (0.0, 0.0)) -> float:
@@ -201,13 +207,11 @@ def chi2(T: F64, x: Oriented, floors: tuple[float, float] = (0.0, 0.0)) -> float
 
 
 def edge_chi2(edge: NewEdge, world_from_candidate: F64, world_from_query: F64) -> float:
-    """Chi-square of an edge within one map at the keyframes' current poses: its residual ``[rot,
-    trans]`` (query side, as the pose graph's Between factor) under its covariance, else its sigmas."""
-    E = se3_inverse(edge.measured.matrix()) @ se3_inverse(world_from_candidate) @ world_from_query
-    r = np.concatenate([so3_log(E[:3, :3]), E[:3, 3]])
-    if edge.covariance is not None:
-        return float(r @ np.linalg.solve(np.asarray(edge.covariance, dtype=np.float64), r))
-    return float(np.sum((r[:3] / edge.sigma_rot) ** 2) + np.sum((r[3:] / edge.sigma_trans) ** 2))
+    """Chi-square of a rendezvous edge (:func:`edge_of`: it always carries its covariance) within one
+    map at the keyframes' current poses."""
+    assert edge.covariance is not None
+    r = _error(edge, se3_inverse(world_from_candidate) @ world_from_query)
+    return float(r @ np.linalg.solve(np.asarray(edge.covariance, dtype=np.float64), r))
 
 
 def least_squares(

@@ -203,14 +203,13 @@ def test_optimisations_requested_together_run_one_after_another(srv: Server) -> 
     ids = list(range(1000, 1010))
     drift = Sim3(so3_exp(np.radians([0.0, 0.0, 3.0])), np.array([0.4, -0.3, 0.1]))
 
-    def drift_and_request() -> int:
+    def drift_and_request() -> None:
         m = next(iter(srv.hive.stack.maps.values()))
         edge = srv.backend.evidence.kept_edges(m.id, m.keyframes)[0].edge
         # the second pass drifts off again (as if the loop had not been closed yet), then three requests
         srv.backend._apply_corrections(m, {k: drift for k in m.keyframes if k[1] >= 1000}, {})
         for _ in range(3):
             srv.backend._schedule_optimisation(m.id, [edge], 0.0)
-        return int(m.id)
 
     srv.call(drift_and_request)
     srv.wait_idle()
