@@ -152,6 +152,10 @@ def ensure_scenario(name: str, data: Path, seed: int | None = None) -> Path:
     man = scen / "manifest.yaml"
     done = False
     if man.exists():
+        from hivemap.sim.dataset import check_render
+        from hivemap.sim.scenario_file import resolve_scenario
+
+        check_render(man, resolve_scenario(name, seed))  # a render of another world is an error, not reused
         m = yaml.safe_load(man.read_text()) or {}
         done = bool(m.get("agents")) and all(a.get("complete") for a in m["agents"])
     if not done:

@@ -232,6 +232,7 @@ def manifest_dict(
         "lighting": scenario.lighting,
         "weather": scenario.weather,
         "markers": scenario.markers,
+        "takeoff": {"interval_s": scenario.takeoff_interval_s, "climb_m": scenario.takeoff_climb_m},
         "duration_s": duration,
         "start_time_ns": scenario.start_time_ns,
         "origin": {"lat": scenario.origin_lat, "lon": scenario.origin_lon, "alt": scenario.origin_alt},
@@ -277,18 +278,28 @@ _SAME_WORLD = (
     "camera",
     "start_time_ns",
     "markers",
+    "takeoff",
 )
+# what a manifest written before a key existed meant by its absence
+_SAME_WORLD_BEFORE = {"markers": False, "takeoff": {"interval_s": 0.0, "climb_m": 0.0}}
 
 
 def _check_same_world(path: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
     if not old.get("agents"):
         return
     for key in _SAME_WORLD:
-        if key in old and old[key] != new[key]:
+        was = old.get(key, _SAME_WORLD_BEFORE.get(key, new[key]))
+        if was != new[key]:
             raise RenderMismatch(
-                f"{path} holds a render with {key} = {old[key]!r}, not {new[key]!r}; "
-                "render into another --out"
+                f"{path} holds a render with {key} = {was!r}, not {new[key]!r}; render into another --out"
             )
+
+
+def check_render(path: Path, scenario: Scenario) -> None:
+    """Raise :class:`RenderMismatch` unless the render whose manifest is ``path`` is of ``scenario``'s
+    world (a render made before a preset changed is not silently reused)."""
+    old = yaml.safe_load(path.read_text()) or {}
+    _check_same_world(path, old, manifest_dict(scenario, {}, scenario.duration_s))
 
 
 @dataclass

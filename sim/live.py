@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -109,7 +109,10 @@ class LiveSim:
         from hivemap.sim.scenario_file import resolve_scenario
 
         self.options = options
-        sc = resolve_scenario(options.scenario, options.seed)
+        # live agents draw no carriers and leave the roof under their controller, not by the planned climb
+        sc = replace(
+            resolve_scenario(options.scenario, options.seed), markers=False, takeoff_interval_s=0.0, takeoff_climb_m=0.0
+        )
         self.scenario = sc
         self.spec = sc.agent(options.agent)  # KeyError naming the scenario's agents
         self.index = [a.agent_id for a in sc.agents].index(self.spec.agent_id)

@@ -118,8 +118,9 @@ class Scenario:
     origin_alt: float = 23.0  # ellipsoidal height, m
     start_time_ns: int = 1_700_000_000_000_000_000  # timestamp of t = 0 (2023-11-14T22:13:20Z)
     hold_s: float = 2.0  # all agents stand still this long at the start (static IMU init)
-    # issue 25: agents carry fiducial marker carriers (sim/carriers.py). Off in the presets, whose formation
-    # take-off puts a carrier right in front of a camera
+    # issue 25: agents carry fiducial marker carriers (sim/carriers.py). On in the factory presets, whose
+    # climb take-off keeps every carrier metres from the cameras; off here, since a formation take-off
+    # puts a carrier right in front of a camera
     markers: bool = False
     # issue 25: with a UGV, the UAVs leave its roof one after the other, the front one first, this many
     # seconds apart, the first one this long after the UGV starts (0: all with the UGV, in formation)
@@ -139,12 +140,17 @@ class Scenario:
 
 
 def _factory(n: int, lighting: str, weather: str, pitches: tuple[float, float, float]) -> Scenario:
+    # the UAVs climb off the UGV's roof one after the other and watch it leave: the team's first shared
+    # view is each other's carriers (issue 25), since a 45 deg down and a level camera rarely share one
     return Scenario(
         name=f"factory{n:02d}",
         description=f"paper Table 4 Factory {n:02d}: {lighting}, {weather}, UAV camera {pitches} deg",
         agents=paper_agents(pitches),
         lighting=lighting,
         weather=weather,
+        markers=True,
+        takeoff_interval_s=3.0,
+        takeoff_climb_m=3.0,
     )
 
 
@@ -166,8 +172,11 @@ TINY = replace(
     description="test preset: Factory 01's first 12 s (take-off from the UGV), 320x240 at 10 Hz",
     camera=CameraSpec(320, 240, 215.0, 215.0, 159.5, 119.5, (-0.05, 0.01, 0.0002, -0.0001), 10.0),
     duration_s=12.0,
-    # the UAVs take off in formation 0.35 m apart: uav2's carrier would fill uav1's image (tracking lost)
+    # the UAVs take off in formation 0.35 m apart within the 12 s (the climb would take them all): uav2's
+    # carrier would fill uav1's image (tracking lost), so no carriers either
     markers=False,
+    takeoff_interval_s=0.0,
+    takeoff_climb_m=0.0,
 )
 
 DISJOINT = Scenario(
