@@ -110,9 +110,8 @@ class LiveSim:
 
         self.options = options
         # live agents draw no carriers and leave the roof under their controller, not by the planned climb
-        sc = replace(
-            resolve_scenario(options.scenario, options.seed), markers=False, takeoff_interval_s=0.0, takeoff_climb_m=0.0
-        )
+        sc = resolve_scenario(options.scenario, options.seed)
+        sc = replace(sc, markers=False, takeoff_interval_s=0.0, takeoff_climb_m=0.0)
         self.scenario = sc
         self.spec = sc.agent(options.agent)  # KeyError naming the scenario's agents
         self.index = [a.agent_id for a in sc.agents].index(self.spec.agent_id)

@@ -174,3 +174,30 @@ def test_cli_list_and_render(tmp_path: Path):
     assert res.exit_code != 0
     res = runner.invoke(app, ["render", "--scenario", "tiny", "--out", str(out), "--agents", "uav9"])
     assert res.exit_code != 0
+
+
+def test_a_render_of_another_take_off_is_refused_not_reused(tmp_path: Path):
+    # a render made before the presets got carriers and the climb take-off has the same name and seed:
+    # the experiment runner must refuse it with a one-line error rather than run the old world
+    import yaml
+
+    from hivemap.eval.experiment import ensure_scenario
+    from hivemap.sim.dataset import RenderMismatch, check_render, manifest_dict
+
+    sc = get_scenario("factory01")
+    assert sc.markers and sc.takeoff_climb_m > 0
+    man = tmp_path / "factory01" / "manifest.yaml"
+    man.parent.mkdir()
+    done = {a.agent_id: {"complete": True} for a in sc.agents}
+    old = manifest_dict(replace(sc, markers=False, takeoff_interval_s=0.0, takeoff_climb_m=0.0), done, None)
+    for key in ("markers", "takeoff"):  # written before these keys existed
+        old.pop(key)
+    man.write_text(yaml.safe_dump(old))
+    with pytest.raises(RenderMismatch, match="markers = False, not True"):
+        ensure_scenario("factory01", tmp_path)
+    # the carriers alone do not make it the same world: the take-off is checked too
+    man.write_text(yaml.safe_dump({**old, "markers": True}))
+    with pytest.raises(RenderMismatch, match="takeoff"):
+        check_render(man, sc)
+    man.write_text(yaml.safe_dump(manifest_dict(sc, done, None)))
+    assert ensure_scenario("factory01", tmp_path) == man.parent  # the same world is reused as before
