@@ -1,6 +1,7 @@
 """The map model shared by agents and server.
 
-``from hivemap.maps import Keyframe, MapPoint, Map, MapStack`` (see ``hivemap.maps.model``).
+``from hivemap.maps import Keyframe, MapPoint, Map, MapStack`` (see ``hivemap.maps.model`` and
+``hivemap.maps.stack``).
 """
 
 from hivemap.maps.model import (
@@ -9,10 +10,10 @@ from hivemap.maps.model import (
     KfKey,
     Map,
     MapPoint,
-    MapStack,
     PointKey,
     map_differences,
 )
+from hivemap.maps.stack import MapStack
 
 __all__ = [
     "STRONG_COVISIBILITY",

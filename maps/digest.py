@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from hivemap.maps.model import Map, MapStack
+from hivemap.maps.model import Map
+from hivemap.maps.stack import MapStack
 
 
 def _arr(h: Any, a: Any) -> None:

@@ -12,7 +12,8 @@ from hivemap.maps.elements import KfKey, PointKey
 from hivemap.maps.geometry import Sim3
 
 if TYPE_CHECKING:
-    from hivemap.maps.model import Map, MapStack
+    from hivemap.maps.model import Map
+    from hivemap.maps.stack import MapStack
 
 logger = logging.getLogger(__name__)
 

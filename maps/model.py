@@ -1,4 +1,5 @@
-"""The map model shared by agents and server: ``Keyframe``, ``MapPoint``, ``Map`` and ``MapStack``.
+"""The map model shared by agents and server: ``Keyframe``, ``MapPoint`` and ``Map`` (the stack of a
+session's maps is ``hivemap.maps.stack.MapStack``).
 
 Keys: a keyframe or a map point is named by ``(agent_id, id)`` (``KfKey`` / ``PointKey``); ids are unique
 per agent. The server folds an agent's map session into the agent id when needed (e.g. ``"uav1#1"``).
@@ -27,7 +28,7 @@ Not thread-safe: callers serialise access (e.g. one asyncio task or a lock).
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -488,55 +489,6 @@ class Map:
         return check_consistency(self)
 
 
-class MapStack:
-    """All maps of a session (the server holds one per agent until they merge)."""
-
-    def __init__(self) -> None:
-        self.maps: dict[int, Map] = {}
-        self.next_map_id = 0
-
-    def __repr__(self) -> str:
-        return f"MapStack({list(self.maps.values())})"
-
-    def new_map(self, map_id: int | None = None) -> Map:
-        """A new empty map (next free id unless ``map_id`` is given)."""
-        mid = self.next_map_id if map_id is None else int(map_id)
-        if mid in self.maps:
-            raise ValueError(f"map {mid} already exists")
-        m = Map(mid)
-        self.maps[mid] = m
-        self.next_map_id = max(self.next_map_id, mid + 1)
-        return m
-
-    def add_map(self, m: Map) -> Map:
-        if m.id in self.maps:
-            raise ValueError(f"map {m.id} already exists")
-        self.maps[m.id] = m
-        self.next_map_id = max(self.next_map_id, m.id + 1)
-        return m
-
-    def remove_map(self, map_id: int) -> Map:
-        return self.maps.pop(int(map_id))
-
-    def map_of_agent(self, agent_id: str) -> Map | None:
-        for m in self.maps.values():
-            if agent_id in m.agents:
-                return m
-        return None
-
-    def merge(
-        self,
-        target_id: int,
-        source_id: int,
-        target_from_source: Sim3,
-        fused_pairs: Sequence[tuple[PointKey, PointKey]] = (),
-    ) -> Map:
-        """Merge map ``source_id`` into map ``target_id`` (:func:`hivemap.maps.merge.merge_maps`)."""
-        from hivemap.maps.merge import merge_maps
-
-        return merge_maps(self, target_id, source_id, target_from_source, fused_pairs)
-
-
 __all__ = [
     "STRONG_COVISIBILITY",
     "F64",
@@ -544,7 +496,6 @@ __all__ = [
     "KfKey",
     "Map",
     "MapPoint",
-    "MapStack",
     "PointKey",
     "map_differences",
 ]

@@ -38,7 +38,8 @@ from numpy.typing import NDArray
 
 from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.geometry import Sim3
-from hivemap.maps.model import Keyframe, KfKey, Map, MapPoint, MapStack, PointKey
+from hivemap.maps.model import Keyframe, KfKey, Map, MapPoint, PointKey
+from hivemap.maps.stack import MapStack
 from hivemap.maps.store_rows import MapRows, _kf_row, _pt_row, map_rows, pack_array, unpack_array
 from hivemap.maps.store_schema import _KF_COLS, _KF_UPSERT, _PT_UPSERT, _SCHEMA, _TABLES
 
