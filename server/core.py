@@ -55,6 +55,7 @@ from hivemap.server.agents import Connection as Connection
 from hivemap.server.agents import MissionState as MissionState
 from hivemap.server.agents import PendingKeyframe as PendingKeyframe
 from hivemap.server.agents import Rejected as Rejected
+from hivemap.server.counters import Counters
 from hivemap.server.events import EventLog
 from hivemap.server.ingest import Ingest, _with_last_seq
 from hivemap.server.mapedits import MapEdits
@@ -72,7 +73,7 @@ PointKey = tuple[str, int]
 KeyframeObserver = Callable[[int, KfKey], Awaitable[None]]
 
 
-class HiveServer(Ingest, MapEdits):
+class HiveServer(Ingest, MapEdits, Counters):
     """The server state shared by the WebSocket handlers, the REST routes and the back-end."""
 
     def __init__(self, settings: ServerSettings) -> None:
@@ -184,45 +185,6 @@ class HiveServer(Ingest, MapEdits):
             await self._writer.stop()
             self._writer = None
             logger.info("store closed: %s", self.db_path)
-
-    # -- counters (persisted apart from the data: a few seconds of them may be lost to a kill -9) -------
-    COUNTERS_INTERVAL_S = 5.0
-
-    @staticmethod
-    def _counters_of(agent: AgentState) -> dict[str, Any]:
-        return {
-            "received": dict(agent.received),
-            "duplicates": agent.duplicates,
-            "errors": agent.errors,
-            "bandwidth": agent.bandwidth.to_record(),
-        }
-
-    def _restore_counters(self, counters: dict[str, dict[str, Any]]) -> None:
-        for agent_id, rec in counters.items():
-            agent = self.agents.get(agent_id)
-            if agent is None:
-                continue
-            agent.received.update({str(k): int(v) for k, v in rec.get("received", {}).items()})
-            agent.duplicates += int(rec.get("duplicates", 0))
-            agent.errors += int(rec.get("errors", 0))
-            agent.bandwidth.restore(rec.get("bandwidth", {}))
-            self._counters_written[agent_id] = self._counters_of(agent)
-
-    def _submit_counters(self) -> None:
-        """Queue a write of the counters that changed since the last one."""
-        changed = []
-        for agent in self.agents.values():
-            rec = self._counters_of(agent)
-            if self._counters_written.get(agent.agent_id) != rec:
-                self._counters_written[agent.agent_id] = rec
-                changed.append((agent.agent_id, rec))
-        if changed and self._writer is not None:
-            self._writer.submit(lambda store: [store.put_counters(a, r) for a, r in changed])
-
-    async def _write_counters_periodically(self) -> None:
-        while True:
-            await asyncio.sleep(self.COUNTERS_INTERVAL_S)
-            self._submit_counters()
 
     def _restore(self, loaded: Any) -> None:
         self.stack = loaded.stack
