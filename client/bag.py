@@ -27,10 +27,9 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.client.dataset import (
-    AgentDataset,
+from hivemap.client.dataset import AgentDataset, GnssSeries
+from hivemap.client.dataset_files import (
     DatasetError,
-    GnssSeries,
     camera_from_sensor_yaml,
     gnss_from_sensor_yaml,
     imu_from_sensor_yaml,
