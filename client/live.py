@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.client.runner import RunnerOptions, RunSummary, _write_outputs, write_tum_poses
+from hivemap.client.outputs import write_outputs
+from hivemap.client.runner import RunnerOptions, RunSummary, write_tum_poses
 from hivemap.sim.live import LiveOptions, LiveSim
 from hivemap.sim.live_control import WorldAdvisory, world_from_map
 
@@ -180,7 +181,7 @@ def run_live(
     summary.unsent = unsent
     summary.stopped_by = ls.stopped_by
     summary.wall_s = time.perf_counter() - wall0
-    _write_outputs(live.core, out, summary, n_frames)
+    write_outputs(live.core, out, summary, n_frames)
     gt_t, gt = np.asarray(sim.gt_t), np.asarray(sim.gt_poses).reshape(-1, 4, 4)
     write_tum_poses(out / "groundtruth.tum", gt_t, gt)
     write_tum_poses(out / "groundtruth_cam0.tum", gt_t, gt @ sim.T_BS[0])

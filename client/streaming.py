@@ -11,8 +11,9 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hivemap.client.outputs import write_outputs
 from hivemap.client.replay import Replay
-from hivemap.client.runner import RunnerOptions, RunSummary, _write_outputs
+from hivemap.client.runner import RunnerOptions, RunSummary
 
 if TYPE_CHECKING:
     from hivemap.client.dataset import DatasetSource
@@ -121,7 +122,7 @@ def _replay(
     summary.stopped_by = stopped_by[0] if stopped_by else ""
     summary.unsent = unsent
     summary.wall_s = time.perf_counter() - wall0
-    _write_outputs(live.core, out, summary, n_frames)
+    write_outputs(live.core, out, summary, n_frames)
     summary.outputs["outbox"] = str(outbox)
     (out / "run.json").write_text(summary.to_json())
     stats = live.link_stats
