@@ -146,6 +146,7 @@ def test_merge_rotation_follows_the_agents_up_directions(srv: Server, lean_deg: 
         srv.wait_idle()
     merges = srv.call(lambda: list(srv.backend.merges))
     assert len(merges) == 1 and merges[0]["levelled"], merges
+    assert merges[0]["by"] == "place_recognition" and "prior" not in merges[0]  # no start poses given
     sim = Sim3.from_matrix(np.asarray(merges[0]["target_from_source"]))
     true = UGV_FROM_WORLD @ UAV_FROM_WORLD.inverse()
     up_ugv = UGV_FROM_WORLD.R @ np.array([0.0, 0.0, 1.0])  # the world's up in the UGV's frame
