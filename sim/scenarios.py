@@ -140,8 +140,8 @@ class Scenario:
 
 
 def _factory(n: int, lighting: str, weather: str, pitches: tuple[float, float, float]) -> Scenario:
-    # the UAVs climb off the UGV's roof one after the other and watch it leave: the team's first shared
-    # view is each other's carriers (issue 25), since a 45 deg down and a level camera rarely share one
+    # the UAVs climb off the UGV's roof one after the other and watch it leave, from a few metres up: they
+    # see its carrier (issue 25) and the scene it faces, so the team shares a view from the start
     return Scenario(
         name=f"factory{n:02d}",
         description=f"paper Table 4 Factory {n:02d}: {lighting}, {weather}, UAV camera {pitches} deg",
