@@ -4,6 +4,7 @@ naming the file (and line)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -48,39 +49,43 @@ def read_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
+def _csv_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
+    """(1-based line number, stripped comma-separated fields) of each line of a EuRoC csv that is neither
+    blank nor a ``#`` comment; DatasetError if the file is missing."""
+    if not path.is_file():
+        raise DatasetError("file not found", path)
+    with open(path, newline="") as f:
+        for i, raw in enumerate(f, start=1):
+            line = raw.strip()
+            if line and not line.startswith("#"):
+                yield i, [p.strip() for p in line.split(",")]
+
+
 def read_csv_numeric(path: Path, n_cols: int | tuple[int, ...]) -> tuple[I64, F64]:
     """EuRoC csv: first column int timestamp [ns], then floats. Returns (t_ns (N,), values (N, C-1)).
 
     Lines starting with ``#`` and a header line are skipped; timestamps must increase strictly.
     """
-    if not path.is_file():
-        raise DatasetError("file not found", path)
     allowed = (n_cols,) if isinstance(n_cols, int) else n_cols
     ts: list[int] = []
     rows: list[list[float]] = []
-    with open(path, newline="") as f:
-        for i, raw in enumerate(f, start=1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            parts = [p.strip() for p in line.split(",")]
-            if len(parts) not in allowed:
-                if not ts and not _is_number(parts[0]):
-                    continue  # header without '#'
-                raise DatasetError(
-                    f"expected {' or '.join(map(str, allowed))} columns, got {len(parts)}", path, i
-                )
-            try:
-                t = int(parts[0])
-                vals = [float(p) for p in parts[1:]]
-            except ValueError as e:
-                raise DatasetError(f"not a number ({e})", path, i) from e
-            if not all(np.isfinite(vals)):
-                raise DatasetError("non-finite value", path, i)
-            if ts and t <= ts[-1]:
-                raise DatasetError(f"timestamp {t} not after previous {ts[-1]}", path, i)
-            ts.append(t)
-            rows.append(vals)
+    for i, parts in _csv_lines(path):
+        if len(parts) not in allowed:
+            if not ts and not _is_number(parts[0]):
+                continue  # header without '#'
+            want = " or ".join(map(str, allowed))
+            raise DatasetError(f"expected {want} columns, got {len(parts)}", path, i)
+        try:
+            t = int(parts[0])
+            vals = [float(p) for p in parts[1:]]
+        except ValueError as e:
+            raise DatasetError(f"not a number ({e})", path, i) from e
+        if not all(np.isfinite(vals)):
+            raise DatasetError("non-finite value", path, i)
+        if ts and t <= ts[-1]:
+            raise DatasetError(f"timestamp {t} not after previous {ts[-1]}", path, i)
+        ts.append(t)
+        rows.append(vals)
     width = len(rows[0]) if rows else min(allowed) - 1
     return np.asarray(ts, dtype=np.int64), np.asarray(rows, dtype=np.float64).reshape(len(rows), width)
 
@@ -95,28 +100,21 @@ def _is_number(s: str) -> bool:
 
 def read_image_list(path: Path) -> tuple[I64, list[str]]:
     """EuRoC camera csv ``#timestamp [ns],filename`` -> (t_ns, filenames)."""
-    if not path.is_file():
-        raise DatasetError("file not found", path)
     ts: list[int] = []
     names: list[str] = []
-    with open(path, newline="") as f:
-        for i, raw in enumerate(f, start=1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
+    for i, parts in _csv_lines(path):
+        if len(parts) != 2:
+            if not ts and not _is_number(parts[0]):
                 continue
-            parts = [p.strip() for p in line.split(",")]
-            if len(parts) != 2:
-                if not ts and not _is_number(parts[0]):
-                    continue
-                raise DatasetError(f"expected 2 columns (timestamp, filename), got {len(parts)}", path, i)
-            try:
-                t = int(parts[0])
-            except ValueError as e:
-                raise DatasetError(f"bad timestamp {parts[0]!r}", path, i) from e
-            if ts and t <= ts[-1]:
-                raise DatasetError(f"timestamp {t} not after previous {ts[-1]}", path, i)
-            ts.append(t)
-            names.append(parts[1])
+            raise DatasetError(f"expected 2 columns (timestamp, filename), got {len(parts)}", path, i)
+        try:
+            t = int(parts[0])
+        except ValueError as e:
+            raise DatasetError(f"bad timestamp {parts[0]!r}", path, i) from e
+        if ts and t <= ts[-1]:
+            raise DatasetError(f"timestamp {t} not after previous {ts[-1]}", path, i)
+        ts.append(t)
+        names.append(parts[1])
     return np.asarray(ts, dtype=np.int64), names
 
 

@@ -146,8 +146,6 @@ def stop(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
 def ensure_scenario(name: str, data: Path, seed: int | None = None) -> Path:
     """The rendered directory of scenario ``name`` with world ``seed`` (``hivemap sim render``, resumable;
     reused when every agent is complete)."""
-    import yaml
-
     scen = data / world_key(name, seed)
     man = scen / "manifest.yaml"
     done = False
@@ -155,8 +153,7 @@ def ensure_scenario(name: str, data: Path, seed: int | None = None) -> Path:
         from hivemap.sim.dataset import check_render
         from hivemap.sim.scenario_file import resolve_scenario
 
-        check_render(man, resolve_scenario(name, seed))  # a render of another world is an error, not reused
-        m = yaml.safe_load(man.read_text()) or {}
+        m = check_render(man, resolve_scenario(name, seed))  # a render of another world is an error
         done = bool(m.get("agents")) and all(a.get("complete") for a in m["agents"])
     if not done:
         log.info("rendering scenario %s (seed %s) into %s", name, "preset" if seed is None else seed, scen)

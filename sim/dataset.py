@@ -295,11 +295,12 @@ def _check_same_world(path: Path, old: dict[str, Any], new: dict[str, Any]) -> N
             )
 
 
-def check_render(path: Path, scenario: Scenario) -> None:
-    """Raise :class:`RenderMismatch` unless the render whose manifest is ``path`` is of ``scenario``'s
-    world (a render made before a preset changed is not silently reused)."""
+def check_render(path: Path, scenario: Scenario) -> dict[str, Any]:
+    """The manifest at ``path``; :class:`RenderMismatch` unless its render is of ``scenario``'s world (a
+    render made before a preset changed is not silently reused)."""
     old = yaml.safe_load(path.read_text()) or {}
     _check_same_world(path, old, manifest_dict(scenario, {}, scenario.duration_s))
+    return old
 
 
 @dataclass

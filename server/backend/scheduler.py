@@ -369,9 +369,10 @@ class Backend(Pipeline):
                        candidate_t=float(merged.keyframes[det.candidate_key].timestamp),
                        candidate_from_query=edge.measured.matrix().tolist(),
                        n_inliers=det.n_inliers)  # fmt: skip
-        rec["by"] = "place_recognition"
+        agrees = prior is not None and prior["agrees"]
+        rec["by"] = "place_recognition+prior" if agrees else "place_recognition"
         if prior is not None:
-            rec.update(by="place_recognition+prior" if prior["agrees"] else "place_recognition", prior=prior)
+            rec["prior"] = prior
         if weld_rec is not None:
             rec["weld"] = weld_rec
         self.merges.append(rec)
