@@ -7,6 +7,11 @@ wins; that goal is inserted into the winner's tour where its bid said. Rounds go
 won or no agent may take more (a per-agent cap). Ties go to the earlier agent, then the earlier goal,
 then the insertion nearer the tour's end, so the result is deterministic.
 
+An agent may enter the auction holding a goal (``first``): it stays the first stop of its tour and every
+later goal is bid for after it. The seed auctions its points once and lets each drone finish its goals
+before the next round; re-run from scratch every few seconds on a growing map, the auction hands an agent a
+new first goal each time and it turns back and forth (:mod:`.commit` decides what an agent holds).
+
 The uncertainty-aware variant subtracts a value from each bid (``value(agent, goal)``, in metres): with
 :func:`d_optimal_gain` it is a proxy of the expected uncertainty reduction (seed 002 chooses targets by
 D-optimality; its virtual-landmark EM over the map is not implemented here).
@@ -42,14 +47,14 @@ class AuctionResult:
     unassigned: list[int] = field(default_factory=list)
 
 
-def _insertion(start: F64, tour: list[int], goals: F64, g: int) -> tuple[float, int]:
-    """(least added length, insertion index) of goal ``g`` into the open path start -> tour."""
+def _insertion(start: F64, tour: list[int], goals: F64, g: int, lo: int = 0) -> tuple[float, int]:
+    """(least added length, insertion index >= ``lo``) of goal ``g`` into the open path start -> tour."""
     p = goals[g]
     stops = [start, *(goals[i] for i in tour)]
     best = float(np.linalg.norm(p - stops[-1]))
     best_pos = len(tour)
     # inserting before tour[k], i.e. between stops[k] and stops[k + 1]
-    for k in range(len(tour) - 1, -1, -1):
+    for k in range(len(tour) - 1, lo - 1, -1):
         a, b = stops[k], stops[k + 1]
         added = float(np.linalg.norm(p - a) + np.linalg.norm(b - p) - np.linalg.norm(b - a))
         if added < best - 1e-12:
@@ -69,18 +74,27 @@ def ssi_auction(
     allowed: NDArray[np.bool_] | None = None,
     cap: int = 0,
     value: Value | None = None,
+    first: Sequence[int | None] | None = None,
 ) -> AuctionResult:
     """Assign ``goals`` (G, D) to agents starting at ``starts`` (A, D).
 
     ``allowed`` (A, G): which agent may take which goal (reachability; default all); ``cap``: at most this
     many goals per agent (0: no cap); ``value(agent, goal)``: metres subtracted from that bid (the
-    uncertainty-aware variant; default none)."""
+    uncertainty-aware variant; default none); ``first[a]``: a goal agent ``a`` holds, the first stop of its
+    tour, not auctioned (a held goal counts towards the cap)."""
     starts = np.asarray(starts, dtype=np.float64)
     goals = np.asarray(goals, dtype=np.float64)
     n_agents, n_goals = len(starts), len(goals)
     ok = np.ones((n_agents, n_goals), bool) if allowed is None else np.asarray(allowed, bool)
-    tours: list[list[int]] = [[] for _ in range(n_agents)]
-    open_goals = list(range(n_goals))
+    held = list(first) if first is not None else [None] * n_agents
+    if len(held) != n_agents:
+        raise ValueError(f"first: {len(held)} entries for {n_agents} agents")
+    tours: list[list[int]] = [[] if h is None else [h] for h in held]
+    lo = [0 if h is None else 1 for h in held]
+    taken = {h for h in held if h is not None}
+    if len(taken) != n_agents - held.count(None):
+        raise ValueError("first: two agents hold one goal")
+    open_goals = [g for g in range(n_goals) if g not in taken]
     won: list[Bid] = []
     while open_goals:
         best: tuple[float, int, int, float, int] | None = None
@@ -90,7 +104,7 @@ def ssi_auction(
             for g in open_goals:
                 if not ok[a, g]:
                     continue
-                added, pos = _insertion(starts[a], tours[a], goals, g)
+                added, pos = _insertion(starts[a], tours[a], goals, g, lo[a])
                 bid = added - (value(a, g) if value is not None else 0.0)
                 if best is None or bid < best[0] - 1e-12:
                     best = (bid, a, g, added, pos)

@@ -22,7 +22,8 @@ from numpy.typing import NDArray
 from hivemap.protocol import TeamAdvisory
 from hivemap.server import schemas
 from hivemap.server.team.auction import d_optimal_gain, ssi_auction
-from hivemap.server.team.frontiers import FrontierResult, extract
+from hivemap.server.team.commit import Commitments
+from hivemap.server.team.frontiers import Frontier, FrontierResult, extract
 from hivemap.server.team.options import TeamOptions
 from hivemap.server.team.orca import AgentMotion, advisories, inflated_radius
 
@@ -63,6 +64,7 @@ class TeamService:
         self.covariances = covariances
         self._frontiers: dict[int, _Cached] = {}
         self._team = _Cached()
+        self.commits = Commitments()  # the goal each agent holds between auctions
         self._push: asyncio.Task[None] | None = None
         self.pushed = 0  # advisories sent
 
@@ -190,6 +192,36 @@ class TeamService:
             V = np.diag([o.default_velocity_sigma_mps**2] * 2 + [0.0])
         return np.asarray(P, dtype=np.float64), np.asarray(V, dtype=np.float64), source
 
+    @staticmethod
+    def _t(a: _AgentSnap) -> float:
+        return a.timestamp if a.timestamp is not None else time.monotonic()
+
+    def _held_goals(
+        self, map_id: int, fr: FrontierResult, team: list[_AgentSnap], goals: F64, allowed: NDArray[np.bool_]
+    ) -> list[int | None]:
+        """Per agent, the frontier that stands for the goal it holds (None: it takes a new one), the held
+        position written into ``goals``; the goals it gave up lately are struck from ``allowed``."""
+        ao = self.options.auction
+        first: list[int | None] = []
+        for i, a in enumerate(team):
+            t = self._t(a)
+            cands = [
+                (j, _kind_goal(f, a.kind))
+                for j, f in enumerate(fr.frontiers)
+                if allowed[i, j] and j not in first
+            ]
+            j = self.commits.match(a.agent_id, map_id, a.position, t, cands, ao)
+            if j is not None:
+                goals[j] = self.commits.held[a.agent_id].position[:2]
+            gone = self.commits.recently_dropped(a.agent_id, map_id, t, ao)
+            if len(gone) and len(goals):
+                near = (np.linalg.norm(goals[:, None, :] - gone[None], axis=2) < ao.held_match_m).any(axis=1)
+                if j is not None:
+                    near[j] = False
+                allowed[i] &= ~near
+            first.append(j)
+        return first
+
     def _assign(
         self, map_id: int, fr: FrontierResult, team: list[_AgentSnap], covs: list[tuple[F64, F64, str]]
     ) -> schemas.MapAssignments:
@@ -198,6 +230,8 @@ class TeamService:
         goals = np.array([f.goal[:2] for f in fr.frontiers]).reshape(-1, 2)
         starts = np.array([a.position[:2] for a in team]).reshape(-1, 2)
         allowed = np.array([[a.kind in f.reachable for f in fr.frontiers] for a in team], bool)
+        allowed = allowed.reshape(len(team), len(goals))
+        first = self._held_goals(map_id, fr, team, goals, allowed)
         value: Callable[[int, int], float] | None = None
         if o.auction.uncertainty_weight_m > 0 and len(goals):
             pts = fr.frontier_points[:, :2]
@@ -213,17 +247,26 @@ class TeamService:
             value = uncertainty_value
 
         res = ssi_auction(
-            starts, goals, allowed=allowed.reshape(len(team), len(goals)),
-            cap=o.auction.max_goals_per_agent, value=value,
+            starts, goals, allowed=allowed, cap=o.auction.max_goals_per_agent, value=value, first=first
         )  # fmt: skip
+        for a, tour, held in zip(team, res.tours, first, strict=True):
+            if tour and held is None:
+                f0 = fr.frontiers[tour[0]]
+                self.commits.hold(a.agent_id, map_id, _kind_goal(f0, a.kind), a.position, self._t(a))
+        goal_at = [
+            [
+                self.commits.held[a.agent_id].position if g == held else _kind_goal(fr.frontiers[g], a.kind)
+                for g in tour
+            ]
+            for a, tour, held in zip(team, res.tours, first, strict=True)
+        ]
         motions = []
-        for a, tour, (P, V, _) in zip(team, res.tours, covs, strict=True):
+        for a, at, (P, V, _) in zip(team, goal_at, covs, strict=True):
             ugv = a.kind == "ugv"
             speed = o.orca.max_speed_ugv if ugv else o.orca.max_speed_uav
             desired = np.zeros(3)
-            if tour:
-                f = fr.frontiers[tour[0]]
-                to_goal = f.goals.get(a.kind, f.goal) - a.position
+            if at:
+                to_goal = at[0] - a.position
                 dist = float(np.linalg.norm(to_goal))
                 if dist > 0:  # at cruise speed, slowing to arrive within one advisory period
                     desired = to_goal / dist * min(speed, dist / o.orca.time_step_s)
@@ -234,15 +277,14 @@ class TeamService:
         advs = advisories(motions, o.orca)
         ids = [f.id for f in fr.frontiers]
         out_agents = []
-        for a, m, adv, tour, cost, (_, _, source) in zip(
-            team, motions, advs, res.tours, res.costs, covs, strict=True
+        for a, m, adv, tour, at, cost, (_, _, source) in zip(
+            team, motions, advs, res.tours, goal_at, res.costs, covs, strict=True
         ):
-            f_goals = [fr.frontiers[g] for g in tour]
             out_agents.append(
                 schemas.AgentAssignment(
                     agent_id=a.agent_id, kind=a.kind, position=a.position.tolist(),
-                    velocity=a.velocity.tolist(), goals=[f.id for f in f_goals],
-                    goal_positions=[f.goals.get(a.kind, f.goal).tolist() for f in f_goals],
+                    velocity=a.velocity.tolist(), goals=[fr.frontiers[g].id for g in tour],
+                    goal_positions=[g.tolist() for g in at],
                     path_cost_m=cost,
                     advisory=schemas.Advisory(
                         desired_velocity=adv.desired.tolist(), safe_velocity=adv.safe_velocity.tolist(),
@@ -260,6 +302,11 @@ class TeamService:
             map_id=map_id, frontiers=len(fr.frontiers), agents=out_agents, rounds=rounds,
             unassigned=[ids[g] for g in res.unassigned],
         )  # fmt: skip
+
+
+def _kind_goal(f: Frontier, kind: str) -> F64:
+    """Where an agent of ``kind`` goes for frontier ``f``."""
+    return f.goals.get(kind, f.goal)
 
 
 def frontier_list(

@@ -1,0 +1,103 @@
+"""Goal commitment: which goal each agent holds from one auction to the next.
+
+The seed (001, 4.2) auctions a set of frontier points once and lets every drone visit the points it won
+before the next round. The server re-runs frontiers and auction every few seconds on a map that grows as
+the agents move, so a plain re-auction hands an agent a different first goal each time, and it turns back
+and forth covering nothing. An agent therefore keeps its first goal until it is reached, is no longer a
+frontier (explored, by it or by another agent), or the agent stops getting nearer to it (unreachable, e.g.
+off the roads); only then does it take a new one. Goals dropped that way are not given back to the same
+agent for a while, since the frontier near a reached goal lingers until the map catches up.
+
+Times are the agent's mission time (its latest keyframe's timestamp), so the rules hold whatever pace the
+agents run at.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hivemap.server.team.options import AuctionOptions
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Held:
+    """A goal an agent holds, in its map's frame."""
+
+    map_id: int
+    position: F64  # (3,) as it was assigned: the agent's kind's goal of the frontier
+    since: float  # mission time it was assigned
+    best_dist: float  # the least horizontal distance the agent has come to it
+    best_at: float  # mission time of that
+
+
+@dataclass
+class Commitments:
+    """The goals the team holds and the ones each agent gave up lately."""
+
+    held: dict[str, Held] = field(default_factory=dict)
+    # agent id -> [(mission time dropped, map id, position)]
+    dropped: dict[str, list[tuple[float, int, F64]]] = field(default_factory=dict)
+    reasons: dict[str, int] = field(default_factory=dict)  # why goals were dropped, counted
+
+    def _drop(self, agent_id: str, h: Held, t: float, why: str) -> None:
+        self.held.pop(agent_id, None)
+        self.dropped.setdefault(agent_id, []).append((t, h.map_id, h.position))
+        self.reasons[why] = self.reasons.get(why, 0) + 1
+
+    def recently_dropped(self, agent_id: str, map_id: int, t: float, options: AuctionOptions) -> F64:
+        """(K, 2) the goals the agent gave up in its map within the memory, forgetting older ones."""
+        keep = [e for e in self.dropped.get(agent_id, []) if t - e[0] <= options.dropped_memory_s]
+        self.dropped[agent_id] = keep
+        pts = [p[:2] for _, m, p in keep if m == map_id]
+        return np.array(pts, dtype=np.float64).reshape(-1, 2)
+
+    def match(
+        self,
+        agent_id: str,
+        map_id: int,
+        position: F64,
+        t: float,
+        candidates: Sequence[tuple[int, F64]],
+        options: AuctionOptions,
+    ) -> int | None:
+        """The frontier (an index of ``candidates``' first entries) that stands for the agent's held goal,
+        or None when it holds none or has just dropped it (reached, gone, no progress, another map).
+
+        ``candidates``: (frontier index, the agent's kind's goal (3,)) of the frontiers it may take."""
+        h = self.held.get(agent_id)
+        if h is None:
+            return None
+        if h.map_id != map_id:  # merged into another map: the position is in a frame that is gone
+            self.held.pop(agent_id)
+            self.reasons["map changed"] = self.reasons.get("map changed", 0) + 1
+            return None
+        dist = float(np.linalg.norm(h.position[:2] - position[:2]))
+        if dist < options.held_reached_m:
+            self._drop(agent_id, h, t, "reached")
+            return None
+        if dist < h.best_dist - options.held_progress_m:
+            h = replace(h, best_dist=dist, best_at=t)
+            self.held[agent_id] = h
+        elif t - h.best_at > options.held_stall_s:
+            self._drop(agent_id, h, t, "no progress")
+            return None
+        if not candidates:
+            self._drop(agent_id, h, t, "explored")
+            return None
+        d = [float(np.linalg.norm(g[:2] - h.position[:2])) for _, g in candidates]
+        k = int(np.argmin(d))
+        if d[k] > options.held_match_m:
+            self._drop(agent_id, h, t, "explored")
+            return None
+        return candidates[k][0]
+
+    def hold(self, agent_id: str, map_id: int, goal: F64, position: F64, t: float) -> None:
+        """The agent takes ``goal`` (3,) as its new held goal."""
+        dist = float(np.linalg.norm(goal[:2] - position[:2]))
+        self.held[agent_id] = Held(map_id, np.asarray(goal, dtype=np.float64).copy(), t, dist, t)
