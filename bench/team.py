@@ -308,7 +308,7 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
         lines += ["[start_poses]"] + [f"{s.agent_id} = {s.start_pose}" for s in streams]
     lines += extra_toml
     cfg.write_text("\n".join(lines) + "\n")
-    from hivemap.eval.experiment import free_port
+    from hivemap.eval.processes import free_port
 
     port = free_port()
     log = open(work / "server.log", "wb")  # noqa: SIM115

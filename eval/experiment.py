@@ -29,25 +29,30 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
-import signal
-import socket
 import subprocess
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hivemap.eval.processes import (
+    HIVEMAP,
+    clean_env,
+    git_revision,
+    server_state,
+    start_server,
+    stop,
+    versions,
+    wait_health,
+)
 from hivemap.eval.rendezvous import all_together_s, merge_timeline
-from hivemap.eval.startposes import StartPoseOptions, start_poses, start_poses_toml
+from hivemap.eval.startposes import StartPoseOptions, start_poses
 from hivemap.maps.markers import LAYOUT_FILE
 
 log = logging.getLogger(__name__)
 
-HIVEMAP = [sys.executable, "-m", "hivemap.cli.main"]
 MODES = ("single", "single+gnss", "denied", "challenged1", "challenged2")
 COLOCATION = {"denied", "challenged1", "challenged2"}
 MAX_DIFF = 0.02  # s; frames are at >= 10 Hz, ground truth at the IMU/ground-truth rate
@@ -104,45 +109,6 @@ def world_key(scenario: str, seed: int | None) -> str:
     return base if seed is None else f"{base}-s{seed}"
 
 
-# ------------------------------------------------------------------------------------ process helpers
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def clean_env() -> dict[str, str]:
-    return {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
-
-
-def wait_health(url: str, proc: subprocess.Popen[bytes], timeout: float = 60.0) -> None:
-    import httpx
-
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"server exited with code {proc.returncode}")
-        try:
-            r = httpx.get(url + "/health", timeout=1.0)
-            # "loading": the HTTP server is up but the store is still loading (agents would be told to retry)
-            if r.status_code == 200 and r.json().get("status") != "loading":
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    raise RuntimeError("server did not become healthy in time")
-
-
-def stop(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
 def ensure_scenario(name: str, data: Path, seed: int | None = None) -> Path:
     """The rendered directory of scenario ``name`` with world ``seed`` (``hivemap sim render``, resumable;
     reused when every agent is complete)."""
@@ -160,58 +126,6 @@ def ensure_scenario(name: str, data: Path, seed: int | None = None) -> Path:
         cmd = [*HIVEMAP, "sim", "render", "--scenario", name, "--out", str(scen), "--no-progress"]
         subprocess.run(cmd + ([] if seed is None else ["--seed", str(seed)]), check=True)
     return scen
-
-
-# The server keeps this many events; the runner reads them all (one /events request allows 100k). The
-# default 10k ring buffer lost the first 3-18 % of the events of a 4-agent factory run (placerec_candidate
-# events dominate), and with them the start merges and early recognitions of Tables 6-7.
-EXPERIMENT_EVENT_BUFFER = 100_000
-
-
-def write_server_config(
-    path: Path,
-    tokens: dict[str, str],
-    start_table: dict[str, Any] | None = None,
-    event_buffer: int | None = None,
-    extra: str = "",
-) -> None:
-    """A server TOML config: one token per agent, the start configuration (:mod:`.startposes`) and the
-    ``extra`` TOML tables."""
-    path.write_text(
-        ("" if event_buffer is None else f"event_buffer = {int(event_buffer)}\n")
-        + "[tokens]\n"
-        + "".join(f'{a} = "{t}"\n' for a, t in tokens.items())
-        + (start_poses_toml(start_table) if start_table else "")
-        + ("\n" + extra if extra else "")
-    )
-
-
-def git_revision() -> str:
-    try:
-        root = Path(__file__).resolve().parents[1]
-        rev = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-        ).stdout.strip()
-        return rev + ("+dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def versions() -> dict[str, str]:
-    from importlib import metadata
-
-    out = {"python": sys.version.split()[0]}
-    for pkg in ("hivemap", "numpy", "gtsam", "pycolmap", "evo", "opencv-python-headless"):
-        try:
-            out[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            out[pkg] = "not installed"
-    return out
 
 
 # ------------------------------------------------------------------------------------------ results
@@ -407,26 +321,6 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
             lf.close()
 
 
-def start_server(
-    work: Path, tokens: dict[str, str], start_table: dict[str, Any] | None, extra: str
-) -> tuple[str, str, subprocess.Popen[bytes], Any]:
-    """A fresh server for one run in ``work/server`` (its config, data and log there), on a free local
-    port: (REST url, agents' WebSocket url, its process, its open log file, to close when it stops)."""
-    port = free_port()
-    sdir = work / "server"
-    shutil.rmtree(sdir, ignore_errors=True)
-    sdir.mkdir(parents=True)
-    cfg = sdir / "server.toml"
-    write_server_config(cfg, tokens, start_table, event_buffer=EXPERIMENT_EVENT_BUFFER, extra=extra)
-    slog = open(sdir / "server.log", "wb")  # noqa: SIM115
-    server = subprocess.Popen(
-        [*HIVEMAP, "server", "--host", "127.0.0.1", "--port", str(port),
-         "--data-dir", str(sdir / "data"), "--config", str(cfg)],
-        stdout=slog, stderr=subprocess.STDOUT, env=clean_env(),
-    )  # fmt: skip
-    return f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}/ws", server, slog
-
-
 def wait_agents(procs: dict[str, subprocess.Popen[bytes]], results: dict[str, AgentResult], timeout_s: float,
                 bar: Any, poll_s: float = 0.2) -> None:  # fmt: skip
     """Until every agent process has ended (its end time into its result) or ``timeout_s`` has passed,
@@ -442,17 +336,6 @@ def wait_agents(procs: dict[str, subprocess.Popen[bytes]], results: dict[str, Ag
         time.sleep(poll_s)
     for p in pending.values():
         stop(p)
-
-
-def server_state(url: str) -> tuple[dict[str, Any], list[Any], list[Any]]:
-    """The server's agents (by id), all its events and its maps, as a finished run is read."""
-    import httpx
-
-    agents = {a["agent_id"]: a for a in httpx.get(url + "/agents", timeout=30).json()["agents"]}
-    query = {"limit": EXPERIMENT_EVENT_BUFFER}
-    events = httpx.get(url + "/events", params=query, timeout=30).json()["events"]
-    maps = httpx.get(url + "/maps", timeout=30).json()["maps"]
-    return agents, events, maps
 
 
 def run_experiment(opts: ExperimentOptions) -> Path:

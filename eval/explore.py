@@ -49,6 +49,7 @@ def run_explore(
     import httpx
 
     from hivemap.eval import experiment as ex
+    from hivemap.eval import processes as proc
     from hivemap.eval.startposes import start_poses_from
     from hivemap.eval.trajectory import read_tum
     from hivemap.sim.dataset import cached_world
@@ -69,13 +70,13 @@ def run_explore(
         truth[aid] = T @ stereo_extrinsics(sc.agent(aid))[0]
     tokens = {aid: f"exp-{aid}-token" for aid, _ in agents}
     start_table = start_poses_from(truth, opts.start_poses, seed)
-    url, ws_url, server, slog = ex.start_server(work, tokens, start_table, TEAM_TOML + opts.server_toml)
-    env = ex.clean_env()
+    url, ws_url, server, slog = proc.start_server(work, tokens, start_table, TEAM_TOML + opts.server_toml)
+    env = proc.clean_env()
     procs: dict[str, subprocess.Popen[bytes]] = {}
     logs = []
     results: dict[str, Any] = {}
     try:
-        ex.wait_health(url, server)
+        proc.wait_health(url, server)
         t_server = time.time()
         for aid, kind in agents:
             out = work / aid
@@ -84,7 +85,7 @@ def run_explore(
                 aid, kind, "denied", source="live agent local.tum after corrections"
             )
             results[aid].start_wall = time.time()
-            cmd = [*ex.HIVEMAP, "agent", "--sim", f"{name}:{aid}", "--live", "--duration",
+            cmd = [*proc.HIVEMAP, "agent", "--sim", f"{name}:{aid}", "--live", "--duration",
                    str(opts.explore_duration_s), "--server", ws_url, "--agent-id", aid,
                    "--token", tokens[aid], "--out", str(out), "--wait-corrections", "30"]  # fmt: skip
             if seed is not None:
@@ -94,7 +95,7 @@ def run_explore(
             procs[aid] = subprocess.Popen(cmd, stdout=lf, stderr=subprocess.STDOUT, env=env)
         ex.wait_agents(procs, results, opts.agent_timeout_s, bar, poll_s=0.5)
         time.sleep(opts.settle_s)
-        agents_info, events, maps = ex.server_state(url)
+        agents_info, events, maps = proc.server_state(url)
         for aid, _ in agents:
             res, out = results[aid], work / aid
             res.run = ex._read_run(out)
@@ -117,8 +118,8 @@ def run_explore(
                 res.server_ate_rmse, res.server_ate_mean, res.server_n = srv.ate_rmse, srv.ate_mean, srv.n
     finally:
         for pr in procs.values():
-            ex.stop(pr)
-        ex.stop(server)
+            proc.stop(pr)
+        proc.stop(server)
         slog.close()
         for lf in logs:
             lf.close()

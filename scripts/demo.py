@@ -34,7 +34,7 @@ def main() -> int:
     args = ap.parse_args()
 
     from hivemap.client.dataset import load_scenario
-    from hivemap.eval.experiment import clean_env, stop, wait_health, write_server_config
+    from hivemap.eval.processes import clean_env, stop, wait_health, write_server_config
     from hivemap.eval.startposes import StartPoseOptions, describe, start_poses
     from hivemap.eval.trajectory import AgentRun, ate, evaluate_team, groundtruth_trajectory, read_tum
 

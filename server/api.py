@@ -11,7 +11,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import PlainTextResponse, RedirectResponse, StreamingResponse
 
-from hivemap.server import schemas, views, views_uncertainty
+from hivemap.server import schemas, views, views_metrics, views_uncertainty
 from hivemap.server.core import HiveServer
 from hivemap.server.metrics import CONTENT_TYPE
 
@@ -252,4 +252,4 @@ async def team_assignments(server: Server) -> schemas.TeamAssignments:
 )
 async def metrics(server: Server) -> PlainTextResponse:
     """Prometheus text format."""
-    return PlainTextResponse(views.metrics(server), media_type=CONTENT_TYPE)
+    return PlainTextResponse(views_metrics.metrics(server), media_type=CONTENT_TYPE)

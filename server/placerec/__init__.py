@@ -31,12 +31,11 @@ its contract (``Map.keyframes``, ``Map.points``, ``Map.best_covisible``, ``Keyfr
 
 from __future__ import annotations
 
+from hivemap.server.placerec.descmatch import match_bow, match_projected
 from hivemap.server.placerec.match import (
     _Obs,
     correction_of,
     estimate_sim3_ransac,
-    match_bow,
-    match_projected,
     pair_observations,
     refine_sim3,
 )

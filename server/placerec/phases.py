@@ -22,8 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.server.placerec.consensus import ransac_stage
+from hivemap.server.placerec.descmatch import match_bow
 from hivemap.server.placerec.job import Candidate, MapSlice, QueryJob
-from hivemap.server.placerec.match import match_bow
 from hivemap.server.placerec.types import CandidateReport
 
 log = logging.getLogger(__name__)

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from hivemap.maps.geometry import Sim3, rotation_angle_deg, se3_inverse
 from hivemap.maps.vocabulary import FeatureVector
 from hivemap.server.placerec.consensus import ransac_stage
+from hivemap.server.placerec.descmatch import match_bow
 from hivemap.server.placerec.job import QueryJob, maps_of
 from hivemap.server.placerec.match import (
     PointSet,
@@ -30,7 +31,6 @@ from hivemap.server.placerec.match import (
     correction_of,
     estimate_sim3_ransac,
     guided_search,
-    match_bow,
     refine_sim3,
 )
 from hivemap.server.placerec.phases import screen_job

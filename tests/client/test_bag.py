@@ -14,13 +14,8 @@ import yaml
 from typer.testing import CliRunner
 
 from hivemap.cli.main import app
-from hivemap.client.bag import (
-    BagSource,
-    BagTopics,
-    decode_image,
-    load_bag,
-    load_calibration,
-)
+from hivemap.client.bag import BagSource, BagTopics, decode_image, load_bag
+from hivemap.client.bag_calib import load_calibration
 from hivemap.client.bag_write import write_bag
 from hivemap.client.dataset import DatasetError, load_dataset
 from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum
