@@ -27,15 +27,10 @@ between frames (on the thread that calls ``feed_stereo``; after the last frame o
 
 from __future__ import annotations
 
-import asyncio
-import concurrent.futures
-import contextvars
-import dataclasses
 import logging
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +38,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.client.agent_stream import AgentStream
 from hivemap.client.logtags import CorrectionSummary
 from hivemap.client.rendezvous import RendezvousSource
 from hivemap.client.replay_io import _Gnss
@@ -138,7 +134,7 @@ class Agent:
         self._lock = threading.RLock()
         self._pending: list[Any] = []  # protocol Correction messages, applied between frames
         self._callbacks: list[Callable[[CorrectionInfo], None]] = []
-        self._stream: _Stream | None = None
+        self._stream: AgentStream | None = None
         self._first_session = 0  # the mission's session this process's front-end session 0 is
         self._last_correction = time.monotonic()
         self._corrections_log = CorrectionSummary(log)  # DEBUG each, INFO every 10 s
@@ -360,7 +356,7 @@ class Agent:
         if self.frames:
             raise RuntimeError("connect() before the first frame: the server needs every keyframe")
         attempts = max_connect_attempts or self.options.runner.max_connect_attempts
-        self._stream = _Stream(self, server, token, Path(out_dir), attempts)
+        self._stream = AgentStream(self, server, token, Path(out_dir), attempts)
         self._first_session = self._stream.first_session
         self.link_error = None
         self.core.on_event = self._stream.on_event
@@ -392,131 +388,3 @@ class Agent:
         self.link_stats = stream.link.stats
         self._corrections_log.flush()
         return unsent
-
-
-class _Stream:
-    """The link of a connected :class:`Agent`: its own event loop in a thread, fed thread-safely."""
-
-    def __init__(self, agent: Agent, server: str, token: str, out: Path, max_attempts: int) -> None:
-        from hivemap.client.link import AgentLink, LinkOptions
-        from hivemap.client.outbox import open_mission_outbox
-
-        out.mkdir(parents=True, exist_ok=True)
-        self.agent = agent
-        self.server = server
-        self.box = open_mission_outbox(out, agent.agent_id)
-        self.first_session = self.box.start_session()
-        if self.first_session:
-            log.info("agent %s resumes mission %s in session %d", agent.agent_id, self.box.mission,
-                     self.first_session)  # fmt: skip
-        self._sessions = {self.first_session}
-        T = agent.T_BS
-        lever = None
-        if "gnss0" in T and "cam0" in T:
-            lever = (np.linalg.inv(np.asarray(T["cam0"])) @ np.asarray(T["gnss0"]))[:3, 3].copy()
-        self.loop = asyncio.new_event_loop()
-        self.link = AgentLink(
-            server, agent.agent_id, agent.kind, agent.camera.to_dict(), token, self.box,
-            on_correction=agent.submit_correction, cam_from_antenna=lever, session=self.first_session,
-            options=LinkOptions(max_connect_attempts=max_attempts), stereo_baseline=agent.rig.baseline,
-            on_team_advisory=agent._advisory if agent._advisory_callbacks else None,
-        )  # fmt: skip
-        # the link's log lines carry the agent tag of the context that connected (hivemap.client.logtags)
-        ctx = contextvars.copy_context()
-        self._thread = threading.Thread(
-            target=ctx.run, args=(self._run,), name=f"hivemap-link-{agent.agent_id}", daemon=True
-        )
-        self._thread.start()
-        self.task: Future[Any] = asyncio.run_coroutine_threadsafe(self.link.run(), self.loop)
-
-    def _run(self) -> None:
-        asyncio.set_event_loop(self.loop)
-        self.loop.run_forever()
-        # the link's helper tasks (waits on its events) end with the loop
-        pending = [t for t in asyncio.all_tasks(self.loop) if not t.done()]
-        for t in pending:
-            t.cancel()
-        self.loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
-        self.loop.close()
-
-    def _submit(self, msg: Any) -> None:
-        # the outbox is written on the link's loop, like everything else the link does
-        self.loop.call_soon_threadsafe(self.link.submit_nowait, msg)
-
-    def on_event(self, ev: object) -> None:
-        """Front-end events -> protocol messages (as ``hivemap.client.streaming`` sends them)."""
-        from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
-        from hivemap.protocol import Keyframe, MapPoints, PoseUpdates
-
-        core = self.agent.core
-        session = self.first_session + int(getattr(ev, "session", 0))
-        if session not in self._sessions:
-            self._sessions.add(session)
-            self.box.reserve_sessions(session)
-        if isinstance(ev, KeyframeEvent):
-            if len(ev.new_point_ids):
-                self._submit(MapPoints(ev.new_point_ids, ev.new_point_xyz, ev.new_point_descriptors, session))
-            fix = core.kf_fix.get((ev.session, ev.kf_id))
-            g = core.gnss
-            self._submit(
-                Keyframe(
-                    ev.kf_id, ev.timestamp, ev.world_from_cam, ev.keypoints, ev.octaves, ev.descriptors,
-                    ev.point_ids, None if fix is None else g.enu[fix], None if fix is None else g.cov[fix],
-                    session, core.up_in_cam(ev.session, ev.kf_id), ev.prev_session_from_world,
-                    None if ev.prev_session_sigma is None else np.asarray(ev.prev_session_sigma, np.float64),
-                    ev.u_right,
-                    None if ev.odom_sigma is None else np.asarray(ev.odom_sigma, np.float64),
-                    None if ev.track_sigma is None else np.asarray(ev.track_sigma, np.float64),
-                )
-            )  # fmt: skip
-        elif isinstance(ev, PoseUpdateEvent):
-            self._submit(PoseUpdates(ev.kf_ids, ev.world_from_cam, ev.point_ids, ev.xyz, session))
-
-    def send_rendezvous(self, r: Rendezvous) -> None:
-        """A rendezvous of the front-end's session ``r.session``, into the outbox like every message."""
-        self._submit(dataclasses.replace(r, session=self.first_session + int(r.session)))
-
-    def failure(self) -> BaseException | None:
-        """Why the link's task ended, if it ended by itself (None while it runs or after a clean close)."""
-        if not self.task.done() or self.task.cancelled():
-            return None
-        return self.task.exception()
-
-    def close(self, timeout: float, stop: threading.Event | None) -> int:
-        from hivemap.client.health import wait_for_server
-
-        def stopping() -> bool:
-            return stop is not None and stop.is_set()
-
-        if not stopping() and not self.task.done():
-            flush = asyncio.run_coroutine_threadsafe(asyncio.wait_for(self.link.flush(), timeout), self.loop)
-            if not _wait(flush, stop, self.task):
-                log.warning("server did not acknowledge everything within %.0f s", timeout)
-        if not stopping() and not self.task.done():
-            agent = self.agent
-            wait_for_server(self.server, agent.options.runner, lambda: agent._last_correction,
-                            agent.apply_corrections, stop)  # fmt: skip
-
-        async def end(finish_mission: bool) -> None:
-            # all acknowledged: the next start on this outbox is a new mission (before close shuts it)
-            if finish_mission and not self.task.done() and self.box.finish():
-                log.info("agent %s: mission %s complete", self.agent.agent_id, self.box.mission)
-            await self.link.close()
-
-        asyncio.run_coroutine_threadsafe(end(not stopping()), self.loop).result()
-        if (exc := self.failure()) is not None:  # refused or unreachable: what is left stays in the outbox
-            log.debug("link ended: %s", exc)
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self._thread.join(10.0)
-        return int(self.link.unsent)
-
-
-def _wait(fut: Future[Any], stop: threading.Event | None, link: Future[Any]) -> bool:
-    """Wait for ``fut`` until it is done (True if it succeeded), ``stop`` is set or the link ended (then
-    ``fut`` is cancelled)."""
-    while not fut.done():
-        if (stop is not None and stop.is_set()) or link.done():
-            fut.cancel()
-            return False
-        concurrent.futures.wait([fut], timeout=0.1)
-    return not fut.cancelled() and fut.exception() is None
