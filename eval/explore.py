@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 
 EXPLORE_MODES = ("explore", "explore1")
 START_ZONE_M = 3.0  # pairs closer than this to their own start points are still taking off together
+GOAL_JUMP_M = 1.0  # a first goal that moved by more than this between advisories sent its agent elsewhere
 # the server pushes advisories twice a second and recomputes goals at most once a second
 TEAM_TOML = "[team]\nmin_interval_s = 1.0\npush_interval_s = 0.5\n"
 
@@ -264,10 +265,37 @@ def explore_section(out: Path, results: dict[tuple[str, str], dict[str, Any]], d
         for p in d.get("pairs", []):
             md.append(f"| {s} | {m} | {p['a']}-{p['b']} | {_f(p.get('margin_m'))} | {_f(p['radii_m'])} | "
                       f"{p['clear']} | {_f(p['min_m'])} ({_f(p['min_all_m'])}) |")  # fmt: skip
+    md += ["", f"Goals: how often an agent's first goal moved by more than {GOAL_JUMP_M:g} m from one "
+           "advisory to the next (turning it towards another place), and how many of those moves went back "
+           "to one of its previous six first goals; ATE as a share of the path.", "",
+           "| world | mode | agent | advisories | goals reached | first goal moved | back to a recent one "
+           "| ATE / path |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for (s, m), d in runs.items():
+        for a in d["agents"]:
+            live = a["run"].get("live", {})
+            moved, back = goal_changes(live.get("advisory_log", []))
+            path = live.get("path_length_m") or 0.0
+            share = "-" if a.get("ate_rmse") is None or path <= 0 else f"{100 * a['ate_rmse'] / path:.3f} %"
+            md.append(f"| {s} | {m} | {a['agent_id']} | {live.get('advisories', 0)} | "
+                      f"{live.get('goals_reached', 0)} | {moved} | {back} | {share} |")  # fmt: skip
     md.append("")
     img = _coverage_plot(runs, dest)
     md += [f"![coverage over time]({img})", ""]
     return md
+
+
+def goal_changes(advisory_log: list[dict[str, Any]], jump_m: float = GOAL_JUMP_M) -> tuple[int, int]:
+    """(times the first goal moved by more than ``jump_m`` between advisories, of those the moves back to
+    within ``jump_m`` of one of the previous six first goals) from a live agent's advisory log."""
+    firsts = [np.asarray(e["goals"][0][:2], dtype=np.float64) for e in advisory_log if e.get("goals")]
+    moved = back = 0
+    recent: list[Any] = []
+    for a, b in zip(firsts, firsts[1:], strict=False):
+        if np.linalg.norm(b - a) > jump_m:
+            moved += 1
+            back += any(np.linalg.norm(b - r) <= jump_m for r in recent[-6:])
+            recent.append(a)
+    return moved, back
 
 
 def _f(x: float | None) -> str:

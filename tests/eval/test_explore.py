@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from hivemap.client.replay_io import write_tum_poses
-from hivemap.eval.explore import explore_agents, explore_section, pair_distances
+from hivemap.eval.explore import explore_agents, explore_section, goal_changes, pair_distances
 from hivemap.sim.scenarios import get_scenario
 
 
@@ -54,7 +54,9 @@ def test_agents_of_the_modes_and_the_report(tmp_path: Path) -> None:
     assert explore_agents(sc, "explore1", None) == [("uav1", "uav")]
     assert explore_agents(sc, "explore", ["uav2", "ugv"]) == [("uav2", "uav"), ("ugv", "ugv")]
     cov = {"times": [0.0, 1.0, 2.0], "fraction": [0.1, 0.5, 0.85], "final": 0.85, "t_target": 2.0, "cells": 9}
-    agent = {"agent_id": "uav1", "ate_rmse": 0.1, "run": {"live": {"path_length_m": 12.0}}}
+    log = [{"goals": [[0.0, 0.0, 1.0]]}, {"goals": [[5.0, 0.0, 1.0]]}]
+    live = {"path_length_m": 12.0, "advisories": 2, "goals_reached": 1, "advisory_log": log}
+    agent = {"agent_id": "uav1", "ate_rmse": 0.1, "run": {"live": live}}
     run = {
         "coverage": {"team": cov, "target": 0.8},
         "agents": [agent],
@@ -64,4 +66,15 @@ def test_agents_of_the_modes_and_the_report(tmp_path: Path) -> None:
     md = explore_section(tmp_path, {("w", "explore1"): run, ("w", "denied"): {"agents": []}}, tmp_path)
     row = next(line for line in md if line.startswith("| w | explore1"))
     assert "85.0%" in row and "2.0 (target 80%)" in row and "uav1 12" in row
+    goals = next(line for line in md if line.startswith("| w | explore1 | uav1 |"))
+    assert goals == "| w | explore1 | uav1 | 2 | 1 | 1 | 0 | 0.833 % |"
     assert (tmp_path / "img" / "coverage.png").stat().st_size > 1000
+
+
+def test_goal_changes_by_hand() -> None:
+    # first goals A, A + 0.5 m (kept), B, A (back to a recent one), C, no goals (skipped), C
+    a, b, c = [0.0, 0.0, 2.0], [10.0, 0.0, 2.0], [0.0, 10.0, 2.0]
+    log = [{"goals": [g]} for g in (a, [0.5, 0.0, 2.0], b, a, c)] + [{"goals": []}, {"goals": [c, a]}]
+    assert goal_changes(log) == (3, 1)
+    assert goal_changes(log, jump_m=20.0) == (0, 0)
+    assert goal_changes([]) == (0, 0)
