@@ -155,7 +155,7 @@ class Agent:
     @classmethod
     def from_calibration(cls, paths: Sequence[str | Path], **kwargs: Any) -> Agent:
         """From a EuRoC ``mav0`` folder or Kalibr yaml files (as ``hivemap agent --calib``)."""
-        from hivemap.client.bag import load_calibration
+        from hivemap.client.bag_calib import load_calibration
 
         calib = load_calibration([Path(p) for p in paths])
         if "cam1" not in calib.cameras:
