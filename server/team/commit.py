@@ -4,9 +4,10 @@ The seed (001, 4.2) auctions a set of frontier points once and lets every drone 
 before the next round. The server re-runs frontiers and auction every few seconds on a map that grows as
 the agents move, so a plain re-auction hands an agent a different first goal each time, and it turns back
 and forth covering nothing. An agent therefore keeps its first goal until it is reached, is no longer a
-frontier (explored, by it or by another agent), or the agent stops getting nearer to it (unreachable, e.g.
-off the roads); only then does it take a new one. Goals dropped that way are not given back to the same
-agent for a while, since the frontier near a reached goal lingers until the map catches up.
+frontier (explored, by it or by another agent), the agent stands still short of it (its controller went as
+near as the roads go, or gave up), or it stops getting nearer to it (a detour that does not end); only
+then does it take a new one. A goal given up is not offered to the same agent again for a while, since the
+frontier near a reached goal lingers until the map catches up.
 
 Times are the agent's mission time (its latest keyframe's timestamp), so the rules hold whatever pace the
 agents run at.
@@ -34,6 +35,8 @@ class Held:
     since: float  # mission time it was assigned
     best_dist: float  # the least horizontal distance the agent has come to it
     best_at: float  # mission time of that
+    anchor: F64  # (3,) where the agent was when it last moved by held_progress_m
+    moved_at: float  # mission time of that
 
 
 @dataclass
@@ -81,12 +84,17 @@ class Commitments:
         if dist < options.held_reached_m:
             self._drop(agent_id, h, t, "reached")
             return None
+        if np.linalg.norm(position - h.anchor) > options.held_progress_m:
+            h = replace(h, anchor=np.asarray(position, dtype=np.float64).copy(), moved_at=t)
+        elif t - h.moved_at > options.held_idle_s:
+            self._drop(agent_id, h, t, "stopped short")
+            return None
         if dist < h.best_dist - options.held_progress_m:
             h = replace(h, best_dist=dist, best_at=t)
-            self.held[agent_id] = h
         elif t - h.best_at > options.held_stall_s:
             self._drop(agent_id, h, t, "no progress")
             return None
+        self.held[agent_id] = h
         if not candidates:
             self._drop(agent_id, h, t, "explored")
             return None
@@ -100,4 +108,5 @@ class Commitments:
     def hold(self, agent_id: str, map_id: int, goal: F64, position: F64, t: float) -> None:
         """The agent takes ``goal`` (3,) as its new held goal."""
         dist = float(np.linalg.norm(goal[:2] - position[:2]))
-        self.held[agent_id] = Held(map_id, np.asarray(goal, dtype=np.float64).copy(), t, dist, t)
+        here = np.asarray(position, dtype=np.float64).copy()
+        self.held[agent_id] = Held(map_id, np.asarray(goal, dtype=np.float64).copy(), t, dist, t, here, t)

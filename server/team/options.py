@@ -55,9 +55,11 @@ class AuctionOptions:
     max_fixes: int = 50  # at most this many (the fixes are not independent: a cap keeps it a proxy)
     # goal commitment (:mod:`.commit`): an agent keeps its first goal while a frontier it may take lies
     # within held_match_m of it (a frontier's goal moves within its cluster tile as the map grows), until
-    # it comes within held_reached_m, or for held_stall_s of mission time it got no held_progress_m nearer
+    # it comes within held_reached_m, stands still (moves less than held_progress_m) for held_idle_s, or
+    # for held_stall_s it got no held_progress_m nearer (all in mission time)
     held_match_m: float = 4.0
     held_reached_m: float = 2.0
+    held_idle_s: float = 5.0
     held_stall_s: float = 20.0
     held_progress_m: float = 1.0
     # a goal given up is not offered to the same agent again for this long (mission time)

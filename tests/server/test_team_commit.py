@@ -67,14 +67,25 @@ def test_a_held_goal_is_dropped_when_reached_explored_or_out_of_reach() -> None:
     fr = _frontiers((12.0 + o.held_match_m + 0.5, 6.0), far)
     assert _first_goal(svc, fr, _ugv(10.0, 1.0, 12.0)) == [12.0 + o.held_match_m + 0.5, 6.0]
     assert svc.commits.reasons == {"reached": 1, "explored": 1}
-    # out of reach: the agent gets no nearer for held_stall_s, so the goal goes and another is taken
+    # stopped short: the agent stands 8 m from its goal (as near as its roads go) for held_idle_s
     t0 = 12.0
-    for k in range(4):
-        assert _first_goal(svc, fr, _ugv(10.0, 1.0, t0 + k * o.held_stall_s / 4)) == [16.5, 6.0]
-    assert _first_goal(svc, fr, _ugv(10.0, 1.0, t0 + o.held_stall_s + 1.0)) == list(far)
+    assert _first_goal(svc, fr, _ugv(10.0, 1.0, t0 + o.held_idle_s - 0.5)) == [16.5, 6.0]
+    assert _first_goal(svc, fr, _ugv(10.0, 1.0, t0 + o.held_idle_s + 0.5)) == list(far)
+    assert svc.commits.reasons["stopped short"] == 1
+    # no progress: the agent keeps moving (a detour around a block) but gets no nearer for held_stall_s
+    fr2 = _frontiers((0.0, 30.0), far)
+    t1 = t0 + o.held_idle_s + 1.0
+    svc.commits.held.clear()
+    assert _first_goal(svc, fr2, _ugv(0.0, 10.0, t1)) == [0.0, 30.0]
+    circle = [(0.0, 10.0), (12.0, 14.0), (16.0, 18.0), (12.0, 14.0)]  # each 20 m from the goal
+    n = int(o.held_stall_s // 2) + 1
+    for k in range(n):
+        x, y = circle[k % 4]
+        assert _first_goal(svc, fr2, _ugv(x, y, t1 + 2.0 * k)) == [0.0, 30.0]
+    assert _first_goal(svc, fr2, _ugv(0.0, 10.0, t1 + 2.0 * n + 0.5)) == list(far)
     assert svc.commits.reasons["no progress"] == 1
-    # once forgotten, the dropped goal may be won again
-    later = t0 + o.held_stall_s + 1.0 + o.dropped_memory_s + 1.0
+    # once forgotten, a dropped goal may be won again
+    later = t1 + 2.0 * n + 0.5 + o.dropped_memory_s + 1.0
     svc.commits.held.clear()
     assert _first_goal(svc, fr, _ugv(10.0, 1.0, later)) == [16.5, 6.0]
 
