@@ -6,8 +6,10 @@ the agents move, so a plain re-auction hands an agent a different first goal eac
 and forth covering nothing. An agent therefore keeps its first goal until it is reached, is no longer a
 frontier (explored, by it or by another agent), the agent stands still short of it (its controller went as
 near as the roads go, or gave up), or it stops getting nearer to it (a detour that does not end); only
-then does it take a new one. A goal given up is not offered to the same agent again for a while, since the
-frontier near a reached goal lingers until the map catches up.
+then does it take a new one. A goal given up is not offered to the same agent again for a while. A goal
+reached, or stood at, is not offered to anyone again: its agent has looked from there, and a frontier that
+is still there afterwards faces space with nothing to map (the site's empty margin, where the map never
+grows and the frontier would draw agents back for ever).
 
 Times are the agent's mission time (its latest keyframe's timestamp), so the rules hold whatever pace the
 agents run at.
@@ -26,6 +28,10 @@ from hivemap.server.team.options import AuctionOptions
 F64 = NDArray[np.float64]
 
 
+# the agent went there, or as near as it could: what it could see from there it has seen
+VISITED = ("reached", "stopped short")
+
+
 @dataclass(frozen=True)
 class Held:
     """A goal an agent holds, in its map's frame."""
@@ -41,23 +47,27 @@ class Held:
 
 @dataclass
 class Commitments:
-    """The goals the team holds and the ones each agent gave up lately."""
+    """The goals the team holds, the ones each agent gave up lately, and the places visited."""
 
     held: dict[str, Held] = field(default_factory=dict)
     # agent id -> [(mission time dropped, map id, position)]
     dropped: dict[str, list[tuple[float, int, F64]]] = field(default_factory=dict)
+    visited: list[tuple[int, F64]] = field(default_factory=list)  # (map id, goal position) reached
     reasons: dict[str, int] = field(default_factory=dict)  # why goals were dropped, counted
 
     def _drop(self, agent_id: str, h: Held, t: float, why: str) -> None:
         self.held.pop(agent_id, None)
         self.dropped.setdefault(agent_id, []).append((t, h.map_id, h.position))
+        if why in VISITED:
+            self.visited.append((h.map_id, h.position))
         self.reasons[why] = self.reasons.get(why, 0) + 1
 
-    def recently_dropped(self, agent_id: str, map_id: int, t: float, options: AuctionOptions) -> F64:
-        """(K, 2) the goals the agent gave up in its map within the memory, forgetting older ones."""
+    def struck(self, agent_id: str, map_id: int, t: float, options: AuctionOptions) -> F64:
+        """(K, 2) where in its map the agent may not be sent: the goals it gave up within the memory
+        (older ones are forgotten) and every goal the team visited."""
         keep = [e for e in self.dropped.get(agent_id, []) if t - e[0] <= options.dropped_memory_s]
         self.dropped[agent_id] = keep
-        pts = [p[:2] for _, m, p in keep if m == map_id]
+        pts = [p[:2] for _, m, p in keep if m == map_id] + [p[:2] for m, p in self.visited if m == map_id]
         return np.array(pts, dtype=np.float64).reshape(-1, 2)
 
     def match(

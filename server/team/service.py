@@ -200,7 +200,8 @@ class TeamService:
         self, map_id: int, fr: FrontierResult, team: list[_AgentSnap], goals: F64, allowed: NDArray[np.bool_]
     ) -> list[int | None]:
         """Per agent, the frontier that stands for the goal it holds (None: it takes a new one), the held
-        position written into ``goals``; the goals it gave up lately are struck from ``allowed``."""
+        position written into ``goals``; the goals it gave up lately and those the team visited are struck
+        from ``allowed``."""
         ao = self.options.auction
         first: list[int | None] = []
         for i, a in enumerate(team):
@@ -213,7 +214,7 @@ class TeamService:
             j = self.commits.match(a.agent_id, map_id, a.position, t, cands, ao)
             if j is not None:
                 goals[j] = self.commits.held[a.agent_id].position[:2]
-            gone = self.commits.recently_dropped(a.agent_id, map_id, t, ao)
+            gone = self.commits.struck(a.agent_id, map_id, t, ao)
             if len(gone) and len(goals):
                 near = (np.linalg.norm(goals[:, None, :] - gone[None], axis=2) < ao.held_match_m).any(axis=1)
                 if j is not None:

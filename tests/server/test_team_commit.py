@@ -84,10 +84,24 @@ def test_a_held_goal_is_dropped_when_reached_explored_or_out_of_reach() -> None:
         assert _first_goal(svc, fr2, _ugv(x, y, t1 + 2.0 * k)) == [0.0, 30.0]
     assert _first_goal(svc, fr2, _ugv(0.0, 10.0, t1 + 2.0 * n + 0.5)) == list(far)
     assert svc.commits.reasons["no progress"] == 1
-    # once forgotten, a dropped goal may be won again
+    # once forgotten, a goal given up on the way may be won again; one the agent stood at may not
     later = t1 + 2.0 * n + 0.5 + o.dropped_memory_s + 1.0
     svc.commits.held.clear()
-    assert _first_goal(svc, fr, _ugv(10.0, 1.0, later)) == [16.5, 6.0]
+    assert _first_goal(svc, fr2, _ugv(0.0, 10.0, later)) == [0.0, 30.0]
+    svc.commits.held.clear()
+    assert _first_goal(svc, fr, _ugv(10.0, 1.0, later)) == list(far)
+
+
+def test_a_visited_goal_is_offered_to_no_one_again() -> None:
+    """A frontier that stays after an agent reached it faces nothing to map (the site's margin): another
+    agent is not sent there either."""
+    svc = TeamService(server=None, options=TeamOptions())
+    fr = _frontiers((10.0, 0.0), (-20.0, 0.0))
+    assert _first_goal(svc, fr, _ugv(0.0, 0.0, 0.0)) == [10.0, 0.0]
+    assert _first_goal(svc, fr, _ugv(9.5, 0.0, 8.0)) == [-20.0, 0.0]  # reached; the frontier lingers
+    other = _AgentSnap("ugv2", "ugv", 0, np.array([12.0, 0.0, 0.0]), np.zeros(3), 500.0)
+    out = svc._assign(0, fr, [other], [svc._covariance("ugv2")])
+    assert out.agents[0].goal_positions[0][:2] == [-20.0, 0.0]
 
 
 def test_a_held_goal_in_another_map_is_forgotten() -> None:
