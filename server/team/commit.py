@@ -38,7 +38,6 @@ class Held:
 
     map_id: int
     position: F64  # (3,) as it was assigned: the agent's kind's goal of the frontier
-    since: float  # mission time it was assigned
     best_dist: float  # the least horizontal distance the agent has come to it
     best_at: float  # mission time of that
     anchor: F64  # (3,) where the agent was when it last moved by held_progress_m
@@ -80,7 +79,8 @@ class Commitments:
         options: AuctionOptions,
     ) -> int | None:
         """The frontier (an index of ``candidates``' first entries) that stands for the agent's held goal,
-        or None when it holds none or has just dropped it (reached, gone, no progress, another map).
+        or None when it holds none or has just dropped it (reached, stopped short, no progress, explored,
+        another map).
 
         ``candidates``: (frontier index, the agent's kind's goal (3,)) of the frontiers it may take."""
         h = self.held.get(agent_id)
@@ -119,4 +119,4 @@ class Commitments:
         """The agent takes ``goal`` (3,) as its new held goal."""
         dist = float(np.linalg.norm(goal[:2] - position[:2]))
         here = np.asarray(position, dtype=np.float64).copy()
-        self.held[agent_id] = Held(map_id, np.asarray(goal, dtype=np.float64).copy(), t, dist, t, here, t)
+        self.held[agent_id] = Held(map_id, np.asarray(goal, dtype=np.float64).copy(), dist, t, here, t)
