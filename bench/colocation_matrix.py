@@ -45,7 +45,10 @@ HIVEMAP = [sys.executable, "-m", "hivemap.cli.main"]
 
 
 def world_key(scenario: str, seed: str) -> str:
-    return scenario if seed == "default" else f"{scenario}-s{seed}"
+    """The runner's folder name of a world; ``seed`` as given on the command line (``default`` or N)."""
+    from hivemap.eval.experiment import world_key as runner_key
+
+    return runner_key(scenario, None if seed == "default" else int(seed))
 
 
 def cmd_run(a: argparse.Namespace) -> None:

@@ -56,9 +56,10 @@ class Commitments:
 
     def _drop(self, agent_id: str, h: Held, t: float, why: str) -> None:
         self.held.pop(agent_id, None)
-        self.dropped.setdefault(agent_id, []).append((t, h.map_id, h.position))
-        if why in VISITED:
+        if why in VISITED:  # struck for everyone for good: no need to remember it for the agent too
             self.visited.append((h.map_id, h.position))
+        else:
+            self.dropped.setdefault(agent_id, []).append((t, h.map_id, h.position))
         self.reasons[why] = self.reasons.get(why, 0) + 1
 
     def struck(self, agent_id: str, map_id: int, t: float, options: AuctionOptions) -> F64:

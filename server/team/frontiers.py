@@ -40,6 +40,10 @@ class Frontier:
     reachable: tuple[str, ...]
     goals: dict[str, F64] = field(default_factory=dict)
 
+    def goal_for(self, kind: str) -> F64:
+        """Where an agent of ``kind`` goes for this frontier."""
+        return self.goals.get(kind, self.goal)
+
 
 @dataclass(frozen=True)
 class FrontierResult:

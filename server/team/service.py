@@ -23,7 +23,7 @@ from hivemap.protocol import TeamAdvisory
 from hivemap.server import schemas
 from hivemap.server.team.auction import d_optimal_gain, ssi_auction
 from hivemap.server.team.commit import Commitments
-from hivemap.server.team.frontiers import Frontier, FrontierResult, extract
+from hivemap.server.team.frontiers import FrontierResult, extract
 from hivemap.server.team.options import TeamOptions
 from hivemap.server.team.orca import AgentMotion, advisories, inflated_radius
 
@@ -207,7 +207,7 @@ class TeamService:
         for i, a in enumerate(team):
             t = self._t(a)
             cands = [
-                (j, _kind_goal(f, a.kind))
+                (j, f.goal_for(a.kind))
                 for j, f in enumerate(fr.frontiers)
                 if allowed[i, j] and j not in first
             ]
@@ -253,10 +253,10 @@ class TeamService:
         for a, tour, held in zip(team, res.tours, first, strict=True):
             if tour and held is None:
                 f0 = fr.frontiers[tour[0]]
-                self.commits.hold(a.agent_id, map_id, _kind_goal(f0, a.kind), a.position, self._t(a))
+                self.commits.hold(a.agent_id, map_id, f0.goal_for(a.kind), a.position, self._t(a))
         goal_at = [
             [
-                self.commits.held[a.agent_id].position if g == held else _kind_goal(fr.frontiers[g], a.kind)
+                self.commits.held[a.agent_id].position if g == held else fr.frontiers[g].goal_for(a.kind)
                 for g in tour
             ]
             for a, tour, held in zip(team, res.tours, first, strict=True)
@@ -303,11 +303,6 @@ class TeamService:
             map_id=map_id, frontiers=len(fr.frontiers), agents=out_agents, rounds=rounds,
             unassigned=[ids[g] for g in res.unassigned],
         )  # fmt: skip
-
-
-def _kind_goal(f: Frontier, kind: str) -> F64:
-    """Where an agent of ``kind`` goes for frontier ``f``."""
-    return f.goals.get(kind, f.goal)
 
 
 def frontier_list(
