@@ -244,6 +244,32 @@ def quality(rec: Path, events: list[dict[str, Any]]) -> dict[str, Any]:
     }  # fmt: skip
 
 
+def team_ate(url: str, rec: Path, work: Path) -> dict[str, Any]:
+    """The first copy's team ATE in the server's global frame (one SE(3) alignment per map, as the
+    experiment runner's): replaying a recorded run into a server with other options judges the back-end
+    alone on the same keyframe streams."""
+    from hivemap.eval.globalmap import team_by_map
+    from hivemap.eval.trajectory import groundtruth_trajectory, write_tum
+
+    meta = json.loads((rec / "team.json").read_text())
+    scen, out = Path(meta["scenario_dir"]), work / "server_tum"
+    out.mkdir(parents=True, exist_ok=True)
+    agents = []
+    for a in meta["agents"]:
+        aid = a["agent_id"]
+        info = httpx.get(url + f"/agents/{aid}", timeout=60)
+        r = httpx.get(url + f"/agents/{aid}/trajectory", params={"frame": "global", "format": "tum"},
+                      timeout=60)  # fmt: skip
+        if info.status_code != 200 or r.status_code != 200 or not r.text.strip():
+            continue
+        (out / f"{aid}.est.tum").write_text(r.text)
+        write_tum(out / f"{aid}.gt.tum", groundtruth_trajectory(scen / aid, sensor="cam0"))
+        agents.append((aid, info.json().get("map_id")))
+    maps = team_by_map(out, agents)
+    worst = max((m["team_ate_rmse"] for m in maps if m["team_ate_rmse"] is not None), default=float("nan"))
+    return {"team_ate_worst": worst, "team_maps": maps}
+
+
 def _base_id(folded: str) -> str:
     aid, _, rest = folded.partition("#")
     head, sep, tail = aid.rpartition("c")
@@ -342,6 +368,7 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
         fig = httpx.get(url + "/bench/figures", timeout=30).json()
         rss = _proc_rss_mb(proc.pid)
         events = httpx.get(url + "/events", params={"limit": 100_000}, timeout=60).json()["events"]
+        team = team_ate(url, rec, work)
     finally:
         proc.terminate()
         try:
@@ -374,6 +401,7 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
         "errors": sorted({e for s in stats for e in s.errors})[:5],
     }  # fmt: skip
     res.update(quality(rec, events))
+    res.update(team)
     res["kept_up"] = bool(res["dropped"] == 0 and res["unfinished"] == 0 and res["lag_p95"] <= LAG_OK_S)
     if keep is not None:  # the server's store and log, to look at the map it made
         shutil.copytree(work, keep / f"n{n}", dirs_exist_ok=True)
@@ -397,6 +425,9 @@ def summary(r: dict[str, Any]) -> str:
         f"detections {r['detections']}, accepted candidates {r['accepted']}",
         f"loop error median {r['loop_err_m_median']:.3f} m max {r['loop_err_m_max']:.3f} m "
         f"({r['loop_errors']} loops)",
+        f"first copy's team ATE {r['team_ate_worst']:.3f} m (worst map; "
+        + ", ".join(f"{'+'.join(m['agents'])} {m['team_ate_rmse']:.3f}" for m in r["team_maps"])
+        + ")",
         f"server CPU {r['cpu_pct']:.0f} % RSS {r['rss_mb']:.0f} MB",
         "kept up" if r["kept_up"] else "BEHIND",
     ]

@@ -39,6 +39,10 @@ class AgentStream:
             log.info("agent %s resumes mission %s in session %d", agent.agent_id, self.box.mission,
                      self.first_session)  # fmt: skip
         self._sessions = {self.first_session}
+        from hivemap.client.odometry import StreamedPoses
+
+        agent.core.odometry.start()
+        self._streamed = StreamedPoses(agent.core.stream_from_vio)
         T = agent.T_BS
         lever = None
         if "gnss0" in T and "cam0" in T:
@@ -83,15 +87,17 @@ class AgentStream:
             self._sessions.add(session)
             self.box.reserve_sessions(session)
         if isinstance(ev, KeyframeEvent):
+            # at the agent's IMU-aided odometry, not its visual tracking (hivemap.client.odometry)
+            world_from_cam, xyz, guess = self._streamed.keyframe(ev)
             if len(ev.new_point_ids):
-                self._submit(MapPoints(ev.new_point_ids, ev.new_point_xyz, ev.new_point_descriptors, session))
+                self._submit(MapPoints(ev.new_point_ids, xyz, ev.new_point_descriptors, session))
             fix = core.kf_fix.get((ev.session, ev.kf_id))
             g = core.gnss
             self._submit(
                 Keyframe(
-                    ev.kf_id, ev.timestamp, ev.world_from_cam, ev.keypoints, ev.octaves, ev.descriptors,
+                    ev.kf_id, ev.timestamp, world_from_cam, ev.keypoints, ev.octaves, ev.descriptors,
                     ev.point_ids, None if fix is None else g.enu[fix], None if fix is None else g.cov[fix],
-                    session, core.up_in_cam(ev.session, ev.kf_id), ev.prev_session_from_world,
+                    session, core.up_in_cam(ev.session, ev.kf_id), guess,
                     None if ev.prev_session_sigma is None else np.asarray(ev.prev_session_sigma, np.float64),
                     ev.u_right,
                     None if ev.odom_sigma is None else np.asarray(ev.odom_sigma, np.float64),
@@ -99,7 +105,8 @@ class AgentStream:
                 )
             )  # fmt: skip
         elif isinstance(ev, PoseUpdateEvent):
-            self._submit(PoseUpdates(ev.kf_ids, ev.world_from_cam, ev.point_ids, ev.xyz, session))
+            world_from_cam, xyz = self._streamed.update(ev)
+            self._submit(PoseUpdates(ev.kf_ids, world_from_cam, ev.point_ids, xyz, session))
 
     def send_rendezvous(self, r: Rendezvous) -> None:
         """A rendezvous of the front-end's session ``r.session``, into the outbox like every message."""

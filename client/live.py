@@ -148,7 +148,9 @@ def run_live(
             session = live.mission_session
             if res.tracked and res.world_from_body is not None and session is not None:
                 G = steer.global_from_sent.get(session, np.eye(4))
-                steer.world_from_map = world_from_map(fr.world_from_body, G @ res.world_from_body)
+                # the server's frame holds the agent's keyframes at their streamed poses
+                C = live.core.latest_stream_from_vio()
+                steer.world_from_map = world_from_map(fr.world_from_body, G @ C @ res.world_from_body)
             msg = steer.take()
             if msg is not None and steer.world_from_map is not None:
                 adv = _to_world(msg, steer.world_from_map, fr.t)

@@ -157,6 +157,7 @@ class OfflineAgent:
         second_stage_options: object | None = None,
     ) -> None:
         from hivemap.client.frontend.tracker import Frontend
+        from hivemap.client.odometry import StreamOdometry
         from hivemap.client.second_stage import SecondStage, SecondStageOptions
 
         self.options = options
@@ -164,6 +165,7 @@ class OfflineAgent:
         self.stage = SecondStage(
             second_stage_options or SecondStageOptions(gravity_aligned=imu_params is not None)
         )  # type: ignore[arg-type]
+        self.odometry = StreamOdometry(self.stage.options)  # what the keyframes are streamed at
         self.gnss = gnss
         self.selected = np.zeros(0, bool)
         self._fix_by_time: dict[float, int] = {}
@@ -220,6 +222,7 @@ class OfflineAgent:
         res = self.frontend.process(t, left, right, imu, gnss_epoch=gnss_epoch)
         t1 = time.perf_counter()
         self.stage.add_imu(imu)
+        self.odometry.add_imu(imu)
         self._consume(self.frontend.poll_events())
         t2 = time.perf_counter()
         self.fe_ms.append(1e3 * (t1 - t0))
@@ -302,6 +305,7 @@ class OfflineAgent:
                     if node is not None:
                         upd[node] = T_wc @ cam_from_body
                 self.stage.update_vio_poses(upd)
+                self.odometry.update_vio_poses(upd)
             if self.on_event is not None:
                 self.on_event(ev)
 
@@ -315,18 +319,20 @@ class OfflineAgent:
         prev = self._node_of.get((ev.session, ev.prev_kf_id)) if ev.prev_kf_id is not None else None
         new_segment = ev.session not in self._sess_segment
         T_wb = np.asarray(ev.world_from_body, dtype=np.float64)
+        kw: dict[str, object]
         if new_segment:
-            self.stage.add_keyframe(node, ev.timestamp, T_wb, new_segment=True)
-            self._sess_segment[ev.session] = self.stage.segment_count - 1
+            kw = {"new_segment": True}
         elif prev is not None and ev.rel_body is not None and ev.rel_cov is not None:
-            self.stage.add_keyframe(
-                node, ev.timestamp, T_wb, ev.rel_cov, prev_id=prev, prev_from_kf=ev.rel_body
-            )
+            kw = {"rel_cov": ev.rel_cov, "prev_id": prev, "prev_from_kf": ev.rel_body}
         else:
             # No relative pose from the front-end: chain to the session's last keyframe.
             last = max(n for (s, _), n in self._node_of.items() if s == ev.session and n != node)
             rel = np.linalg.inv(self.stage.vio_pose(last)) @ T_wb
-            self.stage.add_keyframe(node, ev.timestamp, T_wb, _fallback_rel_cov(rel), prev_id=last)
+            kw = {"rel_cov": _fallback_rel_cov(rel), "prev_id": last}
+        self.stage.add_keyframe(node, ev.timestamp, T_wb, **kw)  # type: ignore[arg-type]
+        self.odometry.add_keyframe(node, ev.timestamp, T_wb, **kw)
+        if new_segment:
+            self._sess_segment[ev.session] = self.stage.segment_count - 1
         fix = self._fix_by_time.get(float(ev.timestamp))
         if fix is not None:
             d = self.stage.add_gnss(node, self.gnss.enu[fix], self.gnss.cov[fix])
@@ -335,6 +341,19 @@ class OfflineAgent:
                 self.kf_fix[(ev.session, ev.kf_id)] = fix
             else:
                 self.gnss_rejected += 1
+
+    def stream_from_vio(self, session: int, kf_id: int | None) -> F64:
+        """:meth:`StreamOdometry.stream_from_vio` of a front-end keyframe (identity if unknown)."""
+        node = None if kf_id is None else self._node_of.get((int(session), int(kf_id)))
+        return self.odometry.stream_from_vio(node)
+
+    def latest_stream_from_vio(self) -> F64:
+        """:meth:`stream_from_vio` of the newest keyframe of the latest tracked frame's session: what
+        takes a current VIO pose into the frame the agent streams in."""
+        if not self.vio_session:
+            return np.eye(4)
+        session = int(self.vio_session[-1])
+        return self.stream_from_vio(session, self._ref_kf.get(session))
 
     def apply_correction(
         self,
@@ -345,10 +364,11 @@ class OfflineAgent:
         enu: bool = False,
     ) -> int:
         """Co-location factors from a server correction (poses of the agent's keyframes in the global
-        frame + ``global_from_local`` of the frame the keyframes were sent in, here the VIO frame).
+        frame + ``global_from_local`` of the frame the keyframes were sent in: the odometry's frame,
+        :meth:`StreamOdometry.local_from_stream`).
 
-        Each corrected pose is brought back into the sent (VIO) frame, then into the local frame with
-        the segment's current ``local_from_vio``, and added as a prior with ``options.colocation_sigma``.
+        Each corrected pose is brought back into the sent frame, then into the local frame with
+        the segment's current ``local_from_stream``, and added as a prior with ``options.colocation_sigma``.
         With ``enu`` (the server's map is in the ENU frame of the GNSS fixes) and a local frame that is
         ENU too (this agent fused a fix), the corrected poses are absolute local poses: the team's
         GNSS fixes then place this agent in ENU, not only its own. Returns the number of keyframes used.
@@ -362,6 +382,7 @@ class OfflineAgent:
         rot, trans = self.options.colocation_sigma
         cov = np.diag([rot**2] * 3 + [trans**2] * 3)
         priors: dict[int, tuple[F64, F64]] = {}
+        local_from_sent: dict[int, F64] = {}
         for kid, T_gc in zip(
             np.asarray(kf_ids), np.asarray(global_from_kf_cam).reshape(-1, 4, 4), strict=True
         ):
@@ -371,8 +392,11 @@ class OfflineAgent:
             if enu and self.gnss_used > 0:
                 prior = T_gc @ cam_from_body
             else:
-                vio_from_body = sent_from_global.transform_pose(T_gc @ cam_from_body)
-                prior = self.stage.local_from_vio(self.stage.keyframe_segment(node)) @ vio_from_body
+                # the keyframe was sent at its streamed pose (:mod:`hivemap.client.odometry`)
+                seg = self.stage.keyframe_segment(node)
+                if seg not in local_from_sent:
+                    local_from_sent[seg] = self.odometry.local_from_stream(self.stage, seg)
+                prior = local_from_sent[seg] @ sent_from_global.transform_pose(T_gc @ cam_from_body)
             gap = float(np.linalg.norm(prior[:3, 3] - self.stage.keyframe_pose(node)[:3, 3]))
             if gap > self.options.colocation_gate_m:
                 # a server pose this far from ours is a server-side failure, not a correction

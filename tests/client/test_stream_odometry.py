@@ -1,0 +1,59 @@
+"""What an agent streams (client/odometry.py): keyframes moved to their IMU-aided odometry, with their
+points, pose updates and session guesses moved consistently (the odometry itself:
+``test_second_stage_imu.test_streamed_poses_hold_the_tilt_the_vio_loses``)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hivemap.client.odometry import StreamedPoses
+from hivemap.maps.geometry import se3, se3_inverse
+
+
+def _moved(table: dict[tuple[int, int], np.ndarray]):
+    return lambda s, k: table.get((s, k), np.eye(4)) if k is not None else np.eye(4)
+
+
+def _rigid(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return se3(Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_matrix(), rng.normal(0, 0.5, 3))
+
+
+def test_points_stay_where_their_keyframe_sees_them():
+    C = {(0, 7): _rigid(1), (0, 8): _rigid(2), (1, 20): _rigid(3)}
+    sp = StreamedPoses(_moved(C))
+    W = _rigid(4)
+    xyz = np.array([[1.0, 2.0, 5.0], [-1.0, 0.5, 3.0]])
+    ev = SimpleNamespace(session=0, kf_id=7, world_from_cam=W, new_point_ids=np.array([100, 101]),
+                         new_point_xyz=xyz, prev_session_from_world=None)  # fmt: skip
+    W2, xyz2, guess = sp.keyframe(ev)
+    assert guess is None
+    cam = (se3_inverse(W)[:3, :3] @ xyz.T).T + se3_inverse(W)[:3, 3]
+    cam2 = (se3_inverse(W2)[:3, :3] @ xyz2.T).T + se3_inverse(W2)[:3, 3]
+    np.testing.assert_allclose(cam2, cam, atol=1e-12)
+    # a later pose update: keyframe 8 by its own transform, point 101 by its creator's (keyframe 7)
+    sp.keyframe(SimpleNamespace(session=0, kf_id=8, world_from_cam=W, new_point_ids=np.zeros(0, np.int64),
+                                new_point_xyz=np.zeros((0, 3)), prev_session_from_world=None))  # fmt: skip
+    upd = SimpleNamespace(session=0, kf_ids=np.array([8]), world_from_cam=W[None], point_ids=np.array([101]),
+                          xyz=xyz[1:])  # fmt: skip
+    T, p = sp.update(upd)
+    np.testing.assert_allclose(T[0], C[(0, 8)] @ W, atol=1e-12)
+    np.testing.assert_allclose(p[0], C[(0, 7)][:3, :3] @ xyz[1] + C[(0, 7)][:3, 3], atol=1e-12)
+
+
+def test_a_new_sessions_guess_joins_the_two_streamed_frames():
+    C = {(0, 8): _rigid(5), (1, 20): _rigid(6)}
+    sp = StreamedPoses(_moved(C))
+    none = np.zeros(0, np.int64)
+    sp.keyframe(SimpleNamespace(session=0, kf_id=8, world_from_cam=np.eye(4), new_point_ids=none,
+                                new_point_xyz=np.zeros((0, 3)), prev_session_from_world=None))  # fmt: skip
+    G = _rigid(7)  # session 1's VIO frame in session 0's
+    x_new = np.array([2.0, -1.0, 4.0, 1.0])  # a point in session 1's VIO frame
+    first = SimpleNamespace(session=1, kf_id=20, world_from_cam=np.eye(4), new_point_ids=none,
+                            new_point_xyz=np.zeros((0, 3)), prev_session_from_world=G)  # fmt: skip
+    _, _, guess = sp.keyframe(first)
+    # the same point through either path: session 1 streamed -> session 0 streamed
+    np.testing.assert_allclose(guess @ (C[(1, 20)] @ x_new), C[(0, 8)] @ (G @ x_new), atol=1e-12)
