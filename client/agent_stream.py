@@ -41,7 +41,8 @@ class AgentStream:
         self._sessions = {self.first_session}
         from hivemap.client.odometry import StreamedPoses
 
-        agent.core.odometry.start()
+        if agent.core.options.stream_imu_odometry:
+            agent.core.odometry.start()
         self._streamed = StreamedPoses(agent.core.stream_from_vio)
         T = agent.T_BS
         lever = None

@@ -93,6 +93,14 @@ def agent_command(
             help="Second stage without IMU factors between keyframes (the IMU then only aligns gravity).",
         ),
     ] = False,
+    stream_imu_odometry: Annotated[
+        bool,
+        typer.Option(
+            "--stream-imu-odometry",
+            help="Streaming: send keyframes at an IMU-only fusion of the odometry instead of the visual "
+            "tracking (experimental: better in fog on some worlds, worse on others; docs/decisions.md).",
+        ),
+    ] = False,
     calib: Annotated[
         list[Path] | None,
         typer.Option(
@@ -138,7 +146,7 @@ def agent_command(
         raise typer.BadParameter("--sim and --live go together (a rendered dataset replays with --dataset)")
     if sim is not None:
         _live_agent(sim, seed, duration, hold, backend, out, offline, server, agent_id, token, mode,
-                    max_connect_attempts, wait_corrections, no_imu_factors)  # fmt: skip
+                    max_connect_attempts, wait_corrections, no_imu_factors, stream_imu_odometry)  # fmt: skip
         return
     assert dataset is not None
     from hivemap.client.bag import BagTopics, dataset_source
@@ -149,6 +157,7 @@ def agent_command(
         gnss=mode, seed=seed or 0, max_frames=max_frames, progress=not no_progress,
         imu_factors=not no_imu_factors, max_connect_attempts=max_connect_attempts,
         corrections_max_wait_s=wait_corrections, markers=MarkerOptions(enabled=not no_markers),
+        stream_imu_odometry=stream_imu_odometry,
     )  # fmt: skip
     out_dir = (
         out
@@ -194,7 +203,7 @@ def agent_command(
 def _live_agent(
     sim: str, seed: int | None, duration: float, hold: float | None, backend: str, out: Path | None,
     offline: bool, server: str | None, agent_id: str | None, token: str | None, mode: object,
-    max_connect_attempts: int, wait_corrections: float, no_imu_factors: bool,
+    max_connect_attempts: int, wait_corrections: float, no_imu_factors: bool, stream_imu_odometry: bool,
 ) -> None:  # fmt: skip
     """``hivemap agent --sim SCENARIO:AGENT --live``: see :mod:`hivemap.client.live`."""
     import signal
@@ -219,7 +228,7 @@ def _live_agent(
     sim_options = LiveOptions(scenario, agent, seed, duration, hold, backend)
     options = RunnerOptions(
         gnss=mode, progress=False, imu_factors=not no_imu_factors, max_connect_attempts=max_connect_attempts,
-        corrections_max_wait_s=wait_corrections,
+        corrections_max_wait_s=wait_corrections, stream_imu_odometry=stream_imu_odometry,
     )  # type: ignore[arg-type]  # fmt: skip
     stopping = threading.Event()
     stopped_by: list[str] = []

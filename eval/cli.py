@@ -215,6 +215,14 @@ def experiment_command(
     explore_duration: Annotated[
         float, typer.Option("--explore-duration", min=1.0, help="explore modes: mission time, simulated s.")
     ] = 120.0,
+    stream_imu_odometry: Annotated[
+        bool,
+        typer.Option(
+            "--stream-imu-odometry",
+            help="Agents stream keyframes at an IMU-only fusion of their odometry (`hivemap agent "
+            "--stream-imu-odometry`); run each setting into its own --out to compare.",
+        ),
+    ] = False,
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment
@@ -245,6 +253,7 @@ def experiment_command(
         server_toml=server_config.read_text() if server_config is not None else "",
         markers=markers == "on",
         explore_duration_s=explore_duration,
+        stream_imu_odometry=stream_imu_odometry,
     )
     try:
         report = run_experiment(opts)

@@ -94,6 +94,7 @@ class ExperimentOptions:
     server_toml: str = ""  # appended to every run's server config (back-end options under comparison)
     # issue 25: agents detect the marker carriers their datasets describe (off: same images, no detection)
     markers: bool = True
+    stream_imu_odometry: bool = False  # agents stream an IMU-only fusion of their odometry (`hivemap agent`)
     explore_duration_s: float = 120.0  # issue 26: mission time of the live agents of the explore modes
 
     def worlds(self) -> list[tuple[str, str, int | None]]:
@@ -160,6 +161,8 @@ def _agent_cmd(ds: Path, out: Path, gnss: str, opts: ExperimentOptions) -> list[
         cmd += ["--max-frames", str(opts.max_frames)]
     if not opts.markers:
         cmd += ["--no-markers"]
+    if opts.stream_imu_odometry:
+        cmd += ["--stream-imu-odometry"]
     return cmd
 
 
@@ -308,6 +311,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
                 "condition": "on" if opts.markers else "off",
                 "layouts": sorted(a for a, _ in agents if (scen / a / LAYOUT_FILE).exists()),
             },
+            "stream_imu_odometry": opts.stream_imu_odometry,
             "events": events,
             "maps": maps,
             "server_start_wall": t_server,

@@ -140,3 +140,48 @@ def test_streaming_replay_is_the_offline_replay_plus_the_link(tiny_agent: Path, 
     a, b = read_tum(tmp_path / "offline" / "local.tum"), read_tum(tmp_path / "streamed" / "local.tum")
     np.testing.assert_array_equal(a.timestamps, b.timestamps)
     np.testing.assert_allclose(a.positions_xyz, b.positions_xyz, atol=1e-6)
+
+
+def test_an_agent_streaming_its_imu_odometry_sends_each_keyframe_moved_to_it(
+    tiny_agent: Path, tmp_path: Path
+) -> None:
+    """``stream_imu_odometry``: every keyframe reaches the outbox at its IMU-only fusion's pose
+    (``stream_from_vio`` at emission time times the tracking's pose), which is not the tracking's."""
+    import sqlite3
+
+    from srv_helpers import TOKENS, ServerProcess, write_config
+
+    from hivemap.client.agent import AgentOptions
+    from hivemap.client.runner import RunnerOptions
+    from hivemap.protocol import Keyframe, decode
+
+    server = ServerProcess(tmp_path / "data", write_config(tmp_path / "server.toml")).start()
+    try:
+        opts = AgentOptions(RunnerOptions(progress=False, stream_imu_odometry=True))
+        agent = Agent.from_calibration([tiny_agent], agent_id="uav1", options=opts)
+        agent.connect(server.ws_url, TOKENS["uav1"], tmp_path / "agent")
+        on_event = agent.core.on_event
+        assert on_event is not None
+        expected: dict[int, np.ndarray] = {}
+
+        def both(ev: object) -> None:
+            on_event(ev)
+            if hasattr(ev, "keypoints"):
+                expected[ev.kf_id] = agent.core.stream_from_vio(ev.session, ev.kf_id) @ ev.world_from_cam  # type: ignore[attr-defined]
+
+        agent.core.on_event = both
+        _feed(agent, load_dataset(tiny_agent))
+        assert agent.close(timeout=30) == 0
+    finally:
+        server.stop()
+    box = next((tmp_path / "agent").rglob("outbox*.sqlite"))
+    db = sqlite3.connect(box)
+    sent = {m.kf_id: m.world_from_cam for (f,) in db.execute("SELECT frame FROM outbox ORDER BY seq")
+            if isinstance(m := decode(bytes(f))[1], Keyframe)}  # fmt: skip
+    db.close()
+    assert len(sent) > 3 and set(sent) == set(expected)
+    for k, T in sent.items():
+        np.testing.assert_allclose(T, expected[k], atol=1e-9)
+    # the fusion moved them: not the identity on every keyframe
+    moved = [np.linalg.norm(agent.core.stream_from_vio(0, k)[:3, 3]) for k in sent]
+    assert max(moved) > 1e-4, moved
