@@ -98,6 +98,14 @@ class SecondStage(StageOutputs):
         p.relinearizeSkip = self.options.relinearize_skip
         return self._gtsam.ISAM2(p)
 
+    def _between_noise(self, cov: F64) -> Any:
+        """A relative-pose factor's noise: Gaussian, or Huber-robust (``options.between_huber``)."""
+        g = _gaussian(cov)
+        if self.options.between_huber <= 0:
+            return g
+        huber = self._gtsam.noiseModel.mEstimator.Huber.Create(self.options.between_huber)
+        return self._gtsam.noiseModel.Robust.Create(huber, g)
+
     def _first_prior_noise(self, vio_from_kf: F64) -> Any:
         o = self.options
         tilt = o.first_prior_sigma_tilt if o.gravity_aligned else o.first_prior_sigma_yaw
@@ -246,7 +254,10 @@ class SecondStage(StageOutputs):
             rel = se3_inverse(prev.vio_from_kf) @ vio_from_kf if prev_from_kf is None else prev_from_kf
             init = self._estimate[prev_id] @ rel
             factor = gtsam.BetweenFactorPose3(
-                _key(prev_id), _key(kf_id), gtsam.Pose3(rel), _gaussian(np.asarray(rel_cov).reshape(6, 6))
+                _key(prev_id),
+                _key(kf_id),
+                gtsam.Pose3(rel),
+                self._between_noise(np.asarray(rel_cov).reshape(6, 6)),
             )
         factors = [factor]
         extra = None
@@ -306,7 +317,9 @@ class SecondStage(StageOutputs):
                 if np.linalg.norm(d[:3, 3]) < min_change_m and abs(np.trace(d[:3, :3]) - 3.0) < 1e-6:
                     continue
             factors.append(
-                gtsam.BetweenFactorPose3(_key(prev_id), _key(kf_id), gtsam.Pose3(rel), _gaussian(cov))
+                gtsam.BetweenFactorPose3(
+                    _key(prev_id), _key(kf_id), gtsam.Pose3(rel), self._between_noise(cov)
+                )
             )
             remove.append(h)
             owners.append((kf_id, prev_id, cov))

@@ -17,7 +17,7 @@ import pytest
 from scipy.interpolate import make_interp_spline
 from scipy.spatial.transform import Rotation
 
-from hivemap.client.odometry import StreamOdometry
+from hivemap.client.odometry import STREAM_BETWEEN_HUBER, StreamOdometry
 from hivemap.client.second_stage import ImuOptions, SecondStage, SecondStageOptions
 from hivemap.maps.geometry import se3, se3_inverse
 from hivemap.sim.scenarios import ImuNoise
@@ -180,7 +180,8 @@ def test_streamed_poses_hold_the_tilt_the_vio_loses(sim):
     """The odometry an agent streams (client/odometry.py): an IMU-only stage over the drifting VIO."""
     odo = StreamOdometry(SecondStageOptions(imu=_imu()))
     odo.start()
-    main = SecondStage(SecondStageOptions(imu=_imu()))  # the agent's own stage, no fix or correction yet
+    # the agent's own stage with the same factors, no fix or correction yet
+    main = SecondStage(SecondStageOptions(imu=_imu(), between_huber=STREAM_BETWEEN_HUBER))
     cov = np.diag([REL_SIGMA_ROT**2] * 3 + [REL_SIGMA_TRANS**2] * 3)
     samples, fed = sim["imu"], 0.0
     streamed = []  # each keyframe's streamed pose when it is emitted (causal, as the agent sends it)
@@ -217,3 +218,44 @@ def test_without_imu_the_vio_is_streamed_as_is():
     odo.start()
     odo.add_keyframe(0, 0.0, np.eye(4), new_segment=True)
     assert np.array_equal(odo.stream_from_vio(0), np.eye(4))
+
+
+def test_a_tracking_step_far_outside_its_covariance_yields_to_the_imu(sim):
+    """One tracking step 0.3 m off in height at its stated 1 cm (fog: steps 0.2-1.2 m off at 1-3 cm,
+    docs/decisions.md). A Gaussian factor forces the jump on the fusion; the streamed fusion's Huber
+    factor lets the IMU's integration overrule it."""
+    rels = list(sim["rels"])
+    bad = 40
+    jump = se3(np.eye(3), np.zeros(3))
+    jump[:3, 3] = rels[bad][:3, :3].T @ np.array([0.0, 0.0, 0.3])  # 0.3 m up, in the step's frame
+    rels[bad] = rels[bad] @ jump
+    cov = np.diag([REL_SIGMA_ROT**2] * 3 + [REL_SIGMA_TRANS**2] * 3)
+    plain, odo = SecondStage(SecondStageOptions(imu=_imu())), StreamOdometry(SecondStageOptions(imu=_imu()))
+    odo.start()
+    samples, fed = sim["imu"], 0.0
+    vio = [sim["vio"][0]]
+    for i, t in enumerate(sim["t"]):
+        while fed < t:
+            sel = (samples[:, 0] > fed) & (samples[:, 0] <= fed + 0.05)
+            plain.add_imu(samples[sel])
+            odo.add_imu(samples[sel])
+            fed += 0.05
+        if i:
+            vio.append(vio[-1] @ rels[i - 1])
+        kw = (
+            {"new_segment": True}
+            if i == 0
+            else {"rel_cov": cov, "prev_id": i - 1, "prev_from_kf": rels[i - 1]}
+        )
+        plain.add_keyframe(i, t, vio[i], **kw)
+        odo.add_keyframe(i, t, vio[i], **kw)
+    gt_step = sim["gt"][bad + 1][:3, 3] - sim["gt"][bad][:3, 3]
+
+    def step_error(T: dict[int, np.ndarray]) -> float:
+        return float(np.linalg.norm(T[bad + 1][:3, 3] - T[bad][:3, 3] - gt_step))
+
+    e_plain = step_error({i: plain.keyframe_pose(i) for i in (bad, bad + 1)})
+    e_odo = step_error({i: odo.stream_from_vio(i) @ vio[i] for i in (bad, bad + 1)})
+    # measured: 43 mm of the jump left in the Gaussian fusion's step, 14 mm in the robust one's
+    assert e_plain > 0.03
+    assert e_odo < 0.5 * e_plain, (e_odo, e_plain)
