@@ -20,19 +20,17 @@ TUM lines are ``t tx ty tz qx qy qz qw`` (seconds; quaternion x, y, z, w as TUM 
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.client.frontend.markers import MarkerOptions
 from hivemap.client.outputs import write_outputs
+from hivemap.client.runner_options import RunnerOptions, RunSummary  # noqa: F401  (re-exported)
 
 if TYPE_CHECKING:
     from hivemap.client.dataset import DatasetSource
@@ -58,88 +56,6 @@ log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------------- run
-@dataclass(frozen=True)
-class RunnerOptions:
-    """Options of an offline run."""
-
-    gnss: GnssMode = field(default_factory=lambda: GnssMode("denied"))
-    seed: int = 0  # for random GNSS modes
-    max_frames: int | None = None  # stop after this many frames (tests, quick looks)
-    gnss_max_dt_s: float = 0.03  # a fix is attached to the frame closest in time within this
-    colocation_sigma: tuple[float, float] = (0.01, 0.05)  # rad, m: prior of a server-corrected pose
-    colocation_gate_m: float = 1.0  # corrected poses farther than this from the agent's own are refused
-    flush_timeout_s: float = 60.0  # streaming: wait this long for the server's acks at the end
-    # streaming, after the last frame: the server's loop closures can come long after the last keyframe
-    # (factory06: 8.5 s after uav1 finished; a ugv loop 1 s after a 10 s quiet timer had run out). So the
-    # agent waits until the server's ``/health`` says its back-end is idle (nothing queued, nothing in
-    # flight) and then ``corrections_grace_s`` more for corrections on the wire; at most
-    # ``corrections_max_wait_s``. A server without that field: until no correction came for
-    # ``corrections_quiet_s``.
-    corrections_grace_s: float = 2.0
-    corrections_quiet_s: float = 10.0
-    corrections_max_wait_s: float = 120.0
-    health_max_failures: int = 5  # unanswered /health polls in a row before falling back to the quiet timer
-    # co-location priors take the server's shape, placed by one free transform per agent (sigmas: tilt
-    # 0.05 rad with IMU factors, else 0.01; yaw 0.01 rad; 0.1 m, or 0.01 m while the priors are ENU
-    # poses), see SecondStageOptions
-    colocation_offset: bool = True
-    imu_factors: bool = True  # IMU factors in the second stage (loosely coupled VIO) when there is an IMU
-    # streaming: keyframes at an IMU-only fusion of the odometry instead of the visual tracking
-    # (hivemap.client.odometry); off until that fusion is robust on every world (docs/decisions.md)
-    stream_imu_odometry: bool = False
-    progress: bool = True
-    max_connect_attempts: int = 10  # streaming: see LinkOptions.max_connect_attempts
-    # issue 25: detect the marker carriers of the dataset's ``markers.yaml`` in cam0 (``enabled=False``:
-    # ``hivemap agent --no-markers``) and stream them as ``rendezvous`` messages
-    markers: MarkerOptions = field(default_factory=MarkerOptions)
-
-
-@dataclass
-class RunSummary:
-    """What ``run.json`` holds."""
-
-    agent_id: str
-    gnss_mode: str
-    frames: int = 0
-    tracked_frames: int = 0
-    keyframes: int = 0
-    tracking_losses: int = 0
-    # every frame by the front-end's tracking quality (issue 28): few inliers, no visual pose taken
-    # (IMU-only or lost), relocalised; visual poses the IMU gate refused; keyframes made at the IMU's
-    # pose while lost; map sessions
-    weak_frames: int = 0
-    lost_frames: int = 0
-    relocalized_frames: int = 0
-    imu_rejections: int = 0
-    lost_keyframes: int = 0
-    sessions: int = 1
-    segments: int = 0
-    gnss_available: int = 0
-    gnss_selected: int = 0
-    gnss_used: int = 0
-    gnss_rejected: int = 0
-    frontend_ms_mean: float = 0.0
-    frontend_ms_max: float = 0.0
-    second_stage_ms_mean: float = 0.0
-    second_stage_ms_max: float = 0.0
-    wall_s: float = 0.0
-    fps: float = 0.0
-    outputs: dict[str, str] = field(default_factory=dict)
-    rejected_fixes: list[dict[str, float]] = field(default_factory=list)
-    unsent: int = 0  # streaming: messages left in the outbox (not acknowledged by the server)
-    stopped_by: str = ""  # streaming: the signal that ended the replay early ("SIGTERM", "SIGINT")
-    # marker carriers seen (issue 25): rendezvous observations made (streaming: put into the outbox),
-    # frames the detector ran on and its mean CPU time per such frame
-    rendezvous_sent: int = 0
-    marker_frames: int = 0
-    marker_cpu_ms_mean: float = 0.0
-
-    def to_json(self) -> str:
-        from dataclasses import asdict
-
-        return json.dumps(asdict(self), indent=2)
-
-
 # Relative-pose covariance used when the front-end gives none for a keyframe (e.g. its previous
 # keyframe was culled): 1 deg and 5 cm + 2% of the distance, deliberately loose.
 def _fallback_rel_cov(rel: F64) -> F64:
