@@ -176,26 +176,37 @@ def _pose_tilt_deg(T: np.ndarray, gt: np.ndarray) -> float:
     return math.degrees(math.acos(np.clip(T[:3, 2] @ gt[:3, 2], -1.0, 1.0)))
 
 
+def _feed_both(sim: dict, vio: list, rels: list, stages: tuple, on_keyframe=None) -> None:  # type: ignore[no-untyped-def]
+    """Feed ``stages`` (each with ``add_imu`` / ``add_keyframe``) the flight's IMU frame by frame and its
+    keyframes at ``vio`` chained by ``rels``, as the runner does; ``on_keyframe(i)`` after each."""
+    cov = np.diag([REL_SIGMA_ROT**2] * 3 + [REL_SIGMA_TRANS**2] * 3)
+    samples, fed = sim["imu"], 0.0
+    for i, t in enumerate(sim["t"]):
+        while fed < t:
+            sel = (samples[:, 0] > fed) & (samples[:, 0] <= fed + 0.05)
+            for st in stages:
+                st.add_imu(samples[sel])
+            fed += 0.05
+        kw = (
+            {"new_segment": True}
+            if i == 0
+            else {"rel_cov": cov, "prev_id": i - 1, "prev_from_kf": rels[i - 1]}
+        )
+        for st in stages:
+            st.add_keyframe(i, t, vio[i], **kw)
+        if on_keyframe is not None:
+            on_keyframe(i)
+
+
 def test_streamed_poses_hold_the_tilt_the_vio_loses(sim):
     """The odometry an agent streams (client/odometry.py): an IMU-only stage over the drifting VIO."""
     odo = StreamOdometry(SecondStageOptions(imu=_imu()))
     odo.start()
     # the agent's own stage with the same factors, no fix or correction yet
     main = SecondStage(SecondStageOptions(imu=_imu(), between_huber=STREAM_BETWEEN_HUBER))
-    cov = np.diag([REL_SIGMA_ROT**2] * 3 + [REL_SIGMA_TRANS**2] * 3)
-    samples, fed = sim["imu"], 0.0
     streamed = []  # each keyframe's streamed pose when it is emitted (causal, as the agent sends it)
-    for i, t in enumerate(sim["t"]):
-        while fed < t:
-            sel = (samples[:, 0] > fed) & (samples[:, 0] <= fed + 0.05)
-            odo.add_imu(samples[sel])
-            main.add_imu(samples[sel])
-            fed += 0.05
-        kw = {"new_segment": True} if i == 0 else {"rel_cov": cov, "prev_id": i - 1,
-                                                   "prev_from_kf": sim["rels"][i - 1]}  # fmt: skip
-        odo.add_keyframe(i, t, sim["vio"][i], **kw)
-        main.add_keyframe(i, t, sim["vio"][i], **kw)
-        streamed.append(odo.stream_from_vio(i) @ sim["vio"][i])
+    _feed_both(sim, list(sim["vio"]), sim["rels"], (odo, main),
+               lambda i: streamed.append(odo.stream_from_vio(i) @ sim["vio"][i]))  # fmt: skip
     last = len(sim["t"]) - 1
     vio_tilt = _pose_tilt_deg(sim["vio"][last], sim["gt"][last])
     assert vio_tilt > 1.5  # the fixture's unstated drift
@@ -229,26 +240,12 @@ def test_a_tracking_step_far_outside_its_covariance_yields_to_the_imu(sim):
     jump = se3(np.eye(3), np.zeros(3))
     jump[:3, 3] = rels[bad][:3, :3].T @ np.array([0.0, 0.0, 0.3])  # 0.3 m up, in the step's frame
     rels[bad] = rels[bad] @ jump
-    cov = np.diag([REL_SIGMA_ROT**2] * 3 + [REL_SIGMA_TRANS**2] * 3)
     plain, odo = SecondStage(SecondStageOptions(imu=_imu())), StreamOdometry(SecondStageOptions(imu=_imu()))
     odo.start()
-    samples, fed = sim["imu"], 0.0
     vio = [sim["vio"][0]]
-    for i, t in enumerate(sim["t"]):
-        while fed < t:
-            sel = (samples[:, 0] > fed) & (samples[:, 0] <= fed + 0.05)
-            plain.add_imu(samples[sel])
-            odo.add_imu(samples[sel])
-            fed += 0.05
-        if i:
-            vio.append(vio[-1] @ rels[i - 1])
-        kw = (
-            {"new_segment": True}
-            if i == 0
-            else {"rel_cov": cov, "prev_id": i - 1, "prev_from_kf": rels[i - 1]}
-        )
-        plain.add_keyframe(i, t, vio[i], **kw)
-        odo.add_keyframe(i, t, vio[i], **kw)
+    for r in rels:
+        vio.append(vio[-1] @ r)
+    _feed_both(sim, vio, rels, (plain, odo))
     gt_step = sim["gt"][bad + 1][:3, 3] - sim["gt"][bad][:3, 3]
 
     def step_error(T: dict[int, np.ndarray]) -> float:
