@@ -64,7 +64,7 @@ class StreamOdometry:
         as ``local_from_vio`` is fitted to the VIO. Both hold the IMU, so a corrected pose the server sends
         keeps its IMU-aided shape (mapped through the VIO frame, it would take the visual drift back);
         without the IMU the stream is the VIO: ``main.local_from_vio``."""
-        from hivemap.client.second_stage import rigid_alignment, yaw_translation_alignment
+        from hivemap.client.second_stage.factors import frame_fit
 
         if self.stage is None:
             return np.asarray(main.local_from_vio(segment), dtype=np.float64)
@@ -75,14 +75,8 @@ class StreamOdometry:
             return np.asarray(main.local_from_vio(segment), dtype=np.float64)
         src = np.array([self.stage.keyframe_pose(k)[:3, 3] for k in ids])
         dst = np.array([main.keyframe_pose(k)[:3, 3] for k in ids])
-        if len(ids) < 2 or float(np.max(np.linalg.norm(src - src[0], axis=1))) < 1e-3:
-            k = ids[-1]  # no geometry for a point fit: the last keyframe's pose
-            return np.asarray(
-                main.keyframe_pose(k) @ np.linalg.inv(self.stage.keyframe_pose(k)), dtype=np.float64
-            )
-        if main.options.gravity_aligned or len(ids) < 3:
-            return np.asarray(yaw_translation_alignment(src, dst), dtype=np.float64)
-        return np.asarray(rigid_alignment(src, dst), dtype=np.float64)
+        last = main.keyframe_pose(ids[-1]) @ np.linalg.inv(self.stage.keyframe_pose(ids[-1]))
+        return np.asarray(frame_fit(src, dst, main.options.gravity_aligned, last), dtype=np.float64)
 
     def stream_from_vio(self, node: int | None) -> F64:
         """The rigid transform taking the keyframe ``node``'s VIO pose to its streamed (IMU-aided) pose,

@@ -76,3 +76,15 @@ def interpolate_se3(a: F64, b: F64, alpha: float) -> F64:
     rots = Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]]))
     R = Slerp([0.0, 1.0], rots)([alpha]).as_matrix()[0]
     return se3(R, (1.0 - alpha) * a[:3, 3] + alpha * b[:3, 3])
+
+
+def frame_fit(src: F64, dst: F64, gravity_aligned: bool, fallback: F64) -> F64:
+    """The transform taking positions ``src`` (K, 3) onto ``dst``: yaw and translation when gravity-aligned
+    (or with fewer than 3), else rigid; ``fallback`` (e.g. the last keyframe's own) when ``src`` spreads
+    less than a millimetre, which leaves no geometry for a point fit."""
+    spread = float(np.max(np.linalg.norm(src - src[0], axis=1))) if len(src) > 1 else 0.0
+    if spread < 1e-3:
+        return fallback
+    if gravity_aligned or len(src) < 3:
+        return yaw_translation_alignment(src, dst)
+    return rigid_alignment(src, dst)

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.client.second_stage.factors import interpolate_se3, rigid_alignment, yaw_translation_alignment
+from hivemap.client.second_stage.factors import frame_fit, interpolate_se3
 from hivemap.client.second_stage.options import SecondStageOptions
 from hivemap.maps.geometry import se3_inverse
 
@@ -32,15 +32,9 @@ class StageOutputs:
         for seg, ids in by_seg.items():
             src = np.array([self._kfs[k].vio_from_kf[:3, 3] for k in ids])
             dst = np.array([self._estimate[k][:3, 3] for k in ids])
-            spread = float(np.max(np.linalg.norm(src - src[0], axis=1))) if len(ids) > 1 else 0.0
-            if spread < 1e-3:
-                # Not enough geometry for a point alignment: use the last keyframe's correction.
-                k = ids[-1]
-                self._local_from_vio[seg] = self._estimate[k] @ se3_inverse(self._kfs[k].vio_from_kf)
-            elif self.options.gravity_aligned or len(ids) < 3:
-                self._local_from_vio[seg] = yaw_translation_alignment(src, dst)
-            else:
-                self._local_from_vio[seg] = rigid_alignment(src, dst)
+            k = ids[-1]  # the last keyframe's correction, where there is no geometry for a point fit
+            last = self._estimate[k] @ se3_inverse(self._kfs[k].vio_from_kf)
+            self._local_from_vio[seg] = frame_fit(src, dst, self.options.gravity_aligned, last)
 
     def local_from_vio(self, segment: int | None = None) -> F64:
         """Current ``local_from_vio`` (4x4) of a segment (default: the newest one)."""
