@@ -65,7 +65,7 @@ def cmd_run(a: argparse.Namespace) -> None:
                 cmd = [*HIVEMAP, "eval", "experiment", "--scenarios", scenario, *seeds, "--modes", m,
                        "--start-poses", prior, "--data", a.data, "--out", str(run_dir),
                        "--no-progress"]  # fmt: skip
-                cmd += ["--stream-imu-odometry"] if a.stream_imu_odometry else []
+                cmd += ["--stream-tracking"] if a.stream_tracking else []
                 print(f"{world} {prior}: {m}", flush=True)
                 run_dir.mkdir(parents=True, exist_ok=True)
                 with open(run_dir.with_suffix(".log"), "ab") as log:
@@ -202,9 +202,9 @@ def main() -> None:
         p.add_argument("--out", required=True)
     r.add_argument("--challenged", action="store_true", help="also single+gnss, challenged1, challenged2")
     r.add_argument("--data", default="data")
-    r.add_argument("--stream-imu-odometry", action="store_true",
-                   help="agents stream their IMU-only fusion (`hivemap agent --stream-imu-odometry`); "
-                   "give it its own --out")  # fmt: skip
+    r.add_argument("--stream-tracking", action="store_true",
+                   help="agents stream their visual tracking instead of their IMU-only fusion "
+                   "(`hivemap agent --stream-tracking`); give it its own --out")  # fmt: skip
     if not sys.argv[1:]:  # `make bench` runs every bench bare
         print("bench/colocation_matrix.py: hours of runs, on request only (`run`, then `table`; see --help)")
         return

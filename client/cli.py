@@ -96,12 +96,11 @@ def agent_command(
     stream_imu_odometry: Annotated[
         bool,
         typer.Option(
-            "--stream-imu-odometry",
-            help="Streaming: send keyframes at an IMU-only fusion of the odometry instead of the visual "
-            "tracking (experimental: the fog worlds' team maps 2-4x better, a clear world's worse; "
-            "docs/decisions.md).",
+            "--stream-imu-odometry/--stream-tracking",
+            help="Streaming: send keyframes at an IMU-only fusion of the odometry (default), or at the "
+            "visual tracking's poses (in fog 2-5x further off; docs/decisions.md).",
         ),
-    ] = False,
+    ] = True,
     calib: Annotated[
         list[Path] | None,
         typer.Option(

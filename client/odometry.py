@@ -11,15 +11,12 @@ and its odometry edges start from the IMU-aided shape (docs/decisions.md).
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
-
-STREAM_BETWEEN_HUBER = 3.0  # sigmas: the front-end's covariances are right to ~1.5x on clear worlds
 
 
 class StreamOdometry:
@@ -36,9 +33,7 @@ class StreamOdometry:
         from hivemap.client.second_stage import SecondStage
 
         if self.stage is None and getattr(self.options, "imu", None) is not None:
-            # robust tracking steps: in fog a step 1-5 deg off at a 0.1-0.2 deg sigma otherwise drives the
-            # IMU biases off and bends every keyframe after it (docs/decisions.md)
-            self.stage = SecondStage(dataclasses.replace(self.options, between_huber=STREAM_BETWEEN_HUBER))
+            self.stage = SecondStage(self.options)
 
     def add_imu(self, samples: F64 | None) -> None:
         if self.stage is not None:

@@ -37,8 +37,8 @@ class RunnerOptions:
     colocation_offset: bool = True
     imu_factors: bool = True  # IMU factors in the second stage (loosely coupled VIO) when there is an IMU
     # streaming: keyframes at an IMU-only fusion of the odometry instead of the visual tracking
-    # (hivemap.client.odometry); off until that fusion is robust on every world (docs/decisions.md)
-    stream_imu_odometry: bool = False
+    # (hivemap.client.odometry), which in fog is 2-5x further off (docs/decisions.md)
+    stream_imu_odometry: bool = True
     progress: bool = True
     max_connect_attempts: int = 10  # streaming: see LinkOptions.max_connect_attempts
     # issue 25: detect the marker carriers of the dataset's ``markers.yaml`` in cam0 (``enabled=False``:

@@ -218,11 +218,11 @@ def experiment_command(
     stream_imu_odometry: Annotated[
         bool,
         typer.Option(
-            "--stream-imu-odometry",
-            help="Agents stream keyframes at an IMU-only fusion of their odometry (`hivemap agent "
-            "--stream-imu-odometry`); run each setting into its own --out to compare.",
+            "--stream-imu-odometry/--stream-tracking",
+            help="Agents stream keyframes at an IMU-only fusion of their odometry (default) or at their "
+            "visual tracking (`hivemap agent --stream-tracking`); run each setting into its own --out.",
         ),
-    ] = False,
+    ] = True,
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment

@@ -94,7 +94,7 @@ class ExperimentOptions:
     server_toml: str = ""  # appended to every run's server config (back-end options under comparison)
     # issue 25: agents detect the marker carriers their datasets describe (off: same images, no detection)
     markers: bool = True
-    stream_imu_odometry: bool = False  # agents stream an IMU-only fusion of their odometry (`hivemap agent`)
+    stream_imu_odometry: bool = True  # agents stream an IMU-only fusion of their odometry (`hivemap agent`)
     explore_duration_s: float = 120.0  # issue 26: mission time of the live agents of the explore modes
 
     def worlds(self) -> list[tuple[str, str, int | None]]:
@@ -161,8 +161,8 @@ def _agent_cmd(ds: Path, out: Path, gnss: str, opts: ExperimentOptions) -> list[
         cmd += ["--max-frames", str(opts.max_frames)]
     if not opts.markers:
         cmd += ["--no-markers"]
-    if opts.stream_imu_odometry:
-        cmd += ["--stream-imu-odometry"]
+    if not opts.stream_imu_odometry:
+        cmd += ["--stream-tracking"]
     return cmd
 
 

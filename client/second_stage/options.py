@@ -78,10 +78,10 @@ class SecondStageOptions:
     """Extra ``update()`` calls after each new factor batch (lets iSAM2 relinearise)."""
     imu: ImuOptions | None = None
     """IMU factors between keyframes (feed samples with :meth:`SecondStage.add_imu`); None: off."""
-    between_huber: float = 0.0
+    between_huber: float = 3.0
     """Huber threshold (in sigmas) on the front-end's relative-pose factors, so a tracking step far
-    outside its covariance yields to the IMU instead of driving its biases; 0: Gaussian (the agent's own
-    stage, until the singles are measured with it; the streamed fusion uses it, docs/decisions.md)."""
+    outside its covariance (a keyframe the tracking placed centimetres off, a step 1-5 deg off in fog)
+    yields to the IMU instead of driving its velocity and biases off; 0: Gaussian (docs/decisions.md)."""
     colocation_offset_sigma: tuple[float, float, float] | None = None
     """(tilt rad, yaw rad, translation m): co-location priors take the server's shape, placed by one
     free transform ``O`` per agent (``local_from_kf ~ O @ prior``) with a prior of these sigmas at
