@@ -1,0 +1,149 @@
+"""The agent's second stage judged alone: record its inputs once, replay them under other options in seconds.
+
+``record`` replays one agent dataset offline (as ``hivemap agent --offline``) and keeps every call the
+runner made to its own second stage (keyframes with the tracking's relative poses and covariances, IMU
+samples, the local BA's pose updates, GNSS fixes) with the stage's options. The front-end is
+deterministic offline, so a recording stands for that agent's single run on that world.
+
+``replay`` runs the recorded calls through a fresh :class:`~hivemap.client.second_stage.SecondStage` with
+the recorded options and with each ``--set`` variant, and prints per recording the keyframes' ATE (evo,
+SE(3), body frame against the dataset's ground truth) for the tracking (VIO), the stage at the end
+(smoothed) and the stage as each keyframe was added (causal: what the agent streams).
+
+    .venv/bin/python bench/second_stage.py record --dataset data/factory02/uav1 --out runs/stage/f02-uav1.pkl
+    .venv/bin/python bench/second_stage.py replay runs/stage/*.pkl --set between_huber=0 \\
+        --set imu.accelerometer_random_walk=0.003
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import pickle
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+RECORDED = ("add_keyframe", "add_imu", "update_vio_poses", "add_gnss")
+
+
+def cmd_record(a: argparse.Namespace) -> None:
+    import hivemap.client.second_stage as second_stage
+    from hivemap.client.replay_io import GnssMode
+    from hivemap.client.runner import RunnerOptions, run_offline
+
+    log: dict[str, Any] = {"dataset": str(Path(a.dataset).resolve()), "options": None, "calls": []}
+    base = second_stage.SecondStage
+
+    class Recording(base):  # type: ignore[misc, valid-type]
+        """The runner's own stage (the first one built); every later instance records nothing."""
+
+        def __init__(self, options: Any = None) -> None:
+            super().__init__(options)
+            self._rec = log["options"] is None
+            if self._rec:
+                log["options"] = self.options
+
+    def recorder(name: str) -> Any:
+        method = getattr(base, name)
+
+        def call(self: Any, *args: Any, **kw: Any) -> Any:
+            if self._rec:
+                log["calls"].append((name, copy.deepcopy(args), copy.deepcopy(kw)))
+            return method(self, *args, **kw)
+
+        return call
+
+    for name in RECORDED:
+        setattr(Recording, name, recorder(name))
+    second_stage.SecondStage = Recording  # the runner imports it from the package when it starts
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            options = RunnerOptions(gnss=GnssMode(a.gnss), progress=not a.no_progress)
+            run_offline(a.dataset, a.run_out or tmp, options)
+    finally:
+        second_stage.SecondStage = base
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    with open(a.out, "wb") as f:
+        pickle.dump(log, f)
+    print(f"{len(log['calls'])} calls of {a.dataset}'s second stage -> {a.out}")
+
+
+def _variant(options: Any, sets: list[str]) -> Any:
+    """``options`` with ``name=value`` items applied (``imu.name`` for the IMU options; values are Python
+    literals, e.g. ``0.003``, ``None``, ``(0.05, 0.01, 0.1)``)."""
+    import ast
+
+    kw: dict[str, Any] = {}
+    imu: dict[str, Any] = {}
+    for item in sets:
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--set {item!r}: expected name=value")
+        (imu if name.startswith("imu.") else kw)[name.removeprefix("imu.")] = ast.literal_eval(value)
+    if imu:
+        if options.imu is None:
+            raise SystemExit("imu.* given for a recording without IMU options")
+        kw["imu"] = replace(options.imu, **imu)
+    return replace(options, **kw)
+
+
+def replay(rec: dict[str, Any], options: Any) -> dict[str, tuple[Any, Any]]:
+    """(timestamps, poses) of the VIO, the stage at the end and the stage as each keyframe was added."""
+    from hivemap.client.second_stage import SecondStage
+
+    st = SecondStage(options)
+    causal_t, causal_T = [], []
+    for name, args, kw in rec["calls"]:
+        getattr(st, name)(*args, **kw)
+        if name == "add_keyframe":
+            causal_t.append(float(args[1]))
+            causal_T.append(st.keyframe_pose(args[0]))
+    ts, poses = st.keyframe_poses()
+    vio = np.array([st.vio_pose(k) for k in st.keyframe_ids])
+    return {"vio": (ts, vio), "final": (ts, poses), "causal": (np.array(causal_t), np.array(causal_T))}
+
+
+def cmd_replay(a: argparse.Namespace) -> None:
+    from hivemap.eval.trajectory import ate, groundtruth_trajectory, trajectory_from_poses
+
+    variants = [("recorded", [])] + [(s, s.split(",")) for s in a.set]
+    print(f"{'recording':28s} {'variant':36s} {'vio':>6s} {'final':>6s} {'causal':>6s}  (keyframe ATE, m)")
+    for path in a.recordings:
+        with open(path, "rb") as f:
+            rec = pickle.load(f)
+        gt = groundtruth_trajectory(rec["dataset"])
+        for label, sets in variants:
+            out = replay(rec, _variant(rec["options"], sets))
+            err = {k: ate(trajectory_from_poses(t, T), gt, "se3", max_diff=0.02).stats.rmse
+                   for k, (t, T) in out.items()}  # fmt: skip
+            row = f"{err['vio']:6.3f} {err['final']:6.3f} {err['causal']:6.3f}"
+            print(f"{Path(path).stem:28s} {label:36s} {row}", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("record", help="run an agent offline and keep its second stage's inputs")
+    r.add_argument("--dataset", required=True, help="an agent's dataset folder (EuRoC layout)")
+    r.add_argument("--out", required=True, help="the recording (.pkl)")
+    r.add_argument("--gnss", default="denied", help="GNSS mode, as `hivemap agent --gnss` (default: denied)")
+    r.add_argument("--run-out", help="keep the run's outputs here (default: discarded)")
+    r.add_argument("--no-progress", action="store_true")
+    p = sub.add_parser("replay", help="replay recordings with the recorded options and variants")
+    p.add_argument("recordings", nargs="+")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE[,NAME=VALUE]",
+                   help="a variant of the stage's options (repeat for more variants)")  # fmt: skip
+    if not sys.argv[1:]:  # `make bench` runs every bench bare
+        print("bench/second_stage.py: on request only (`record`, then `replay`; see --help)")
+        return
+    a = ap.parse_args()
+    cmd_record(a) if a.cmd == "record" else cmd_replay(a)
+
+
+if __name__ == "__main__":
+    main()
