@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from hivemap.eval.trajectory import read_tum
 
@@ -22,8 +23,8 @@ def _bench():  # type: ignore[no-untyped-def]
 
 
 def test_a_recorded_stage_replays_to_the_runs_keyframes(
-    tiny_agent: Path, tmp_path: Path, monkeypatch
-) -> None:  # type: ignore[no-untyped-def]  # noqa: E501
+    tiny_agent: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import pickle
 
     bench = _bench()
