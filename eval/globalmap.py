@@ -113,17 +113,18 @@ def team_by_map(
 
 
 def globalmap_section(results: dict[tuple[str, str], dict[str, Any]]) -> list[str]:
-    """The report's check of the global map per co-location run: which start poses the server had, when
-    all agents were in one map, the team ATE per map and the accepted loops' and merges' errors."""
+    """The report's check of the global map per co-location run: which start poses the server had, what
+    the agents streamed, when all agents were in one map, the team ATE per map and the accepted loops' and
+    merges' errors."""
     from hivemap.eval.startposes import describe
 
     md = ["## Global map against ground truth", "",
           "Team ATE: one SE(3) alignment per map for all its agents' final server keyframes. Loop and merge "
           "errors: each accepted loop's or merge's measured relative pose against the true one of its two "
           "keyframes (over 0.5 m or 2 deg counts as wrong).", "",
-          _row(["scenario", "mode", "start poses", "all in one map [s]", "maps: team ATE RMSE [m]",
-                "loops", "merges", "worst [m / deg]", "wrong"]),
-          "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+          _row(["scenario", "mode", "start poses", "streamed", "all in one map [s]",
+                "maps: team ATE RMSE [m]", "loops", "merges", "worst [m / deg]", "wrong"]),
+          "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     n = 0
     for (s, m), data in results.items():
         if "team" not in data:
@@ -140,12 +141,14 @@ def globalmap_section(results: dict[tuple[str, str], dict[str, Any]]) -> list[st
         )
         when = data.get("all_merged_s")
         start = (data.get("start_poses") or {}).get("mode", "truth (old run)")
-        md.append(_row([s, m, str(start), "never" if when is None else f"{when:.1f}", teams or "-",
+        # runs written before the IMU-aided stream existed streamed the tracking
+        streamed = "IMU fusion" if data.get("stream_imu_odometry", False) else "tracking"
+        md.append(_row([s, m, str(start), streamed, "never" if when is None else f"{when:.1f}", teams or "-",
                         str(sum(1 for e in errs if e.get("kind", "loop") == "loop")),
                         str(sum(1 for e in errs if e.get("kind") == "merge")),
                         f"{worst[0]:.3f} / {worst[1]:.2f}", str(wrong)]))  # fmt: skip
     if not n:
-        md.append("| (no co-location run) |||||||||")
+        md.append("| (no co-location run) ||||||||||")
     md.append("")
     for (s, m), data in results.items():
         if "team" in data:
