@@ -36,8 +36,8 @@ class RunnerOptions:
     # poses), see SecondStageOptions
     colocation_offset: bool = True
     imu_factors: bool = True  # IMU factors in the second stage (loosely coupled VIO) when there is an IMU
-    # streaming: keyframes at an IMU-only fusion of the odometry instead of the visual tracking
-    # (hivemap.client.odometry), which in fog is 2-5x further off (docs/decisions.md)
+    # streaming: keyframes at an IMU-only fusion of the odometry (hivemap.client.odometry) instead of the
+    # visual tracking's poses, which in fog are 2-5x further off (docs/decisions.md)
     stream_imu_odometry: bool = True
     progress: bool = True
     max_connect_attempts: int = 10  # streaming: see LinkOptions.max_connect_attempts
