@@ -87,6 +87,8 @@ class SecondStage(StageOutputs):
         self._est: Any = None  # the latest iSAM2 estimate (gtsam Values): velocities and biases are read here
         self.n_imu_factors = 0
         self._imu_params = imu.imu_params(self) if self.options.imu is not None else None
+        b = self.options.between_huber
+        self._between_loss = self._gtsam.noiseModel.mEstimator.Huber.Create(b) if b > 0 else None
         self._isam = self._new_isam()
 
     # ------------------------------------------------------------------ construction helpers
@@ -101,10 +103,9 @@ class SecondStage(StageOutputs):
     def _between_noise(self, cov: F64) -> Any:
         """A relative-pose factor's noise: Gaussian, or Huber-robust (``options.between_huber``)."""
         g = _gaussian(cov)
-        if self.options.between_huber <= 0:
+        if self._between_loss is None:
             return g
-        huber = self._gtsam.noiseModel.mEstimator.Huber.Create(self.options.between_huber)
-        return self._gtsam.noiseModel.Robust.Create(huber, g)
+        return self._gtsam.noiseModel.Robust.Create(self._between_loss, g)
 
     def _first_prior_noise(self, vio_from_kf: F64) -> Any:
         o = self.options

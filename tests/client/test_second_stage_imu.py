@@ -176,7 +176,7 @@ def _pose_tilt_deg(T: np.ndarray, gt: np.ndarray) -> float:
     return math.degrees(math.acos(np.clip(T[:3, 2] @ gt[:3, 2], -1.0, 1.0)))
 
 
-def _feed_both(sim: dict, vio: list, rels: list, stages: tuple, on_keyframe=None) -> None:  # type: ignore[no-untyped-def]
+def _feed_stages(sim: dict, vio: list, rels: list, stages: tuple, on_keyframe=None) -> None:  # type: ignore[no-untyped-def]
     """Feed ``stages`` (each with ``add_imu`` / ``add_keyframe``) the flight's IMU frame by frame and its
     keyframes at ``vio`` chained by ``rels``, as the runner does; ``on_keyframe(i)`` after each."""
     cov = np.diag([REL_SIGMA_ROT**2] * 3 + [REL_SIGMA_TRANS**2] * 3)
@@ -205,7 +205,7 @@ def test_streamed_poses_hold_the_tilt_the_vio_loses(sim):
     # the agent's own stage with the same factors, no fix or correction yet
     main = SecondStage(SecondStageOptions(imu=_imu()))
     streamed = []  # each keyframe's streamed pose when it is emitted (causal, as the agent sends it)
-    _feed_both(sim, list(sim["vio"]), sim["rels"], (odo, main),
+    _feed_stages(sim, list(sim["vio"]), sim["rels"], (odo, main),
                lambda i: streamed.append(odo.stream_from_vio(i) @ sim["vio"][i]))  # fmt: skip
     last = len(sim["t"]) - 1
     vio_tilt = _pose_tilt_deg(sim["vio"][last], sim["gt"][last])
@@ -246,7 +246,7 @@ def test_a_tracking_step_far_outside_its_covariance_yields_to_the_imu(sim):
     vio = [sim["vio"][0]]
     for r in rels:
         vio.append(vio[-1] @ r)
-    _feed_both(sim, vio, rels, (plain, own, odo))
+    _feed_stages(sim, vio, rels, (plain, own, odo))
     gt_step = sim["gt"][bad + 1][:3, 3] - sim["gt"][bad][:3, 3]
 
     def step_error(T: dict[int, np.ndarray]) -> float:
