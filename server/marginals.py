@@ -110,14 +110,90 @@ def pose_marginals(
         tree = linear.eliminateMultifrontal(ordering)
     except RuntimeError as exc:  # gtsam's IndeterminantLinearSystemException
         raise RuntimeError(f"pose graph marginals: singular system ({exc})") from exc
-    out = np.empty((len(want), 6, 6))
+    out = np.zeros((len(want), 6, 6))  # a held keyframe is the gauge: exact by definition
+    free_want = [i for i in want if i not in held]
+    if len(free_want) <= FEW:
+        right = {i: np.asarray(tree.marginalCovariance(i)) for i in free_want}
+    else:
+        right = clique_marginals(tree, free_want)
     for n, i in enumerate(want):
-        if i in held:
-            out[n] = 0.0  # a held keyframe is the gauge: exact by definition
-            continue
-        out[n] = to_map_frame(np.asarray(tree.marginalCovariance(i)), poses[i][:3, :3])
+        if i in right:
+            out[n] = to_map_frame(right[i], poses[i][:3, :3])
     rel = {(a, b): _difference_covariance(tree, poses, held, a, b) for a, b in pairs}
     return MarginalsResult(want, out, time.process_time() - t0, rel)
+
+
+def clique_marginals(tree: Any, keys: Sequence[int], dim: int = 6) -> dict[int, F64]:
+    """gtsam's (right-perturbation) marginal covariance of every key in ``keys`` from the Bayes tree, in
+    one pass from the root down over the cliques that hold them and their ancestors.
+
+    ``GaussianBayesTree.marginalCovariance`` recomputes its clique's whole joint marginal for each key it
+    is asked for, so a clique of k poses costs k times its joint; with a map's dense covisibility graph
+    the root clique holds hundreds of poses and every keyframe's covariance took minutes. A clique's
+    conditional ``R x_F + S x_S = d + n`` (noise sigmas ``s``) and its separator's joint covariance
+    ``C_SS`` (a sub-block of its parent's joint) give ``C_FF = G diag(s^2) G^T + A C_SS A^T`` and
+    ``C_FS = -A C_SS`` with ``G = R^-1``, ``A = G S``: each clique's joint once (covariance recovery from
+    the square-root information matrix, Kaess and Dellaert 2009). Every variable has ``dim`` dimensions."""
+    cliques: dict[int, Any] = {}  # by first frontal key
+    parent_of: dict[int, int | None] = {}
+    home: dict[int, int] = {}  # wanted key -> its clique
+    for k in keys:
+        c = tree[int(k)]
+        home[int(k)] = int(c.conditional().firstFrontalKey())
+        while True:
+            f = int(c.conditional().firstFrontalKey())
+            if f in cliques:
+                break
+            cliques[f] = c
+            p = None if c.isRoot() else c.parent()
+            parent_of[f] = None if p is None else int(p.conditional().firstFrontalKey())
+            if p is None:
+                break
+            c = p
+    depth: dict[int, int] = {}
+    for start in cliques:  # iteratively: a long chain's tree is thousands of cliques deep
+        path, at = [], start
+        while at not in depth:
+            up = parent_of[at]
+            if up is None:
+                depth[at] = 0
+                break
+            path.append(at)
+            at = up
+        for g in reversed(path):
+            depth[g] = depth[parent_of[g]] + 1  # type: ignore[index]
+
+    joint: dict[int, tuple[dict[int, int], F64]] = {}  # clique -> (key -> offset, joint covariance)
+    for f in sorted(cliques, key=depth.__getitem__):
+        cond = cliques[f].conditional()
+        R, S = np.asarray(cond.R()), np.asarray(cond.S())
+        model = cond.get_model()  # None: unit noise; a held pose's is constrained (sigmas 0)
+        sigmas = np.ones(R.shape[0]) if model is None else np.asarray(model.sigmas(), dtype=np.float64)
+        ks = [int(k) for k in cond.keys()]  # noqa: SIM118 (a gtsam KeyVector, not a dict)
+        n_f = R.shape[0] // dim
+        if R.shape[0] != n_f * dim or S.shape[1] != (len(ks) - n_f) * dim:
+            raise RuntimeError(f"clique marginals: variables of {dim} dimensions only")
+        G = np.linalg.inv(R)  # R is upper triangular and well conditioned (a square-root information)
+        C_ff = (G * sigmas**2) @ G.T
+        order = {k: i * dim for i, k in enumerate(ks)}
+        if len(ks) > n_f:
+            p_off, p_cov = joint[parent_of[f]]  # type: ignore[index]
+            idx = np.concatenate([np.arange(p_off[k], p_off[k] + dim) for k in ks[n_f:]])
+            C_ss = p_cov[np.ix_(idx, idx)]
+            A = G @ S
+            C_fs = -A @ C_ss
+            C_ff = C_ff - C_fs @ A.T
+            C = np.block([[C_ff, C_fs], [C_fs.T, C_ss]])
+        else:
+            C = C_ff
+        joint[f] = (order, C)
+    out: dict[int, F64] = {}
+    for k, f in home.items():
+        off, C = joint[f]
+        o = off[k]
+        block = C[o : o + dim, o : o + dim]
+        out[k] = np.asarray(0.5 * (block + block.T), dtype=np.float64)
+    return out
 
 
 def _difference_covariance(tree: Any, poses: F64, held: set[int], a: int, b: int) -> F64:

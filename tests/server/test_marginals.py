@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hivemap.maps.geometry import Sim3, se3, se3_inverse, so3_exp, so3_log
-from hivemap.server.marginals import inside_ellipsoid, pose_marginals, position_covariance
+from hivemap.server.marginals import FEW, inside_ellipsoid, pose_marginals, position_covariance
 from hivemap.server.optim import PoseGraphEdge, solve_pose_graph_se3
 
 N = 25
@@ -141,3 +141,25 @@ def test_a_pose_no_edge_reaches_is_refused_whole_and_left_out_by_index() -> None
     assert res.indices == [7]
     whole = pose_marginals(true[: N - 1], edges, {0}).covariances
     np.testing.assert_allclose(res.covariances[0], whole[7], rtol=1e-9, atol=1e-15)
+
+
+def test_every_pose_at_once_matches_the_per_pose_marginals_on_a_dense_graph() -> None:
+    """A map's covisibility graph ties each keyframe to dozens of others, so the Bayes tree's root clique
+    holds most poses; every keyframe's covariance then comes from one pass over the cliques
+    (:func:`clique_marginals`), and must equal gtsam's per-pose marginals (the few-poses path)."""
+    rng = np.random.default_rng(3)
+    n, held = 120, {0, 60}  # two held poses: a constrained conditional inside the tree
+    true = np.array([se3(so3_exp(rng.normal(0, 0.3, 3)), rng.normal(0, 5.0, 3)) for _ in range(n)])
+    edges = []
+    for i in range(n):
+        for j in range(i + 1, min(n, i + 25)):  # 24 covisible neighbours, as a dense map has
+            rel = Sim3.from_se3(se3_inverse(true[i]) @ true[j])
+            edges.append(PoseGraphEdge(i, j, rel, covariance=EDGE_COV))
+    whole = pose_marginals(true, edges, held)
+    assert whole.indices == list(range(n)) and len(whole.indices) > FEW
+    for start in range(0, n, FEW):
+        chunk = list(range(start, min(n, start + FEW)))
+        per_pose = pose_marginals(true, edges, held, indices=chunk).covariances
+        np.testing.assert_allclose(whole.covariances[chunk], per_pose, rtol=1e-8, atol=1e-18)
+    assert np.all(whole.covariances[sorted(held)] == 0.0)
+    assert np.all(np.array([np.trace(c) for i, c in enumerate(whole.covariances) if i not in held]) > 0)
