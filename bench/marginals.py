@@ -23,6 +23,8 @@ from hivemap.server.optim import PoseGraphEdge, PoseGraphOptions, se3_graph
 
 
 def main(sizes: list[int]) -> None:
+    import gtsam
+
     rng = np.random.default_rng(1)
     for n in sizes:
         poses, edges, n_ess, _ = graph(n, rng, 0.01)
@@ -37,8 +39,6 @@ def main(sizes: list[int]) -> None:
         dense = [PoseGraphEdge(j, k, Sim3.from_se3(se3_inverse(poses[j]) @ poses[k]))
                  for k in range(1, n) for j in range(max(0, k - 24), k)]  # fmt: skip
         full = pose_marginals(poses, dense, {0})
-        import gtsam
-
         g, v = se3_graph(poses, dense, {0}, PoseGraphOptions(), ())
         linear = g.linearize(v)
         tree = linear.eliminateMultifrontal(gtsam.Ordering.ColamdGaussianFactorGraph(linear))

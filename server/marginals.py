@@ -173,7 +173,7 @@ def clique_marginals(tree: Any, keys: Sequence[int], dim: int = 6) -> dict[int, 
         n_f = R.shape[0] // dim
         if R.shape[0] != n_f * dim or S.shape[1] != (len(ks) - n_f) * dim:
             raise RuntimeError(f"clique marginals: variables of {dim} dimensions only")
-        G = np.linalg.inv(R)  # R is upper triangular and well conditioned (a square-root information)
+        G = np.linalg.inv(R)  # one small inverse per clique (R: upper triangular, full rank)
         C_ff = (G * sigmas**2) @ G.T
         order = {k: i * dim for i, k in enumerate(ks)}
         if len(ks) > n_f:
