@@ -9,6 +9,7 @@ import asyncio
 import concurrent.futures
 import logging
 import time
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -70,6 +71,11 @@ class Pipeline(GnssSteps):
         # first BA
         self._ba_exec: concurrent.futures.ProcessPoolExecutor | None = None
         self._ba_solving = False
+        # the pose graph's gtsam solve holds the GIL too, for seconds to tens of seconds on a map of a
+        # thousand keyframes: the event loop stopped with it and agents' connections dropped
+        # (docs/decisions.md), so it has a process of its own as well (not with the thread executor)
+        self._pg_exec: concurrent.futures.ProcessPoolExecutor | None = None
+        self._pg_solving = False
         self._tasks: set[asyncio.Task[Any]] = set()
         self._worker: asyncio.Task[None] | None = None
         self._inflight: set[asyncio.Task[None]] = set()  # queries being prepared, verified or applied
@@ -319,6 +325,27 @@ class Pipeline(GnssSteps):
         if map_id in self._enu_maps:
             await self._gnss_retry(map_id)
 
+    async def _solve_pose_graph(self, problem: Any, poses: F64) -> Any:
+        """:func:`optimise.solve_pose_graph` in the pose graph's process (the optimisation thread with the
+        thread executor); a process that died is replaced for the next solve."""
+        loop = asyncio.get_running_loop()
+        o = self.options
+        solve = partial(optimise.solve_pose_graph, problem, poses, o.fix_scale, o.optimise)
+        if self.options.scheduler.executor == "thread":
+            return await loop.run_in_executor(self._opt_exec, solve)
+        if self._pg_exec is None:
+            self._pg_exec = spawn_pool()
+        self._pg_solving = True
+        try:
+            return await loop.run_in_executor(self._pg_exec, solve)
+        except concurrent.futures.process.BrokenProcessPool:
+            logger.error("pose graph process died: restarting it")
+            self._pg_exec.shutdown(wait=False, cancel_futures=True)
+            self._pg_exec = None
+            raise
+        finally:
+            self._pg_solving = False
+
     async def _pose_graph_step(
         self, m: Any, edges: list[NewEdge], pre: tuple[Sim3, list[KfKey]] | None
     ) -> bool:
@@ -334,9 +361,7 @@ class Pipeline(GnssSteps):
             m, snap, [ev.edge for ev in judged] if o.gnc else edges, pre, fixed, o, apart
         )
         t0 = time.perf_counter()
-        res = await asyncio.get_running_loop().run_in_executor(
-            self._opt_exec, optimise.solve_pose_graph, problem, snap.poses, self.options.fix_scale, o
-        )
+        res = await self._solve_pose_graph(problem, snap.poses)
         pg_ms = (time.perf_counter() - t0) * 1e3
         cur = self._current(snap)
         if cur is None:

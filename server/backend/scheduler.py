@@ -120,11 +120,14 @@ class Backend(Pipeline):
         # a running global BA is not waited for: its task is cancelled, so its result is never applied
         self._pr_exec.shutdown(wait=False, cancel_futures=True)
         self._opt_exec.shutdown(wait=False, cancel_futures=True)
-        if self._ba_exec is not None:
-            # a BA still solving would hold the server's exit until it ends (3.11 has no terminate_workers)
-            for proc in list(getattr(self._ba_exec, "_processes", {}).values()) if self._ba_solving else []:
+        for pool, solving in ((self._ba_exec, self._ba_solving), (self._pg_exec, self._pg_solving)):
+            if pool is None:
+                continue
+            # a solve still running would hold the server's exit until it ends (3.11 has no
+            # terminate_workers)
+            for proc in list(getattr(pool, "_processes", {}).values()) if solving else []:
                 proc.terminate()
-            self._ba_exec.shutdown(wait=False, cancel_futures=True)
+            pool.shutdown(wait=False, cancel_futures=True)
 
     def idle(self) -> bool:
         """Nothing queued and nothing in flight (tests and benches wait for this)."""
