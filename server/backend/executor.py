@@ -84,6 +84,39 @@ def spawn_pool(period_s: float = 1.0) -> concurrent.futures.ProcessPoolExecutor:
     )
 
 
+class SolverProcess:
+    """One solver's process (a gtsam or pycolmap solve holds the GIL for its whole length, which would
+    stop the event loop): a :func:`spawn_pool` started by the first job and replaced after its process
+    died; :meth:`stop` ends a job still running, since 3.11 has no ``terminate_workers`` and a running
+    job would hold the server's exit until it ends."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._running = False
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        if self._pool is None:
+            self._pool = spawn_pool()
+        self._running = True
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+        except BrokenProcessPool:
+            logger.error("%s process died: restarting it", self.name)
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+            raise
+        finally:
+            self._running = False
+
+    def stop(self) -> None:
+        if self._pool is None:
+            return
+        for proc in list(getattr(self._pool, "_processes", {}).values()) if self._running else []:
+            proc.terminate()
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+
 class ThreadVerifier:
     """Jobs in the given thread pool (the place-recognition thread): one at a time, no processes."""
 

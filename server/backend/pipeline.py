@@ -28,7 +28,7 @@ from hivemap.server.backend import (
 )
 from hivemap.server.backend.backlog import QueryQueue
 from hivemap.server.backend.evidence import EvidenceBook
-from hivemap.server.backend.executor import Verifier, spawn_pool
+from hivemap.server.backend.executor import SolverProcess, Verifier
 from hivemap.server.backend.gnss_steps import GnssSteps
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import BackendOptions
@@ -67,15 +67,11 @@ class Pipeline(GnssSteps):
         self._pr_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-placerec")
         self._opt_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hive-optim")
         # pycolmap holds the GIL through a whole Ceres solve, which stalled the event loop (agents dropped,
-        # REST timed out: docs/decisions.md), so global BA runs in a process of its own, started by the
-        # first BA
-        self._ba_exec: concurrent.futures.ProcessPoolExecutor | None = None
-        self._ba_solving = False
-        # the pose graph's gtsam solve holds the GIL too, for seconds to tens of seconds on a map of a
-        # thousand keyframes: the event loop stopped with it and agents' connections dropped
-        # (docs/decisions.md), so it has a process of its own as well (not with the thread executor)
-        self._pg_exec: concurrent.futures.ProcessPoolExecutor | None = None
-        self._pg_solving = False
+        # REST timed out: docs/decisions.md), so global BA runs in a process of its own; the pose graph's
+        # gtsam solve too (tens of seconds on a map of a thousand keyframes), except with the thread
+        # executor
+        self._ba_proc = SolverProcess("global BA")
+        self._pg_proc = SolverProcess("pose graph")
         self._tasks: set[asyncio.Task[Any]] = set()
         self._worker: asyncio.Task[None] | None = None
         self._inflight: set[asyncio.Task[None]] = set()  # queries being prepared, verified or applied
@@ -327,24 +323,12 @@ class Pipeline(GnssSteps):
 
     async def _solve_pose_graph(self, problem: Any, poses: F64) -> Any:
         """:func:`optimise.solve_pose_graph` in the pose graph's process (the optimisation thread with the
-        thread executor); a process that died is replaced for the next solve."""
-        loop = asyncio.get_running_loop()
+        thread executor)."""
         o = self.options
         solve = partial(optimise.solve_pose_graph, problem, poses, o.fix_scale, o.optimise)
-        if self.options.scheduler.executor == "thread":
-            return await loop.run_in_executor(self._opt_exec, solve)
-        if self._pg_exec is None:
-            self._pg_exec = spawn_pool()
-        self._pg_solving = True
-        try:
-            return await loop.run_in_executor(self._pg_exec, solve)
-        except concurrent.futures.process.BrokenProcessPool:
-            logger.error("pose graph process died: restarting it")
-            self._pg_exec.shutdown(wait=False, cancel_futures=True)
-            self._pg_exec = None
-            raise
-        finally:
-            self._pg_solving = False
+        if o.scheduler.executor == "thread":
+            return await asyncio.get_running_loop().run_in_executor(self._opt_exec, solve)
+        return await self._pg_proc.run(solve)
 
     async def _pose_graph_step(
         self, m: Any, edges: list[NewEdge], pre: tuple[Sim3, list[KfKey]] | None
@@ -395,20 +379,9 @@ class Pipeline(GnssSteps):
             return True
         fixed = optimise.anchor(m, snap.keys, self._agent_kind)
         t0 = time.perf_counter()
-        if self._ba_exec is None:
-            self._ba_exec = spawn_pool()
-        self._ba_solving = True
-        try:
-            res = await asyncio.get_running_loop().run_in_executor(
-                self._ba_exec,
-                optimise.run_ba,
-                snap.poses,
-                problem,
-                fixed,
-                self.options.optimise.ba_max_iterations,
-            )
-        finally:
-            self._ba_solving = False
+        res = await self._ba_proc.run(
+            optimise.run_ba, snap.poses, problem, fixed, self.options.optimise.ba_max_iterations
+        )
         ba_ms = (time.perf_counter() - t0) * 1e3
         cur = self._current(snap)
         if cur is None:

@@ -120,14 +120,8 @@ class Backend(Pipeline):
         # a running global BA is not waited for: its task is cancelled, so its result is never applied
         self._pr_exec.shutdown(wait=False, cancel_futures=True)
         self._opt_exec.shutdown(wait=False, cancel_futures=True)
-        for pool, solving in ((self._ba_exec, self._ba_solving), (self._pg_exec, self._pg_solving)):
-            if pool is None:
-                continue
-            # a solve still running would hold the server's exit until it ends (3.11 has no
-            # terminate_workers)
-            for proc in list(getattr(pool, "_processes", {}).values()) if solving else []:
-                proc.terminate()
-            pool.shutdown(wait=False, cancel_futures=True)
+        self._ba_proc.stop()
+        self._pg_proc.stop()
 
     def idle(self) -> bool:
         """Nothing queued and nothing in flight (tests and benches wait for this)."""
