@@ -105,9 +105,21 @@ class AgentStream:
                     None if ev.track_sigma is None else np.asarray(ev.track_sigma, np.float64),
                 )
             )  # fmt: skip
+            self._resend()
         elif isinstance(ev, PoseUpdateEvent):
             world_from_cam, xyz = self._streamed.update(ev)
             self._submit(PoseUpdates(ev.kf_ids, world_from_cam, ev.point_ids, xyz, session))
+
+    def _resend(self) -> None:
+        """The keyframes the odometry's smoothing moved since they were sent, as pose updates
+        (:meth:`StreamedPoses.refresh`)."""
+        from hivemap.protocol import PoseUpdates
+
+        o = self.agent.core.options
+        if o.stream_resend is None or not o.stream_imu_odometry:
+            return
+        for s, kf_ids, world_from_cam, point_ids, xyz in self._streamed.refresh(*o.stream_resend):
+            self._submit(PoseUpdates(kf_ids, world_from_cam, point_ids, xyz, self.first_session + s))
 
     def send_rendezvous(self, r: Rendezvous) -> None:
         """A rendezvous of the front-end's session ``r.session``, into the outbox like every message."""

@@ -39,6 +39,9 @@ class RunnerOptions:
     # streaming: keyframes at an IMU-only fusion of the odometry (hivemap.client.odometry) instead of the
     # visual tracking's poses, which in fog are 2-5x further off (docs/decisions.md)
     stream_imu_odometry: bool = True
+    # streaming the IMU-aided odometry: a keyframe whose pose there moved this far (m, deg) since it was
+    # sent is sent again (a pose update), so the server holds the smoothed odometry (None: never)
+    stream_resend: tuple[float, float] | None = (0.01, 0.2)
     progress: bool = True
     max_connect_attempts: int = 10  # streaming: see LinkOptions.max_connect_attempts
     # issue 25: detect the marker carriers of the dataset's ``markers.yaml`` in cam0 (``enabled=False``:

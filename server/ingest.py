@@ -271,12 +271,24 @@ class Ingest:
                 changed_kfs.append(kf)
         changed_points = []
         if point_ids and m is not None:
-            xyz = g.apply(np.asarray(msg.xyz, dtype=np.float64))
+            sent = np.asarray(msg.xyz, dtype=np.float64)
+            xyz = g.apply(sent)
             for i, p in enumerate(point_ids):
                 mp = m.points.get((am.folded, p))
-                if mp is not None:
+                if mp is None:
+                    continue
+                # a point follows its first observer (as the back-end's corrections move it): placed
+                # where the agent sees it from that keyframe, it keeps the keyframe's share of a loop
+                # closure, which g alone would drop
+                obs = next(iter(mp.observations), None)
+                V = am.vio_poses.get(obs[1]) if obs is not None and obs[0] == am.folded else None
+                kf = m.keyframes.get(obs) if V is not None and obs is not None else None
+                if kf is not None and V is not None:
+                    in_cam = V[:3, :3].T @ (sent[i] - V[:3, 3]) * g.s
+                    mp.xyz = kf.world_from_cam[:3, :3] @ in_cam + kf.world_from_cam[:3, 3]
+                else:
                     mp.xyz = xyz[i].copy()
-                    changed_points.append(mp)
+                changed_points.append(mp)
         map_id, folded = (m.id if m is not None else -1), am.folded
 
         def op(store: ServerStore) -> None:

@@ -347,7 +347,9 @@ def test_gnss_guided_retry_merges_two_enu_maps(tmp_path: Path) -> None:
 def test_pose_update_keeps_the_backends_correction_of_the_keyframe(srv: Server) -> None:
     """After the GNSS stage has bent each keyframe on its own, an agent's pose update (its local BA
     refining a keyframe) moves that keyframe by the refinement only; it does not put it back at
-    ``global_from_vio @ vio_pose``, which would drop the stage's correction of that keyframe."""
+    ``global_from_vio @ vio_pose``, which would drop the stage's correction of that keyframe. A point in
+    the update is placed where the agent sees it from its first observer, that keyframe's correction
+    kept too."""
     from hivemap.maps.geometry import se3
     from hivemap.protocol import PoseUpdates
 
@@ -365,22 +367,33 @@ def test_pose_update_keeps_the_backends_correction_of_the_keyframe(srv: Server) 
             return np.array(m.keyframes[("ugv1", k)].world_from_cam)
 
         k = kf_ids[4]
+        kf_msgs = [m for m in msgs if hasattr(m, "kf_id")]
+        # a point keyframe 4 sees, and the keyframe that saw it first (its first observer on the server)
+        pid = int(kf_msgs[4].point_ids[kf_msgs[4].point_ids >= 0][0])
+        first = next(i for i, m in enumerate(kf_msgs) if pid in set(m.point_ids.tolist()))
         before = srv.call(lambda: world(k))
         g = agent_transform(srv, "ugv1")
         # the stage's own correction of this keyframe: what the old rule would have thrown away
         assert np.linalg.norm(g.transform_pose(sent[4])[:3, 3] - before[:3, 3]) > 1e-4
         refine = se3(so3_exp([0.0, 0.0, 0.01]), np.array([0.02, 0.0, 0.0]))
+        V_first = sent[first] @ refine if first == 4 else sent[first]
+        in_cam = np.array([0.3, -0.2, 4.0])  # where the agent now sees the point from its first observer
         upd = PoseUpdates(
             kf_ids=np.array([k], dtype=np.int64),
             world_from_cam=(sent[4] @ refine)[None],
-            point_ids=np.zeros(0, dtype=np.int64),
-            xyz=np.zeros((0, 3)),
+            point_ids=np.array([pid], dtype=np.int64),
+            xyz=(V_first[:3, :3] @ in_cam + V_first[:3, 3])[None],
         )
         acks, errors = a.send_all([upd], first_seq=len(msgs) + 1)
         assert not errors and len(acks) == 1
         after = srv.call(lambda: world(k))
+        first_world = srv.call(lambda: world(kf_ids[first]))
+        xyz = srv.call(lambda: np.array(next(iter(srv.hive.stack.maps.values())).points[("ugv1", pid)].xyz))
     expected = before @ se3(refine[:3, :3], refine[:3, 3] * g.s)
     np.testing.assert_allclose(after, expected, atol=1e-9)
+    np.testing.assert_allclose(xyz, first_world[:3, :3] @ (in_cam * g.s) + first_world[:3, 3], atol=1e-9)
+    # through the agent's transform alone the point would be off by its first observer's correction
+    assert np.linalg.norm(g.apply(upd.xyz)[0] - xyz) > 1e-4
 
 
 def test_gnss_cross_validation_repeats_at_growing_fix_counts() -> None:
