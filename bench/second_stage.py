@@ -8,7 +8,8 @@ deterministic offline, so a recording stands for that agent's single run on that
 ``replay`` runs the recorded calls through a fresh :class:`~hivemap.client.second_stage.SecondStage` with
 the recorded options and with each ``--set`` variant, and prints per recording the keyframes' ATE (evo,
 SE(3), body frame against the dataset's ground truth) for the tracking (VIO), the stage at the end
-(smoothed) and the stage as each keyframe was added (causal: what the agent streams).
+(smoothed) and the stage as each keyframe was added (causal: what the agent streams), and what the server
+holds when the agent also resends the keyframes the smoothing moved (``--resend-m``/``--resend-deg``).
 
     .venv/bin/python bench/second_stage.py record --dataset data/factory02/uav1 --out runs/stage/f02-uav1.pkl
     .venv/bin/python bench/second_stage.py replay runs/stage/*.pkl --set between_huber=0 \\
@@ -92,36 +93,65 @@ def _variant(options: Any, sets: list[str]) -> Any:
     return replace(options, **kw)
 
 
-def replay(rec: dict[str, Any], options: Any) -> dict[str, tuple[Any, Any]]:
-    """(timestamps, poses) of the VIO, the stage at the end and the stage as each keyframe was added."""
+def replay(rec: dict[str, Any], options: Any, resend: tuple[float, float] | None = None) -> dict[str, Any]:
+    """(timestamps, poses) of the VIO, the stage at the end and the stage as each keyframe was added;
+    with ``resend`` (``RunnerOptions.stream_resend``), also what a server that is sent each keyframe and
+    then its resends (:meth:`StreamedPoses.refresh`) ends up holding, and ``resent``: how many resends."""
+    from types import SimpleNamespace
+
+    from hivemap.client.odometry import StreamedPoses
     from hivemap.client.second_stage import SecondStage
 
     st = SecondStage(options)
+    streamed = StreamedPoses(lambda _s, k: st.keyframe_pose(k) @ np.linalg.inv(st.vio_pose(k)))
+    none = np.zeros(0, np.int64)
     causal_t, causal_T = [], []
+    resent = 0
     for name, args, kw in rec["calls"]:
         getattr(st, name)(*args, **kw)
         if name == "add_keyframe":
             causal_t.append(float(args[1]))
             causal_T.append(st.keyframe_pose(args[0]))
+            if resend is not None:
+                ev = SimpleNamespace(session=0, kf_id=args[0], world_from_cam=st.vio_pose(args[0]),
+                                     new_point_ids=none, new_point_xyz=np.zeros((0, 3)),
+                                     prev_session_from_world=None)  # fmt: skip
+                streamed.keyframe(ev)
+                resent += sum(len(kf_ids) for _, kf_ids, _ in streamed.refresh(*resend))
     ts, poses = st.keyframe_poses()
     vio = np.array([st.vio_pose(k) for k in st.keyframe_ids])
-    return {"vio": (ts, vio), "final": (ts, poses), "causal": (np.array(causal_t), np.array(causal_T))}
+    out: dict[str, Any] = {
+        "vio": (ts, vio),
+        "final": (ts, poses),
+        "causal": (np.array(causal_t), np.array(causal_T)),
+    }
+    if resend is not None:
+        held = np.array([streamed.sent_pose(0, k) for k in st.keyframe_ids])
+        out["resent"] = (ts, held)
+        out["n_resent"] = resent
+    return out
 
 
 def cmd_replay(a: argparse.Namespace) -> None:
     from hivemap.eval.trajectory import ate, groundtruth_trajectory, trajectory_from_poses
 
     variants = [("recorded", [])] + [(s, s.split(",")) for s in a.set]
-    print(f"{'recording':28s} {'variant':36s} {'vio':>6s} {'final':>6s} {'causal':>6s}  (keyframe ATE, m)")
+    resend = (a.resend_m, a.resend_deg) if a.resend_m > 0 else None
+    extra = f" {'resent':>6s} {'n':>5s} {'kfs':>5s}" if resend else ""
+    head = f"{'recording':28s} {'variant':36s} {'vio':>6s} {'final':>6s} {'causal':>6s}{extra}"
+    print(f"{head}  (keyframe ATE, m)")
     for path in a.recordings:
         with open(path, "rb") as f:
             rec = pickle.load(f)
         gt = groundtruth_trajectory(rec["dataset"])
         for label, sets in variants:
-            out = replay(rec, _variant(rec["options"], sets))
+            out = replay(rec, _variant(rec["options"], sets), resend)
+            n_resent = out.pop("n_resent", None)
             err = {k: ate(trajectory_from_poses(t, T), gt, "se3", max_diff=0.02).stats.rmse
                    for k, (t, T) in out.items()}  # fmt: skip
             row = f"{err['vio']:6.3f} {err['final']:6.3f} {err['causal']:6.3f}"
+            if resend is not None:
+                row += f" {err['resent']:6.3f} {n_resent:5d} {len(out['final'][0]):5d}"
             print(f"{Path(path).stem:28s} {label:36s} {row}", flush=True)
 
 
@@ -138,6 +168,11 @@ def main() -> None:
     p.add_argument("recordings", nargs="+")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE[,NAME=VALUE]",
                    help="a variant of the stage's options (repeat for more variants)")  # fmt: skip
+    p.add_argument("--resend-m", type=float, default=0.01,
+                   help="also replay the agent's resends (RunnerOptions.stream_resend; 0: off): 'resent' "
+                        "is the ATE of what the server then holds, 'n' the resends, "
+                        "'kfs' the keyframes")  # fmt: skip
+    p.add_argument("--resend-deg", type=float, default=0.2)
     if not sys.argv[1:]:  # `make bench` runs every bench bare
         print("bench/second_stage.py: on request only (`record`, then `replay`; see --help)")
         return

@@ -118,8 +118,12 @@ class AgentStream:
         o = self.agent.core.options
         if o.stream_resend is None or not o.stream_imu_odometry:
             return
-        for s, kf_ids, world_from_cam, point_ids, xyz in self._streamed.refresh(*o.stream_resend):
-            self._submit(PoseUpdates(kf_ids, world_from_cam, point_ids, xyz, self.first_session + s))
+        none, no_xyz = np.zeros(0, np.int64), np.zeros((0, 3))
+        for s, kf_ids, world_from_cam in self._streamed.refresh(*o.stream_resend):
+            # at most max_poses_per_msg keyframes a message (the limit is 5000; a refresh rarely has 100)
+            for i in range(0, len(kf_ids), 1000):
+                self._submit(PoseUpdates(kf_ids[i : i + 1000], world_from_cam[i : i + 1000], none, no_xyz,
+                                         self.first_session + s, points_follow=True))  # fmt: skip
 
     def send_rendezvous(self, r: Rendezvous) -> None:
         """A rendezvous of the front-end's session ``r.session``, into the outbox like every message."""

@@ -92,21 +92,16 @@ class StreamedPoses:
         self.moved = moved
         self._creator: dict[tuple[int, int], int] = {}  # (session, point id) -> keyframe id
         self._last: dict[int, int] = {}  # session -> its newest keyframe id
-        # what :meth:`refresh` needs: each keyframe's latest VIO pose and the transform it was last sent
-        # with, and each keyframe's points at their latest VIO position
+        # what :meth:`refresh` needs: each keyframe's latest VIO pose and the transform it was last sent with
         self._vio: dict[tuple[int, int], F64] = {}
         self._sent: dict[tuple[int, int], F64] = {}
-        self._points: dict[tuple[int, int], dict[int, F64]] = {}
 
     def keyframe(self, ev: Any) -> tuple[F64, F64, F64 | None]:
         """(world_from_cam, new points' xyz, prev_session_from_world) of a ``KeyframeEvent``."""
         C = self.moved(ev.session, ev.kf_id)
-        key = (int(ev.session), int(ev.kf_id))
-        pts = self._points.setdefault(key, {})
-        new_xyz = np.asarray(ev.new_point_xyz, dtype=np.float64).reshape(-1, 3)
-        for p, x in zip(np.asarray(ev.new_point_ids).tolist(), new_xyz, strict=True):
+        for p in np.asarray(ev.new_point_ids).tolist():
             self._creator[(ev.session, int(p))] = int(ev.kf_id)
-            pts[int(p)] = x.copy()
+        key = (int(ev.session), int(ev.kf_id))
         self._vio[key] = np.asarray(ev.world_from_cam, dtype=np.float64).copy()
         self._sent[key] = np.asarray(C, dtype=np.float64)
         guess = ev.prev_session_from_world
@@ -132,23 +127,22 @@ class StreamedPoses:
         cache: dict[int | None, F64] = {}
         for i, p in enumerate(np.asarray(ev.point_ids).tolist()):
             k = self._creator.get((s, int(p)))
-            if k is not None and (s, k) in self._points:
-                self._points[(s, k)][int(p)] = xyz[i].copy()
             if k not in cache:
                 cache[k] = self.moved(s, k)
             xyz[i] = _apply(cache[k], xyz[i : i + 1])[0]
         return T, xyz
 
-    def refresh(
-        self, min_m: float, min_deg: float, max_points: int = 10000
-    ) -> list[tuple[int, Any, F64, Any, F64]]:
-        """The keyframes whose streamed pose moved since they were last sent, as pose updates:
-        ``(session, kf_ids, world_from_cam, point_ids, xyz)`` per session, with the points each keyframe
-        created. The odometry is a smoother: each new keyframe's IMU factors also move the keyframes
-        before it, and the server, which builds its pose graph on what it was sent, should hold that
-        smoothed shape rather than each keyframe's first, causal, estimate. A keyframe is resent once
-        its camera moved ``min_m`` or turned ``min_deg`` from what the server has; one update carries at
-        most ``max_points`` points (more than one per session when needed)."""
+    def sent_pose(self, session: int, kf_id: int) -> F64:
+        """The keyframe's pose as last sent (its latest VIO pose moved by the transform it was sent with)."""
+        return self._sent[(session, kf_id)] @ self._vio[(session, kf_id)]
+
+    def refresh(self, min_m: float, min_deg: float) -> list[tuple[int, Any, F64]]:
+        """The keyframes whose streamed pose moved since they were last sent, as
+        ``(session, kf_ids, world_from_cam)`` per session: a pose update whose points follow their
+        keyframes (``PoseUpdates.points_follow``). The odometry is a smoother: each new keyframe's IMU
+        factors also move the keyframes before it, and the server, which builds its pose graph on what it
+        was sent, should hold that smoothed shape rather than each keyframe's first, causal, estimate. A
+        keyframe is resent once its camera moved ``min_m`` or turned ``min_deg`` from what the server has."""
         cos_min = float(np.cos(np.radians(min_deg)))
         by_session: dict[int, list[tuple[int, F64]]] = {}
         for (s, k), V in self._vio.items():
@@ -161,33 +155,15 @@ class StreamedPoses:
             cos = (float(np.trace(D[:3, :3])) - 1.0) / 2.0
             if moved_m >= min_m or cos <= cos_min:
                 self._sent[(s, k)] = C
-                by_session.setdefault(s, []).append((k, C))
-        out: list[tuple[int, Any, F64, Any, F64]] = []
-        for s, items in sorted(by_session.items()):
-            chunk: list[tuple[int, F64, dict[int, F64]]] = []
-            n = 0
-            for k, C in items:
-                pts = self._points.get((s, k), {})
-                if chunk and n + len(pts) > max_points:
-                    out.append((s, *_pose_update(chunk, self._vio, s)))
-                    chunk, n = [], 0
-                chunk.append((k, C, pts))
-                n += len(pts)
-            out.append((s, *_pose_update(chunk, self._vio, s)))
-        return out
-
-
-def _pose_update(
-    chunk: list[tuple[int, F64, dict[int, F64]]], vio: dict[tuple[int, int], F64], session: int
-) -> tuple[Any, F64, Any, F64]:
-    """(kf_ids, world_from_cam, point_ids, xyz) of keyframes moved by their transforms, with their points."""
-    xyz = [_apply(C, np.array(list(pts.values()))) for _, C, pts in chunk if pts]
-    return (
-        np.asarray([k for k, _, _ in chunk], np.int64),
-        np.array([C @ vio[(session, k)] for k, C, _ in chunk]).reshape(-1, 4, 4),
-        np.asarray([p for _, _, pts in chunk for p in pts], np.int64),
-        np.concatenate(xyz) if xyz else np.zeros((0, 3)),
-    )
+                by_session.setdefault(s, []).append((k, C @ V))
+        return [
+            (
+                s,
+                np.asarray([k for k, _ in items], np.int64),
+                np.array([T for _, T in items]).reshape(-1, 4, 4),
+            )
+            for s, items in sorted(by_session.items())
+        ]
 
 
 def _apply(C: F64, xyz: Any) -> F64:

@@ -12,8 +12,10 @@ from dataclasses import dataclass
 # gets one). v1-v3 frames still read, and a frame to a peer that said hello in an older version is written in
 # that version, without the newer fields (``encode(..., version=)``, ``downgrade``); a message type newer
 # than the peer's version is not sent to it at all, so older agents keep working.
-PROTOCOL_VERSION = 5
-SUPPORTED_VERSIONS = (1, 2, 3, 4, 5)
+# 5: keyframes carry ``track_sigma``.
+# 6: pose updates carry ``points_follow`` (the keyframes' points not listed move with them).
+PROTOCOL_VERSION = 6
+SUPPORTED_VERSIONS = (1, 2, 3, 4, 5, 6)
 
 
 @dataclass(frozen=True)

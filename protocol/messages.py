@@ -108,7 +108,9 @@ class MapPoints:
 @dataclass(frozen=True)
 class PoseUpdates:
     """Agent -> server: the dynamic part only. kf_ids i64 (K,), world_from_cam f64 (K,4,4),
-    point_ids i64 (P,), xyz f64 (P,3)."""
+    point_ids i64 (P,), xyz f64 (P,3). ``points_follow`` (protocol v6): the points each keyframe was
+    the first to observe, where not listed, move rigidly with it (an agent resending keyframes its
+    odometry's smoothing moved, without their points)."""
 
     TYPE: ClassVar[str] = "pose_updates"
     kf_ids: NDArray[np.int64]
@@ -116,6 +118,7 @@ class PoseUpdates:
     point_ids: NDArray[np.int64]
     xyz: NDArray[np.float64]
     session: int = 0
+    points_follow: bool = False
 
 
 @dataclass(frozen=True)

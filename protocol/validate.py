@@ -206,7 +206,9 @@ def _v_pose_updates(b: dict[str, Any], lim: Limits) -> PoseUpdates:
         raise FieldError(
             "ids must be >= 0", "body.kf_ids" if kf_ids.size and kf_ids.min() < 0 else "body.point_ids"
         )
-    return PoseUpdates(kf_ids=kf_ids, world_from_cam=poses, point_ids=pids, xyz=xyz, session=_session(b))
+    follow = as_bool(b.get("points_follow", False), "body.points_follow")
+    return PoseUpdates(kf_ids=kf_ids, world_from_cam=poses, point_ids=pids, xyz=xyz, session=_session(b),
+                       points_follow=follow)  # fmt: skip
 
 
 def _v_rendezvous(b: dict[str, Any], lim: Limits) -> Rendezvous:

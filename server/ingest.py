@@ -10,6 +10,7 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from hivemap.maps import MapStack
 from hivemap.maps.camera import PinholeCamera
@@ -18,6 +19,8 @@ from hivemap.server.agents import AgentMap, AgentState, PendingKeyframe, Rejecte
 from hivemap.server.convert import fold_agent_id, keyframe_from_msg, points_from_msg
 from hivemap.server.persist import GraphSnapshot, ServerStore
 from hivemap.server.rendezvous import MAX_HELD, RendezvousObs
+
+F64 = NDArray[np.float64]
 
 if TYPE_CHECKING:
     from hivemap.server.settings import ServerSettings
@@ -248,6 +251,7 @@ class Ingest:
         g = am.global_from_vio
         changed_kfs = []
         changed_pending = []
+        moves: list[tuple[Any, F64]] = []  # points_follow: (keyframe, world_new @ inv(world_old))
         for i, k in enumerate(kf_ids):
             T = np.array(msg.world_from_cam[i], dtype=np.float64)
             pk = am.pending.get(k)
@@ -266,10 +270,15 @@ class Ingest:
                     # keyframe alone (its share of a loop closure or of the GNSS stage's bend)
                     delta = np.linalg.inv(old) @ T
                     delta[:3, 3] *= g.s
+                    before = kf.world_from_cam
                     kf.world_from_cam = kf.world_from_cam @ delta
+                    if msg.points_follow:
+                        moves.append((kf, kf.world_from_cam @ np.linalg.inv(before)))
                 am.vio_poses[k] = T
                 changed_kfs.append(kf)
         changed_points = []
+        if moves and m is not None:
+            changed_points += _points_follow(m, moves, set(point_ids), am.folded)
         if point_ids and m is not None:
             sent = np.asarray(msg.xyz, dtype=np.float64)
             xyz = g.apply(sent)
@@ -322,3 +331,23 @@ class Ingest:
         self.fresh_rendezvous.append(rid)
         rec = obs.record()
         return lambda store: store.maps.put_rendezvous(rid, rec)
+
+
+def _points_follow(m: Any, moves: list[tuple[Any, F64]], listed: set[int], folded: str) -> list[Any]:
+    """``PoseUpdates.points_follow``: each moved keyframe's points that it observed first (as the back-end's
+    corrections move them) and the update does not list, moved rigidly with it."""
+    out = []
+    for kf, D in moves:
+        pts = []
+        for _, pk in kf.referenced_points():
+            if pk[0] == folded and pk[1] in listed:
+                continue
+            mp = m.points.get(pk)
+            if mp is not None and next(iter(mp.observations), None) == kf.key:
+                pts.append(mp)
+        if pts:
+            xyz = np.stack([mp.xyz for mp in pts]) @ D[:3, :3].T + D[:3, 3]
+            for mp, x in zip(pts, xyz, strict=True):
+                mp.xyz = x
+            out += pts
+    return out

@@ -539,3 +539,20 @@ def test_a_v4_frame_cannot_carry_track_sigma_and_a_v4_reader_gets_the_keyframe_w
     _, new = decode(encode(kf, 3))
     assert isinstance(new, Keyframe) and new.track_sigma is not None
     np.testing.assert_array_equal(new.track_sigma, [0.006, 0.08])
+
+
+def test_points_follow_is_protocol_v6() -> None:
+    """``PoseUpdates.points_follow`` is protocol v6: a v5 frame carrying it is refused naming the field, an
+    update downgraded for a v5 peer travels without it, a v6 frame keeps it, and a non-bool is refused."""
+    upd = PoseUpdates(np.array([4], np.int64), np.eye(4)[None], np.zeros(0, np.int64), np.zeros((0, 3)),
+                      points_follow=True)  # fmt: skip
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(encode(upd, 3), v=5))
+    assert e.value.field == "body.points_follow"
+    version, _, old = decode_versioned(encode(downgrade(upd, 5), 3, version=5))
+    assert version == 5 and isinstance(old, PoseUpdates) and old.points_follow is False
+    _, new = decode(encode(upd, 3))
+    assert isinstance(new, PoseUpdates) and new.points_follow is True
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(encode(upd, 3), body_points_follow=1))
+    assert e.value.field == "body.points_follow"

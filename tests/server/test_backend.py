@@ -396,6 +396,43 @@ def test_pose_update_keeps_the_backends_correction_of_the_keyframe(srv: Server) 
     assert np.linalg.norm(g.apply(upd.xyz)[0] - xyz) > 1e-4
 
 
+def test_a_resent_keyframe_takes_the_points_it_observed_first_along(srv: Server) -> None:
+    """``PoseUpdates.points_follow`` (an agent resending keyframes its odometry's smoothing moved): the
+    keyframe moves as any pose update moves it, the points it observed first move rigidly with it, and
+    every other point stays where it was."""
+    from hivemap.maps.geometry import se3
+    from hivemap.protocol import PoseUpdates
+
+    rng = np.random.default_rng(6)
+    pts, desc = make_world(rng, 2500, (-20, 30))
+    msgs, _, sent = agent_stream(rng, pts, desc, np.linspace(-6, 8, 10), UGV_FROM_WORLD)
+    kf_ids = [int(m.kf_id) for m in msgs if hasattr(m, "kf_id")]
+    a = stream(srv, "ugv1", "ugv", msgs)
+    with a:
+        srv.wait_idle()
+
+        def state() -> tuple[np.ndarray, dict[Any, np.ndarray], set[Any]]:
+            m = next(iter(srv.hive.stack.maps.values()))
+            kf = m.keyframes[("ugv1", kf_ids[3])]
+            first = {pk for pk, mp in m.points.items() if next(iter(mp.observations), None) == kf.key}
+            return np.array(kf.world_from_cam), {pk: mp.xyz.copy() for pk, mp in m.points.items()}, first
+
+        W0, xyz0, first = srv.call(state)
+        assert len(first) >= 10 and len(first) < len(xyz0)  # the third keyframe saw some points first
+        move = se3(so3_exp([0.0, 0.02, 0.0]), np.array([0.05, -0.02, 0.0]))  # in the keyframe's frame
+        upd = PoseUpdates(kf_ids=np.array([kf_ids[3]], np.int64), world_from_cam=(sent[3] @ move)[None],
+                          point_ids=np.zeros(0, np.int64), xyz=np.zeros((0, 3)),
+                          points_follow=True)  # fmt: skip
+        acks, errors = a.send_all([upd], first_seq=len(msgs) + 1)
+        assert not errors and len(acks) == 1
+        W1, xyz1, _ = srv.call(state)
+    D = W1 @ np.linalg.inv(W0)
+    assert np.linalg.norm(D[:3, 3]) > 0.01
+    for pk, x in xyz0.items():
+        want = D[:3, :3] @ x + D[:3, 3] if pk in first else x
+        np.testing.assert_allclose(xyz1[pk], want, atol=1e-9)
+
+
 def test_gnss_cross_validation_repeats_at_growing_fix_counts() -> None:
     """GnssOptions.cv_new_fixes / cv_growth: from the first round at 10 fixes the stiffness is
     validated again at 13, 16 and 19 fixes (3 more each), later only every 15 % more (with fixes at 5 Hz,
