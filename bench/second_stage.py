@@ -156,6 +156,9 @@ def cmd_replay(a: argparse.Namespace) -> None:
 
 
 def main() -> None:
+    from hivemap.client.runner_options import RunnerOptions
+
+    resend = RunnerOptions().stream_resend or (0.0, 0.0)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("record", help="run an agent offline and keep its second stage's inputs")
@@ -168,11 +171,11 @@ def main() -> None:
     p.add_argument("recordings", nargs="+")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE[,NAME=VALUE]",
                    help="a variant of the stage's options (repeat for more variants)")  # fmt: skip
-    p.add_argument("--resend-m", type=float, default=0.01,
+    p.add_argument("--resend-m", type=float, default=resend[0],
                    help="also replay the agent's resends (RunnerOptions.stream_resend; 0: off): 'resent' "
                         "is the ATE of what the server then holds, 'n' the resends, "
                         "'kfs' the keyframes")  # fmt: skip
-    p.add_argument("--resend-deg", type=float, default=0.2)
+    p.add_argument("--resend-deg", type=float, default=resend[1])
     if not sys.argv[1:]:  # `make bench` runs every bench bare
         print("bench/second_stage.py: on request only (`record`, then `replay`; see --help)")
         return

@@ -41,7 +41,7 @@ class RunnerOptions:
     stream_imu_odometry: bool = True
     # streaming the IMU-aided odometry: a keyframe whose pose there moved this far (m, deg) since it was
     # sent is sent again (a pose update), so the server holds the smoothed odometry (None: never)
-    stream_resend: tuple[float, float] | None = (0.01, 0.2)
+    stream_resend: tuple[float, float] | None = (0.03, 0.5)
     progress: bool = True
     max_connect_attempts: int = 10  # streaming: see LinkOptions.max_connect_attempts
     # issue 25: detect the marker carriers of the dataset's ``markers.yaml`` in cam0 (``enabled=False``:
