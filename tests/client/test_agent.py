@@ -185,3 +185,60 @@ def test_an_agent_streaming_its_imu_odometry_sends_each_keyframe_moved_to_it(
     # the fusion moved them: not the identity on every keyframe
     moved = [np.linalg.norm(agent.core.stream_from_vio(0, k)[:3, 3]) for k in sent]
     assert max(moved) > 1e-4, moved
+
+
+def test_keyframes_the_odometry_moved_later_are_sent_again(tiny_agent: Path, tmp_path: Path) -> None:
+    """``stream_resend``: the IMU-only fusion is a smoother, and the last pose the outbox holds for each
+    keyframe (its keyframe message, then the pose updates that moved it) is within the resend threshold of
+    where the fusion puts it at the end; the resends are pose updates whose points follow their keyframes,
+    and the server takes them all."""
+    import sqlite3
+
+    from srv_helpers import TOKENS, ServerProcess, write_config
+
+    from hivemap.client.agent import AgentOptions
+    from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
+    from hivemap.client.runner import RunnerOptions
+    from hivemap.protocol import Keyframe, PoseUpdates, decode
+
+    server = ServerProcess(tmp_path / "data", write_config(tmp_path / "server.toml")).start()
+    try:
+        opts = AgentOptions(
+            RunnerOptions(progress=False, stream_imu_odometry=True, stream_resend=(0.002, 0.1))
+        )
+        agent = Agent.from_calibration([tiny_agent], agent_id="uav1", options=opts)
+        agent.connect(server.ws_url, TOKENS["uav1"], tmp_path / "agent")
+        vio: dict[int, np.ndarray] = {}
+        on_event = agent.core.on_event
+        assert on_event is not None
+
+        def both(ev: object) -> None:
+            on_event(ev)
+            # each keyframe's latest tracking pose: its keyframe event, then the local BA's updates
+            if isinstance(ev, KeyframeEvent):
+                vio[ev.kf_id] = ev.world_from_cam
+            elif isinstance(ev, PoseUpdateEvent):
+                vio.update(zip(np.asarray(ev.kf_ids).tolist(), ev.world_from_cam, strict=True))
+
+        agent.core.on_event = both
+        _feed(agent, load_dataset(tiny_agent))
+        assert agent.close(timeout=30) == 0
+    finally:
+        server.stop()
+    box = next((tmp_path / "agent").rglob("outbox*.sqlite"))
+    db = sqlite3.connect(box)
+    msgs = [decode(bytes(f))[1] for (f,) in db.execute("SELECT frame FROM outbox ORDER BY seq")]
+    db.close()
+    last: dict[int, np.ndarray] = {}
+    resends = 0
+    for m in msgs:
+        if isinstance(m, Keyframe):
+            last[m.kf_id] = m.world_from_cam
+        elif isinstance(m, PoseUpdates):
+            resends += len(m.kf_ids) if m.points_follow else 0
+            assert not m.points_follow or len(m.point_ids) == 0
+            last.update(zip(m.kf_ids.tolist(), m.world_from_cam, strict=True))
+    assert resends > 0 and len(last) > 3
+    for k, T in last.items():
+        final = agent.core.stream_from_vio(0, k) @ vio[k]
+        assert np.linalg.norm(final[:3, 3] - T[:3, 3]) < 0.002 + 1e-9, k
