@@ -82,11 +82,13 @@ class PoseGraphOptions:
 class PoseGraphResult:
     """The solved poses and, per edge (in the order given), whether it was kept: robust edges that the
     GNC rejected are False, every other edge True. ``chi2``: each edge's whitened squared residual at the
-    solution (what the GNC judged)."""
+    solution (what the GNC judged). ``cpu_ms``: the CPU time of the solve in the process that ran it (set
+    by the back-end's caller; against the wall time it tells a slow solve from one that waited for a core)."""
 
     poses: list[Sim3]
     inlier: list[bool]
     chi2: list[float]
+    cpu_ms: float = 0.0
 
 
 def _check_graph(name: str, n: int, edges: list[PoseGraphEdge], fixed: set[int] | frozenset[int]) -> None:

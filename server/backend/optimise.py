@@ -5,6 +5,7 @@ optimisation thread (pure functions, no map access) and turned into per-keyframe
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -221,6 +222,7 @@ def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey
 def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseOptions) -> PoseGraphResult:
     """Optimisation thread: :func:`pose_graph` on a :class:`PoseGraphProblem`; the result's
     ``inlier`` and ``chi2`` are those of ``p.new_edges`` (the essential edges are always kept)."""
+    t0 = time.process_time()
     res = pose_graph(
         p.initial, poses, p.graph_edges, p.new_edges, p.fixed, metric,
         sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
@@ -229,7 +231,7 @@ def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseO
         graph_sigmas=p.graph_sigmas, covariances=p.new_edge_covs,
     )  # fmt: skip
     n = len(p.graph_edges)
-    return PoseGraphResult(res.poses, res.inlier[n:], res.chi2[n:])
+    return PoseGraphResult(res.poses, res.inlier[n:], res.chi2[n:], (time.process_time() - t0) * 1e3)
 
 
 def pose_graph(

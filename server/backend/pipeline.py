@@ -362,8 +362,9 @@ class Pipeline(GnssSteps):
         self._apply_corrections(cur, corr, {})
         n_edges = len(problem.graph_edges) + len(problem.new_edges)
         self.server.events.add("pose_graph", f"map {map_id}: pose graph over {len(snap.keys)} keyframes, "
-                               f"{n_edges} edges ({pg_ms:.0f} ms)", map_id=map_id,
-                               data={"n_keyframes": len(snap.keys), "ms": pg_ms})  # fmt: skip
+                               f"{n_edges} edges ({pg_ms:.0f} ms, {res.cpu_ms:.0f} ms CPU)", map_id=map_id,
+                               data={"n_keyframes": len(snap.keys), "n_edges": n_edges, "ms": pg_ms,
+                                     "cpu_ms": res.cpu_ms})  # fmt: skip
         return True
 
     async def _ba_step(self, m: Any) -> bool:
