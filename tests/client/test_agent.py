@@ -142,43 +142,55 @@ def test_streaming_replay_is_the_offline_replay_plus_the_link(tiny_agent: Path, 
     np.testing.assert_allclose(a.positions_xyz, b.positions_xyz, atol=1e-6)
 
 
-def test_an_agent_streaming_its_imu_odometry_sends_each_keyframe_moved_to_it(
-    tiny_agent: Path, tmp_path: Path
-) -> None:
-    """``stream_imu_odometry``: every keyframe reaches the outbox at its IMU-only fusion's pose
-    (``stream_from_vio`` at emission time times the tracking's pose), which is not the tracking's."""
+def _stream_tapped(tiny_agent: Path, tmp_path: Path, runner: object, tap: object) -> tuple[Agent, list]:  # type: ignore[type-arg]
+    """Stream the tiny dataset to a real server with ``runner`` options, calling ``tap(agent, event)``
+    after the link took each front-end event; returns the agent and every message of its outbox."""
     import sqlite3
 
     from srv_helpers import TOKENS, ServerProcess, write_config
 
     from hivemap.client.agent import AgentOptions
-    from hivemap.client.runner import RunnerOptions
-    from hivemap.protocol import Keyframe, decode
+    from hivemap.protocol import decode
 
     server = ServerProcess(tmp_path / "data", write_config(tmp_path / "server.toml")).start()
     try:
-        opts = AgentOptions(RunnerOptions(progress=False, stream_imu_odometry=True))
-        agent = Agent.from_calibration([tiny_agent], agent_id="uav1", options=opts)
+        agent = Agent.from_calibration([tiny_agent], agent_id="uav1", options=AgentOptions(runner))  # type: ignore[arg-type]
         agent.connect(server.ws_url, TOKENS["uav1"], tmp_path / "agent")
         on_event = agent.core.on_event
         assert on_event is not None
-        expected: dict[int, np.ndarray] = {}
 
         def both(ev: object) -> None:
             on_event(ev)
-            if hasattr(ev, "keypoints"):
-                expected[ev.kf_id] = agent.core.stream_from_vio(ev.session, ev.kf_id) @ ev.world_from_cam  # type: ignore[attr-defined]
+            tap(agent, ev)  # type: ignore[operator]
 
         agent.core.on_event = both
         _feed(agent, load_dataset(tiny_agent))
         assert agent.close(timeout=30) == 0
     finally:
         server.stop()
-    box = next((tmp_path / "agent").rglob("outbox*.sqlite"))
-    db = sqlite3.connect(box)
-    sent = {m.kf_id: m.world_from_cam for (f,) in db.execute("SELECT frame FROM outbox ORDER BY seq")
-            if isinstance(m := decode(bytes(f))[1], Keyframe)}  # fmt: skip
+    db = sqlite3.connect(next((tmp_path / "agent").rglob("outbox*.sqlite")))
+    msgs = [decode(bytes(f))[1] for (f,) in db.execute("SELECT frame FROM outbox ORDER BY seq")]
     db.close()
+    return agent, msgs
+
+
+def test_an_agent_streaming_its_imu_odometry_sends_each_keyframe_moved_to_it(
+    tiny_agent: Path, tmp_path: Path
+) -> None:
+    """``stream_imu_odometry``: every keyframe reaches the outbox at its IMU-only fusion's pose
+    (``stream_from_vio`` at emission time times the tracking's pose), which is not the tracking's."""
+    from hivemap.client.runner import RunnerOptions
+    from hivemap.protocol import Keyframe
+
+    expected: dict[int, np.ndarray] = {}
+
+    def tap(agent: Agent, ev: object) -> None:
+        if hasattr(ev, "keypoints"):
+            expected[ev.kf_id] = agent.core.stream_from_vio(ev.session, ev.kf_id) @ ev.world_from_cam  # type: ignore[attr-defined]
+
+    runner = RunnerOptions(progress=False, stream_imu_odometry=True)
+    agent, msgs = _stream_tapped(tiny_agent, tmp_path, runner, tap)
+    sent = {m.kf_id: m.world_from_cam for m in msgs if isinstance(m, Keyframe)}
     assert len(sent) > 3 and set(sent) == set(expected)
     for k, T in sent.items():
         np.testing.assert_allclose(T, expected[k], atol=1e-9)
@@ -192,43 +204,21 @@ def test_keyframes_the_odometry_moved_later_are_sent_again(tiny_agent: Path, tmp
     keyframe (its keyframe message, then the pose updates that moved it) is within the resend threshold of
     where the fusion puts it at the end; the resends are pose updates whose points follow their keyframes,
     and the server takes them all."""
-    import sqlite3
-
-    from srv_helpers import TOKENS, ServerProcess, write_config
-
-    from hivemap.client.agent import AgentOptions
     from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
     from hivemap.client.runner import RunnerOptions
-    from hivemap.protocol import Keyframe, PoseUpdates, decode
+    from hivemap.protocol import Keyframe, PoseUpdates
 
-    server = ServerProcess(tmp_path / "data", write_config(tmp_path / "server.toml")).start()
-    try:
-        opts = AgentOptions(
-            RunnerOptions(progress=False, stream_imu_odometry=True, stream_resend=(0.002, 0.1))
-        )
-        agent = Agent.from_calibration([tiny_agent], agent_id="uav1", options=opts)
-        agent.connect(server.ws_url, TOKENS["uav1"], tmp_path / "agent")
-        vio: dict[int, np.ndarray] = {}
-        on_event = agent.core.on_event
-        assert on_event is not None
+    vio: dict[int, np.ndarray] = {}
 
-        def both(ev: object) -> None:
-            on_event(ev)
-            # each keyframe's latest tracking pose: its keyframe event, then the local BA's updates
-            if isinstance(ev, KeyframeEvent):
-                vio[ev.kf_id] = ev.world_from_cam
-            elif isinstance(ev, PoseUpdateEvent):
-                vio.update(zip(np.asarray(ev.kf_ids).tolist(), ev.world_from_cam, strict=True))
+    def tap(agent: Agent, ev: object) -> None:
+        # each keyframe's latest tracking pose: its keyframe event, then the local BA's updates
+        if isinstance(ev, KeyframeEvent):
+            vio[ev.kf_id] = ev.world_from_cam
+        elif isinstance(ev, PoseUpdateEvent):
+            vio.update(zip(np.asarray(ev.kf_ids).tolist(), ev.world_from_cam, strict=True))
 
-        agent.core.on_event = both
-        _feed(agent, load_dataset(tiny_agent))
-        assert agent.close(timeout=30) == 0
-    finally:
-        server.stop()
-    box = next((tmp_path / "agent").rglob("outbox*.sqlite"))
-    db = sqlite3.connect(box)
-    msgs = [decode(bytes(f))[1] for (f,) in db.execute("SELECT frame FROM outbox ORDER BY seq")]
-    db.close()
+    runner = RunnerOptions(progress=False, stream_imu_odometry=True, stream_resend=(0.002, 0.1))
+    agent, msgs = _stream_tapped(tiny_agent, tmp_path, runner, tap)
     last: dict[int, np.ndarray] = {}
     resends = 0
     for m in msgs:
