@@ -99,11 +99,11 @@ def replay(rec: dict[str, Any], options: Any, resend: tuple[float, float] | None
     then its resends (:meth:`StreamedPoses.refresh`) ends up holding, and ``resent``: how many resends."""
     from types import SimpleNamespace
 
-    from hivemap.client.odometry import StreamedPoses
+    from hivemap.client.odometry import StreamedPoses, stage_from_vio
     from hivemap.client.second_stage import SecondStage
 
     st = SecondStage(options)
-    streamed = StreamedPoses(lambda _s, k: st.keyframe_pose(k) @ np.linalg.inv(st.vio_pose(k)))
+    streamed = StreamedPoses(lambda _s, k: stage_from_vio(st, k))
     none = np.zeros(0, np.int64)
     causal_t, causal_T = [], []
     resent = 0

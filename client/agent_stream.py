@@ -114,15 +114,15 @@ class AgentStream:
         """The keyframes the odometry's smoothing moved since they were sent, as pose updates
         (:meth:`StreamedPoses.refresh`)."""
         from hivemap.protocol import PoseUpdates
+        from hivemap.protocol.limits import Limits
 
         o = self.agent.core.options
         if o.stream_resend is None or not o.stream_imu_odometry:
             return
-        none, no_xyz = np.zeros(0, np.int64), np.zeros((0, 3))
+        none, no_xyz, n = np.zeros(0, np.int64), np.zeros((0, 3)), Limits().max_poses_per_msg
         for s, kf_ids, world_from_cam in self._streamed.refresh(*o.stream_resend):
-            # at most max_poses_per_msg keyframes a message (the limit is 5000; a refresh rarely has 100)
-            for i in range(0, len(kf_ids), 1000):
-                self._submit(PoseUpdates(kf_ids[i : i + 1000], world_from_cam[i : i + 1000], none, no_xyz,
+            for i in range(0, len(kf_ids), n):
+                self._submit(PoseUpdates(kf_ids[i : i + n], world_from_cam[i : i + n], none, no_xyz,
                                          self.first_session + s, points_follow=True))  # fmt: skip
 
     def send_rendezvous(self, r: Rendezvous) -> None:

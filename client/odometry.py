@@ -78,8 +78,12 @@ class StreamOdometry:
         in the VIO frame; identity without the IMU or for an unknown node."""
         if self.stage is None or node is None or not self.stage.has_keyframe(node):
             return np.eye(4)
-        C = self.stage.keyframe_pose(node) @ np.linalg.inv(self.stage.vio_pose(node))
-        return np.asarray(C, dtype=np.float64)
+        return stage_from_vio(self.stage, node)
+
+
+def stage_from_vio(stage: Any, node: int) -> F64:
+    """The rigid transform taking keyframe ``node``'s VIO pose to its pose in ``stage`` (a second stage)."""
+    return np.asarray(stage.keyframe_pose(node) @ np.linalg.inv(stage.vio_pose(node)), dtype=np.float64)
 
 
 class StreamedPoses:
@@ -92,7 +96,7 @@ class StreamedPoses:
         self.moved = moved
         self._creator: dict[tuple[int, int], int] = {}  # (session, point id) -> keyframe id
         self._last: dict[int, int] = {}  # session -> its newest keyframe id
-        # what :meth:`refresh` needs: each keyframe's latest VIO pose and the transform it was last sent with
+        # what :meth:`refresh` needs: each keyframe's latest VIO pose and the pose the server has for it
         self._vio: dict[tuple[int, int], F64] = {}
         self._sent: dict[tuple[int, int], F64] = {}
 
@@ -103,7 +107,7 @@ class StreamedPoses:
             self._creator[(ev.session, int(p))] = int(ev.kf_id)
         key = (int(ev.session), int(ev.kf_id))
         self._vio[key] = np.asarray(ev.world_from_cam, dtype=np.float64).copy()
-        self._sent[key] = np.asarray(C, dtype=np.float64)
+        self._sent[key] = C @ self._vio[key]
         guess = ev.prev_session_from_world
         earlier = [s for s in self._last if s < ev.session]
         if guess is not None and earlier:
@@ -118,10 +122,9 @@ class StreamedPoses:
         s = int(ev.session)
         out = []
         for k, w in zip(np.asarray(ev.kf_ids).tolist(), ev.world_from_cam, strict=True):
-            C = np.asarray(self.moved(s, int(k)), dtype=np.float64)
             self._vio[(s, int(k))] = np.asarray(w, dtype=np.float64).copy()
-            self._sent[(s, int(k))] = C
-            out.append(C @ w)
+            self._sent[(s, int(k))] = self.moved(s, int(k)) @ self._vio[(s, int(k))]
+            out.append(self._sent[(s, int(k))])
         T = np.array(out).reshape(-1, 4, 4)
         xyz = np.asarray(ev.xyz, dtype=np.float64).reshape(-1, 3).copy()
         cache: dict[int | None, F64] = {}
@@ -133,8 +136,8 @@ class StreamedPoses:
         return T, xyz
 
     def sent_pose(self, session: int, kf_id: int) -> F64:
-        """The keyframe's pose as last sent (its latest VIO pose moved by the transform it was sent with)."""
-        return self._sent[(session, kf_id)] @ self._vio[(session, kf_id)]
+        """The keyframe's pose as the server has it (as last sent)."""
+        return self._sent[(session, kf_id)]
 
     def refresh(self, min_m: float, min_deg: float) -> list[tuple[int, Any, F64]]:
         """The keyframes whose streamed pose moved since they were last sent, as
@@ -143,19 +146,15 @@ class StreamedPoses:
         factors also move the keyframes before it, and the server, which builds its pose graph on what it
         was sent, should hold that smoothed shape rather than each keyframe's first, causal, estimate. A
         keyframe is resent once its camera moved ``min_m`` or turned ``min_deg`` from what the server has."""
-        cos_min = float(np.cos(np.radians(min_deg)))
+        from hivemap.maps.geometry import rotation_angle_deg
+
         by_session: dict[int, list[tuple[int, F64]]] = {}
         for (s, k), V in self._vio.items():
-            C = np.asarray(self.moved(s, k), dtype=np.float64)
-            S = self._sent[(s, k)]
-            D = C @ np.linalg.inv(S)
-            # the camera's move (D applied to the centre the server has) and D's rotation angle
-            x = S[:3, :3] @ V[:3, 3] + S[:3, 3]
-            moved_m = float(np.linalg.norm(D[:3, :3] @ x + D[:3, 3] - x))
-            cos = (float(np.trace(D[:3, :3])) - 1.0) / 2.0
-            if moved_m >= min_m or cos <= cos_min:
-                self._sent[(s, k)] = C
-                by_session.setdefault(s, []).append((k, C @ V))
+            now, held = self.moved(s, k) @ V, self._sent[(s, k)]
+            moved_m = float(np.linalg.norm(now[:3, 3] - held[:3, 3]))
+            if moved_m >= min_m or rotation_angle_deg(now[:3, :3] @ held[:3, :3].T) >= min_deg:
+                self._sent[(s, k)] = now
+                by_session.setdefault(s, []).append((k, now))
         return [
             (
                 s,

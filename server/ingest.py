@@ -271,7 +271,7 @@ class Ingest:
                     delta = np.linalg.inv(old) @ T
                     delta[:3, 3] *= g.s
                     before = kf.world_from_cam
-                    kf.world_from_cam = kf.world_from_cam @ delta
+                    kf.world_from_cam = before @ delta
                     if msg.points_follow:
                         moves.append((kf, kf.world_from_cam @ np.linalg.inv(before)))
                 am.vio_poses[k] = T
@@ -291,7 +291,7 @@ class Ingest:
                 # closure, which g alone would drop
                 obs = next(iter(mp.observations), None)
                 V = am.vio_poses.get(obs[1]) if obs is not None and obs[0] == am.folded else None
-                kf = m.keyframes.get(obs) if V is not None and obs is not None else None
+                kf = m.keyframes.get(obs) if V is not None else None
                 if kf is not None and V is not None:
                     in_cam = V[:3, :3].T @ (sent[i] - V[:3, 3]) * g.s
                     mp.xyz = kf.world_from_cam[:3, :3] @ in_cam + kf.world_from_cam[:3, 3]
