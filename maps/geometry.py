@@ -79,6 +79,29 @@ def nearest_rotation(R: F64, tol: float = 1e-9) -> F64:
     return np.asarray(U @ D @ Vt, dtype=np.float64)
 
 
+def nearest_rotations(R: F64, tol: float = 1e-9) -> F64:
+    """:func:`nearest_rotation` of a stack (n, 3, 3): the same result per matrix, in one batched SVD."""
+    R = np.array(R, dtype=np.float64).reshape(-1, 3, 3)
+    off = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2)) > tol
+    if np.any(off):
+        U, _, Vt = np.linalg.svd(R[off])
+        d = np.sign(np.linalg.det(U @ Vt))
+        U[:, :, 2] *= d[:, None]  # U @ diag(1, 1, d) @ Vt
+        R[off] = U @ Vt
+    return R
+
+
+def relative_poses(world_from_i: F64, world_from_j: F64) -> list[Sim3]:
+    """``i_from_j`` of each pair of rigid poses (n, 4, 4) as Sim3s with scale 1: what
+    ``Sim3.from_se3(se3_inverse(a) @ b)`` gives per pair, batched (a pose graph has tens of thousands)."""
+    a = np.asarray(world_from_i, dtype=np.float64).reshape(-1, 4, 4)
+    b = np.asarray(world_from_j, dtype=np.float64).reshape(-1, 4, 4)
+    Rt = a[:, :3, :3].transpose(0, 2, 1)
+    R = nearest_rotations(Rt @ b[:, :3, :3])
+    t = np.einsum("nij,nj->ni", Rt, b[:, :3, 3] - a[:, :3, 3])
+    return [Sim3._trusted(R[n], t[n]) for n in range(len(R))]
+
+
 def rotation_angle_deg(R: F64) -> float:
     """Angle of a rotation matrix in degrees (0..180)."""
     c = (np.trace(R) - 1.0) / 2.0
@@ -102,6 +125,16 @@ class Sim3:
         object.__setattr__(self, "s", float(self.s))
         if not self.s > 0 or not np.isfinite(self.s):
             raise ValueError(f"Sim3 scale must be finite and > 0, got {self.s}")
+
+    @staticmethod
+    def _trusted(R: F64, t: F64, s: float = 1.0) -> Sim3:
+        """A Sim3 of an ``R`` already on SO(3) (float64, 3x3) and ``t`` (3,): :meth:`__post_init__`'s
+        checks skipped, for batches that made them already (:func:`relative_poses`)."""
+        out = object.__new__(Sim3)
+        object.__setattr__(out, "R", R)
+        object.__setattr__(out, "t", t)
+        object.__setattr__(out, "s", float(s))
+        return out
 
     @staticmethod
     def identity() -> Sim3:

@@ -51,6 +51,16 @@ class Chains:
             for i, k in enumerate(ks):
                 self.pos[k] = (agent, i)
             self.cum[agent] = cum
+        # every agent's rows stacked, for :meth:`between_many`
+        self.row: dict[KfKey, int] = {}
+        owners: list[NDArray[np.int64]] = []
+        for n, agent in enumerate(self.cum):
+            base = len(self.row)
+            for i, k in enumerate(self.order[agent]):
+                self.row[k] = base + i
+            owners.append(np.full(len(self.order[agent]), n, dtype=np.int64))
+        self._all = np.concatenate(list(self.cum.values())) if self.cum else np.zeros((0, 7))
+        self._owner = np.concatenate(owners) if owners else np.zeros(0, np.int64)
 
     def between(self, a: KfKey, b: KfKey) -> F64 | None:
         """[path m, rotation rad, weak sigma m, weak sigma deg, tracked sigma m, tracked sigma deg, steps
@@ -63,6 +73,19 @@ class Chains:
         d = np.abs(c[pb[1]] - c[pa[1]])
         d[2:6] = np.sqrt(d[2:6])
         return d
+
+    def between_many(self, a: list[KfKey], b: list[KfKey]) -> tuple[F64, NDArray[np.bool_]]:
+        """:meth:`between` of each pair ``(a[n], b[n])`` at once: (n, 7) rows, and whether each pair is of
+        one agent (where not, its row is meaningless)."""
+        ra = np.array([self.row.get(k, -1) for k in a], dtype=np.int64)
+        rb = np.array([self.row.get(k, -1) for k in b], dtype=np.int64)
+        if not len(self._all):
+            return np.zeros((len(a), 7)), np.zeros(len(a), dtype=bool)
+        ia, ib = np.maximum(ra, 0), np.maximum(rb, 0)
+        same = (ra >= 0) & (rb >= 0) & (self._owner[ia] == self._owner[ib])
+        d = np.abs(self._all[ib] - self._all[ia])
+        d[:, 2:6] = np.sqrt(d[:, 2:6])
+        return d, same
 
     def previous(self, k: KfKey) -> KfKey | None:
         """The agent's keyframe before ``k`` in time (None for its first, or an unknown key)."""

@@ -112,20 +112,46 @@ def pose_marginals(
         raise RuntimeError(f"pose graph marginals: singular system ({exc})") from exc
     out = np.zeros((len(want), 6, 6))  # a held keyframe is the gauge: exact by definition
     free_want = [i for i in want if i not in held]
-    if len(free_want) <= FEW:
-        right = {i: np.asarray(tree.marginalCovariance(i)) for i in free_want}
-    else:
-        right = clique_marginals(tree, free_want)
+    # one pass over the cliques for the wanted poses and the pairs' ends: gtsam's marginalCovariance and
+    # jointMarginalCovariance each recompute their clique's whole joint, and the few poses ordered last
+    # share the root clique, which holds hundreds of poses in a dense covisibility graph
+    home, joint = clique_joints(tree, sorted({*free_want, *(i for ab in pairs for i in ab if i not in held)}))
     for n, i in enumerate(want):
-        if i in right:
-            out[n] = to_map_frame(right[i], poses[i][:3, :3])
-    rel = {(a, b): _difference_covariance(tree, poses, held, a, b) for a, b in pairs}
+        if i in home:
+            out[n] = to_map_frame(_block(joint, home, i, i), poses[i][:3, :3])
+    rel = {(a, b): _difference_covariance(tree, poses, held, a, b, home, joint) for a, b in pairs}
     return MarginalsResult(want, out, time.process_time() - t0, rel)
+
+
+def _block(joint: dict[int, tuple[dict[int, int], F64]], home: dict[int, int], a: int, b: int,
+           dim: int = 6) -> F64:  # fmt: skip
+    """The (dim, dim) covariance block of keys ``a`` and ``b`` from their clique's joint (both in it;
+    symmetrised for ``a == b``)."""
+    off, C = joint[home[a]]
+    block = C[off[a] : off[a] + dim, off[b] : off[b] + dim]
+    return np.asarray(0.5 * (block + block.T) if a == b else block, dtype=np.float64)
 
 
 def clique_marginals(tree: Any, keys: Sequence[int], dim: int = 6) -> dict[int, F64]:
     """gtsam's (right-perturbation) marginal covariance of every key in ``keys`` from the Bayes tree, in
-    one pass from the root down over the cliques that hold them and their ancestors.
+    one pass from the root down over the cliques that hold them and their ancestors
+    (:func:`clique_joints`)."""
+    home, joint = clique_joints(tree, keys, dim)
+    out: dict[int, F64] = {}
+    for k, f in home.items():
+        off, C = joint[f]
+        o = off[k]
+        block = C[o : o + dim, o : o + dim]
+        out[k] = np.asarray(0.5 * (block + block.T), dtype=np.float64)
+    return out
+
+
+def clique_joints(
+    tree: Any, keys: Sequence[int], dim: int = 6
+) -> tuple[dict[int, int], dict[int, tuple[dict[int, int], F64]]]:
+    """For every key in ``keys`` its clique (by first frontal key), and for each clique visited the joint
+    covariance of its variables (frontal and separator) with each key's offset in it, in one pass from the
+    root down over the cliques that hold the keys and their ancestors.
 
     ``GaussianBayesTree.marginalCovariance`` recomputes its clique's whole joint marginal for each key it
     is asked for, so a clique of k poses costs k times its joint; with a map's dense covisibility graph
@@ -187,31 +213,37 @@ def clique_marginals(tree: Any, keys: Sequence[int], dim: int = 6) -> dict[int, 
         else:
             C = C_ff
         joint[f] = (order, C)
-    out: dict[int, F64] = {}
-    for k, f in home.items():
-        off, C = joint[f]
-        o = off[k]
-        block = C[o : o + dim, o : o + dim]
-        out[k] = np.asarray(0.5 * (block + block.T), dtype=np.float64)
-    return out
+    return home, joint
 
 
-def _difference_covariance(tree: Any, poses: F64, held: set[int], a: int, b: int) -> F64:
+def _difference_covariance(
+    tree: Any,
+    poses: F64,
+    held: set[int],
+    a: int,
+    b: int,
+    home: dict[int, int],
+    joint: dict[int, tuple[dict[int, int], F64]],
+) -> F64:
     """Map-frame (3, 3) covariance of ``p_a - p_b`` from the Bayes tree: ``C_aa + C_bb - C_ab - C_ba`` of
-    the position blocks (a held pose contributes nothing)."""
+    the position blocks (a held pose contributes nothing); from the cliques' joints (:func:`clique_joints`
+    of both keys) when both keys are in one clique, else from gtsam's joint marginal."""
     free = [i for i in (a, b) if i not in held]
     if not free:
         return np.zeros((3, 3))
     if len(free) == 1:
-        return position_covariance(
-            to_map_frame(np.asarray(tree.marginalCovariance(free[0])), poses[free[0]][:3, :3])
-        )
-    J = tree.jointMarginalCovariance([a, b])  # blocks by key: gtsam's [w, v] of each pose
+        f = free[0]
+        return position_covariance(to_map_frame(_block(joint, home, f, f), poses[f][:3, :3]))
+    if home[a] == home[b]:
+        Jaa, Jbb, Jab = _block(joint, home, a, a), _block(joint, home, b, b), _block(joint, home, a, b)
+    else:
+        J = tree.jointMarginalCovariance([a, b])  # blocks by key: gtsam's [w, v] of each pose
+        Jaa, Jbb, Jab = (np.asarray(J.at(x, y)) for x, y in ((a, a), (b, b), (a, b)))
     Ra, Rb = poses[a][:3, :3], poses[b][:3, :3]
     # only the translation parts enter: dp = R_hat v (module docstring)
-    Caa = Ra @ np.asarray(J.at(a, a))[3:, 3:] @ Ra.T
-    Cbb = Rb @ np.asarray(J.at(b, b))[3:, 3:] @ Rb.T
-    Cab = Ra @ np.asarray(J.at(a, b))[3:, 3:] @ Rb.T
+    Caa = Ra @ Jaa[3:, 3:] @ Ra.T
+    Cbb = Rb @ Jbb[3:, 3:] @ Rb.T
+    Cab = Ra @ Jab[3:, 3:] @ Rb.T
     out = Caa + Cbb - Cab - Cab.T
     return np.asarray(0.5 * (out + out.T), dtype=np.float64)
 

@@ -99,7 +99,7 @@ def pose_graph_problem(
     them (their merges' fused points) are left out, so only the measured edges, which the robust solve
     can reject, hold the groups together."""
     index = {k: i for i, k in enumerate(snap.keys)}
-    new_pairs = {frozenset((e.candidate, e.query)) for e in edges}
+    new_pairs = {(e.candidate, e.query) for e in edges} | {(e.query, e.candidate) for e in edges}
 
     def across(a: KfKey, b: KfKey) -> bool:
         return any((a[0] in s and b[0] in t) or (a[0] in t and b[0] in s) for s, t in apart)
@@ -107,7 +107,7 @@ def pose_graph_problem(
     graph_edges = [
         (index[a], index[b])
         for a, b in m.essential_edges()
-        if a in index and b in index and frozenset((a, b)) not in new_pairs and not across(a, b)
+        if a in index and b in index and (a, b) not in new_pairs and not (apart and across(a, b))
     ]
     kept = [n for n, e in enumerate(edges) if e.candidate in index and e.query in index]
     # each side of a merge on trial without a held keyframe gets a loose prior on its first keyframe
@@ -133,7 +133,7 @@ def pose_graph_problem(
         return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, new_edge_covs=covs)
     chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
     graph_edges = across_weak_tracking(graph_edges, snap.keys, chains, m)
-    sigmas = [edge_sigmas(m, chains, snap.keys[i], snap.keys[j], o) for i, j in graph_edges]
+    sigmas = edge_sigmas(m, chains, snap.keys, graph_edges, o)
     slack = max((3.0 * float(chains.weak_total(a)[0]) for a in {k[0] for k in snap.keys}), default=0.0)
     return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, sigmas, slack, covs)
 
@@ -151,27 +151,30 @@ def across_weak_tracking(
     if not weak:
         return graph_edges
 
-    def crosses(i: int, j: int) -> bool:
-        if frozenset((i, j)) in loops:
-            return False
-        d = chains.between(keys[i], keys[j])
-        return d is not None and bool(np.any(d[2:4] > 0))
-
-    kept = [(i, j) for i, j in graph_edges if not crosses(i, j)]
+    d, same = chains.between_many([keys[i] for i, _ in graph_edges], [keys[j] for _, j in graph_edges])
+    crossing = same & np.any(d[:, 2:4] > 0, axis=1)
+    kept = [e for e, c in zip(graph_edges, crossing, strict=True) if not c or frozenset(e) in loops]
     odo = {tuple(sorted((index[p], index[k]))) for k in weak if (p := chains.previous(k)) is not None}
     return kept + sorted((int(a), int(b)) for a, b in odo)
 
 
-def edge_sigmas(m: Any, chains: Chains, a: KfKey, b: KfKey, o: OptimiseOptions) -> tuple[float, float, float]:
-    """:func:`odometry_sigmas` of the essential edge ``a`` - ``b``; between two agents (their fused points)
-    whose keyframes both say how well they tracked, the two keyframes' own errors in quadrature (times the
-    scale), so these edges are weighed on the same footing as the agents' odometry around them."""
-    chain = chains.between(a, b)
-    ta, tb = m.keyframes[a].track_sigma, m.keyframes[b].track_sigma
-    if chain is not None or not o.pose_graph_tracked or ta is None or tb is None:
-        return odometry_sigmas(chain, o)
-    sr, st = tracked_sigmas(float(np.hypot(ta[0], tb[0])), float(np.hypot(ta[1], tb[1])), o)
-    return sr, st, 0.0
+def edge_sigmas(
+    m: Any, chains: Chains, keys: list[KfKey], edges: list[tuple[int, int]], o: OptimiseOptions
+) -> list[tuple[float, float, float]]:
+    """:func:`odometry_sigmas` of each essential edge (indices into ``keys``); between two agents (their
+    fused points) whose keyframes both say how well they tracked, the two keyframes' own errors in
+    quadrature (times the scale), so these edges are weighed on the same footing as the agents' odometry
+    around them."""
+    a, b = [keys[i] for i, _ in edges], [keys[j] for _, j in edges]
+    d, same = chains.between_many(a, b)
+    out = odometry_sigmas_many(d, same, o)
+    if o.pose_graph_tracked:
+        for n in np.flatnonzero(~same):
+            ta, tb = m.keyframes[a[n]].track_sigma, m.keyframes[b[n]].track_sigma
+            if ta is not None and tb is not None:
+                sr, st = tracked_sigmas(float(np.hypot(ta[0], tb[0])), float(np.hypot(ta[1], tb[1])), o)
+                out[n] = (sr, st, 0.0)
+    return [(float(r), float(t), float(y)) for r, t, y in out]
 
 
 def tracked_sigmas(track_m: float, track_deg: float, o: OptimiseOptions) -> tuple[float, float]:
@@ -187,26 +190,36 @@ def tracked_sigmas(track_m: float, track_deg: float, o: OptimiseOptions) -> tupl
 
 def odometry_sigmas(chain: F64 | None, o: OptimiseOptions) -> tuple[float, float, float]:
     """(sigma_rot rad, sigma_trans m, extra yaw sigma rad) of an essential edge whose ends are
-    ``chain`` (:meth:`Chains.between`) apart. The base: with ``pose_graph_tracked``, where every keyframe
+    ``chain`` (:meth:`Chains.between`) apart; :func:`odometry_sigmas_many` of one edge."""
+    if chain is None:
+        return o.pose_graph_sigma_rot, o.pose_graph_sigma_trans, 0.0
+    sr, st, sy = odometry_sigmas_many(np.asarray(chain, dtype=np.float64)[None], np.ones(1, bool), o)[0]
+    return float(sr), float(st), float(sy)
+
+
+def odometry_sigmas_many(d: F64, same: NDArray[np.bool_], o: OptimiseOptions) -> F64:
+    """(n, 3): (sigma_rot rad, sigma_trans m, extra yaw sigma rad) of edges whose ends are ``d``
+    (:meth:`Chains.between_many`) apart. The base: with ``pose_graph_tracked``, where every keyframe
     between them says how well it tracked, that error summed along the chain (times
     ``pose_graph_track_scale``, at least the ``pose_graph_track_floor_*``), so an agent that tracked badly
     bends at a loop and one that tracked well does not; else the options' fixed sigmas. Across weak
     tracking, the drift over the path travelled or the base, whichever is larger, plus the weak sigma.
-    Across agents (``chain`` None): the options' fixed sigmas (:func:`edge_sigmas` weighs those by the
+    Across agents (``same`` False): the options' fixed sigmas (:func:`edge_sigmas` weighs those by the
     two keyframes' tracking where both say it)."""
-    base_r, base_t = o.pose_graph_sigma_rot, o.pose_graph_sigma_trans
-    if chain is None:
-        return base_r, base_t, 0.0
-    path, turn, weak_m, weak_deg, track_m, track_deg, untracked = (float(x) for x in chain)
-    if o.pose_graph_tracked and untracked == 0 and (track_m > 0 or track_deg > 0):
-        base_r, base_t = tracked_sigmas(track_m, track_deg, o)
-    if weak_m <= 0 and weak_deg <= 0:
-        # tracked well: the ends' shared points set their relative pose, which the drift does not bend
-        return base_r, base_t, 0.0
-    weak_r = float(np.radians(weak_deg))
-    sr = float(np.hypot(max(base_r, o.pose_graph_drift_rot * turn), weak_r))
-    st = float(np.hypot(max(base_t, o.pose_graph_drift_trans * path), weak_m))
-    return sr, st, weak_r
+    n = len(d)
+    base_r, base_t = np.full(n, o.pose_graph_sigma_rot), np.full(n, o.pose_graph_sigma_trans)
+    path, turn, weak_m, weak_deg, track_m, track_deg, untracked = d.T
+    if o.pose_graph_tracked:
+        use = same & (untracked == 0) & ((track_m > 0) | (track_deg > 0))
+        base_t[use] = np.maximum(o.pose_graph_track_scale * track_m[use], o.pose_graph_track_floor_m)
+        base_r[use] = np.maximum(o.pose_graph_track_scale * np.radians(track_deg[use]),
+                                 np.radians(o.pose_graph_track_floor_deg))  # fmt: skip
+    # tracked well: the ends' shared points set their relative pose, which the drift does not bend
+    weak = same & ((weak_m > 0) | (weak_deg > 0))
+    weak_r = np.radians(weak_deg)
+    sr = np.where(weak, np.hypot(np.maximum(base_r, o.pose_graph_drift_rot * turn), weak_r), base_r)
+    st = np.where(weak, np.hypot(np.maximum(base_t, o.pose_graph_drift_trans * path), weak_m), base_t)
+    return np.stack([sr, st, np.where(weak, weak_r, 0.0)], axis=1)
 
 
 def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey, Sim3], float]:
@@ -287,7 +300,8 @@ def pose_graph_edges(
 ) -> list[Any]:
     """The :class:`~hivemap.server.optim.PoseGraphEdge` list of :func:`pose_graph` (its arguments): the
     graph's edges first, holding the relative poses of ``poses``, then the robust new edges."""
-    from hivemap.server.optim import PoseGraphEdge, relative_sim3
+    from hivemap.maps.geometry import relative_poses
+    from hivemap.server.optim import PoseGraphEdge
 
     def up(j: int) -> tuple[float, float, float] | None:
         if sigma_yaw is None or ups is None or not np.all(np.isfinite(ups[j])):
@@ -295,17 +309,19 @@ def pose_graph_edges(
         return (float(ups[j][0]), float(ups[j][1]), float(ups[j][2]))
 
     per_edge = graph_sigmas if graph_sigmas is not None else [(sigmas[0], sigmas[1], 0.0)] * len(graph_edges)
+    ij = np.asarray(graph_edges, dtype=np.int64).reshape(-1, 2)
+    rel = relative_poses(poses[ij[:, 0]], poses[ij[:, 1]])
     edges = [
         PoseGraphEdge(
             i,
             j,
-            relative_sim3(poses[i], poses[j]),
+            r,
             sigma_rot=sr,
             sigma_trans=st,
             sigma_yaw=None if sigma_yaw is None else float(np.hypot(sigma_yaw, sy)),
             up_j=up(j),
         )  # fmt: skip
-        for (i, j), (sr, st, sy) in zip(graph_edges, per_edge, strict=True)
+        for (i, j), (sr, st, sy), r in zip(graph_edges, per_edge, rel, strict=True)
     ]
     covs = list(covariances) + [None] * (len(new_edges) - len(covariances))
     edges += [PoseGraphEdge(i, j, s, sr, st, robust=True, covariance=c)

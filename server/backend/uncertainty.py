@@ -195,10 +195,14 @@ class Uncertainty:
         try:
             if full:
                 res: MarginalsResult = await bk.verifier.call(compute, problem, snap.poses, o, wanted, asked)
-            else:  # the optimisation thread: corrections wait for it, and verification jobs may queue
+            elif bk.options.scheduler.executor == "thread":  # no processes: the optimisation thread
                 res = await asyncio.get_running_loop().run_in_executor(
                     bk._opt_exec, compute, problem, snap.poses, o, wanted, asked
                 )
+            else:
+                # the pose graph's process: corrections wait for it, verification jobs may queue behind
+                # it, and in the server's own process it would hold the GIL against ingest
+                res = await bk._pg_proc.run(compute, problem, snap.poses, o, wanted, asked)
         except RuntimeError as exc:
             if map_id not in self._failed:
                 logger.warning("map %d: no covariances (%s)", map_id, exc)
