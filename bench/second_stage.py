@@ -93,7 +93,35 @@ def _variant(options: Any, sets: list[str]) -> Any:
     return replace(options, **kw)
 
 
-def replay(rec: dict[str, Any], options: Any, resend: tuple[float, float] | None = None) -> dict[str, Any]:
+def server_priors(st: Any, server: Any, body_from_cam: Any, stride: int) -> dict[int, Any]:
+    """The server's keyframe poses (``server``: evo trajectory of cam0 poses in its global frame) as the
+    stage's local body poses for every ``stride``-th keyframe, as a correction carries them: placed by
+    the rigid fit of the server's keyframes onto the stage's (the runner uses the server's
+    ``global_from_local``; the co-location offset takes up what either leaves)."""
+    from hivemap.client.second_stage.factors import rigid_alignment
+
+    ids = list(st.keyframe_ids)
+    ts, own = st.keyframe_poses()
+    st_, T_gc = np.asarray(server.timestamps), np.asarray(server.poses_se3)
+    j = np.clip(np.searchsorted(st_, ts), 1, len(st_) - 1)
+    j = np.where(np.abs(st_[j - 1] - ts) < np.abs(st_[j] - ts), j - 1, j)
+    ok = np.abs(st_[j] - ts) < 0.02
+    glob = {ids[i]: T_gc[j[i]] @ np.linalg.inv(body_from_cam) for i in np.flatnonzero(ok)}
+    if len(glob) < 3:
+        raise SystemExit("the server estimate shares fewer than 3 keyframe times with the recording")
+    keys = sorted(glob, key=ids.index)
+    A = rigid_alignment(
+        np.array([glob[k][:3, 3] for k in keys]), np.array([own[ids.index(k)][:3, 3] for k in keys])
+    )
+    return {k: A @ glob[k] for k in keys[::stride]}
+
+
+def replay(
+    rec: dict[str, Any],
+    options: Any,
+    resend: tuple[float, float] | None = None,
+    priors: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """(timestamps, poses) of the VIO, the stage at the end and the stage as each keyframe was added;
     with ``resend`` (``RunnerOptions.stream_resend``), also what a server that is sent each keyframe and
     then its resends (:meth:`StreamedPoses.refresh`) ends up holding, and ``resent``: how many resends."""
@@ -129,13 +157,28 @@ def replay(rec: dict[str, Any], options: Any, resend: tuple[float, float] | None
         held = np.array([streamed.sent_pose(0, k) for k in st.keyframe_ids])
         out["resent"] = (ts, held)
         out["n_resent"] = resent
+    if priors is not None:
+        # the server's final estimate as one correction, at each of the given sigmas (rad, m)
+        local = server_priors(st, priors["server"], priors["body_from_cam"], priors["stride"])
+        for rot, trans in priors["sigmas"]:
+            cov = np.diag([rot**2] * 3 + [trans**2] * 3)
+            st.set_colocations({k: (T, cov) for k, T in local.items()})
+            out[f"prior {rot:g}/{trans:g}"] = st.keyframe_poses()
+        ts_s = np.asarray(priors["server"].timestamps)
+        out["server"] = (
+            ts_s,
+            np.asarray(priors["server"].poses_se3) @ np.linalg.inv(priors["body_from_cam"]),
+        )
     return out
 
 
 def cmd_replay(a: argparse.Namespace) -> None:
-    from hivemap.eval.trajectory import ate, groundtruth_trajectory, trajectory_from_poses
+    from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum, trajectory_from_poses
 
     variants = [("recorded", [])] + [(s, s.split(",")) for s in a.set]
+    if a.server and len(a.server) != len(a.recordings):
+        raise SystemExit("--server: one server estimate per recording, in the same order")
+    sigmas = [tuple(float(x) for x in s.split(",")) for s in a.sigma]
     resend = (a.resend_m, a.resend_deg) if a.resend_m > 0 else None
     extra = f" {'resent':>6s} {'n':>5s} {'kfs':>5s}" if resend else ""
     head = f"{'recording':28s} {'variant':36s} {'vio':>6s} {'final':>6s} {'causal':>6s}{extra}"
@@ -144,14 +187,22 @@ def cmd_replay(a: argparse.Namespace) -> None:
         with open(path, "rb") as f:
             rec = pickle.load(f)
         gt = groundtruth_trajectory(rec["dataset"])
+        priors = None
+        if a.server:
+            from hivemap.client.dataset import load_dataset
+
+            srv = a.server[a.recordings.index(path)]
+            priors = {"server": read_tum(srv), "stride": a.stride, "sigmas": sigmas,
+                      "body_from_cam": load_dataset(rec["dataset"]).T_BS["cam0"]}  # fmt: skip
         for label, sets in variants:
-            out = replay(rec, _variant(rec["options"], sets), resend)
+            out = replay(rec, _variant(rec["options"], sets), resend, priors)
             n_resent = out.pop("n_resent", None)
             err = {k: ate(trajectory_from_poses(t, T), gt, "se3", max_diff=0.02).stats.rmse
                    for k, (t, T) in out.items()}  # fmt: skip
             row = f"{err['vio']:6.3f} {err['final']:6.3f} {err['causal']:6.3f}"
             if resend is not None:
                 row += f" {err['resent']:6.3f} {n_resent:5d} {len(out['final'][0]):5d}"
+            row += "".join(f"  {k} {v:.3f}" for k, v in err.items() if k.startswith(("prior", "server")))
             print(f"{Path(path).stem:28s} {label:36s} {row}", flush=True)
 
 
@@ -176,10 +227,24 @@ def main() -> None:
                         "is the ATE of what the server then holds, 'n' the resends, "
                         "'kfs' the keyframes")  # fmt: skip
     p.add_argument("--resend-deg", type=float, default=resend[1])
+    p.add_argument("--server", action="append", default=[], metavar="TUM",
+                   help="a server's final estimate of the recorded agent (cam0 poses, as "
+                        "`server_global.tum`), one per recording: fused as one correction's co-location "
+                        "priors")  # fmt: skip
+    p.add_argument("--stride", type=int, default=12, help="priors on every stride-th keyframe (default 12)")
+    p.add_argument(
+        "--sigma",
+        action="append",
+        default=[],
+        metavar="RAD,M",
+        help="co-location prior sigmas to try (repeat; default: RunnerOptions.colocation_sigma)",
+    )
     if not sys.argv[1:]:  # `make bench` runs every bench bare
         print("bench/second_stage.py: on request only (`record`, then `replay`; see --help)")
         return
     a = ap.parse_args()
+    if a.cmd == "replay" and not a.sigma:
+        a.sigma = [",".join(str(x) for x in RunnerOptions().colocation_sigma)]
     cmd_record(a) if a.cmd == "record" else cmd_replay(a)
 
 

@@ -83,9 +83,10 @@ def agent_command(
             "--wait-corrections",
             min=0.0,
             help="Streaming: after the last frame, wait at most this many seconds for the server's last "
-            "corrections (0: do not wait).",
+            "corrections: until its back-end is through with what the team had sent by then (it stops "
+            "earlier when the server makes no progress for a minute; 0: do not wait).",
         ),
-    ] = 120.0,
+    ] = 600.0,
     no_imu_factors: Annotated[
         bool,
         typer.Option(

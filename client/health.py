@@ -1,7 +1,8 @@
 """After the last frame: wait for the corrections the server still owes, watching its ``/health``.
 
-The server's loop closures can come long after an agent's last keyframe, so a finishing agent waits
-until the server says its back-end is idle (see ``RunnerOptions.corrections_*``).
+The server's loop closures can come long after an agent's last keyframe (a server behind its team
+looks them up minutes later), so a finishing agent waits until the server's back-end has caught up with
+what the team had sent when the agent finished (see ``RunnerOptions.corrections_*``).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from hivemap.client.runner import RunnerOptions
@@ -31,19 +32,28 @@ def health_url(server: str) -> str:
     return urlunsplit((scheme, u.netloc, path + "/health", "", ""))
 
 
-def backend_idle(url: str) -> bool | None:
-    """The server's ``backend_idle`` (None: the server reports none, i.e. no back-end or an older server).
+def backend_state(url: str) -> dict[str, Any] | None:
+    """The server's back-end fields of ``/health``: ``idle`` (bool), and from servers that report them
+    ``arrived``, ``done`` (ints) and ``optimising`` (bool). None: the server reports no back-end state
+    (no back-end, or an older server).
 
     Raises ``OSError`` when the server does not answer (the caller retries)."""
     import urllib.request
 
     with urllib.request.urlopen(url, timeout=5.0) as r:  # noqa: S310 (http(s) only, see health_url)
         try:
-            value = json.loads(r.read()).get("backend_idle")
+            h = json.loads(r.read())
+            idle = h.get("backend_idle")
         except (ValueError, AttributeError) as exc:
             log.warning("server health %s unreadable: %s", url, exc)
             return None
-    return value if isinstance(value, bool) else None
+    if not isinstance(idle, bool):
+        return None
+    state: dict[str, Any] = {"idle": idle}
+    arrived, done, busy = h.get("backend_arrived"), h.get("backend_done"), h.get("backend_optimising")
+    if isinstance(arrived, int) and isinstance(done, int) and isinstance(busy, bool):
+        state.update(arrived=arrived, done=done, optimising=busy)
+    return state
 
 
 def wait_for_server(
@@ -53,15 +63,22 @@ def wait_for_server(
     apply_pending: Callable[[], object],
     stop: threading.Event | None = None,
 ) -> None:
-    """Poll the server's health until its back-end is idle twice in a row and ``corrections_grace_s``
-    passed since the last correction (``last_correction()``: its ``time.monotonic()``), applying the
-    corrections that arrive meanwhile; at most ``corrections_max_wait_s``. A server that reports no
-    back-end state, or does not answer ``health_max_failures`` polls in a row: until no correction came
-    for ``corrections_quiet_s``. ``stop`` (set by a signal) ends the wait at once."""
+    """Poll the server's health until it has caught up with this agent's end, applying the corrections
+    that arrive meanwhile, then ``corrections_grace_s`` more after the last correction.
+
+    Caught up: the back-end is through with every keyframe that had reached it when the wait began (this
+    agent's last ones and the team's up to then) and runs no optimisation, or it is idle, twice in a row.
+    The team's later keyframes may correct this agent too, but that is the team's next information, not
+    what this agent's mission saw. The wait ends early when the server makes no progress (no keyframe
+    done, no correction) for ``corrections_stall_s``, and after ``corrections_max_wait_s`` in any case.
+    A server that reports no back-end state, or does not answer ``health_max_failures`` polls in a row:
+    until no correction came for ``corrections_quiet_s``. ``stop`` (set by a signal) ends the wait."""
     stop = stop or threading.Event()
     t_end = time.monotonic()
     url = health_url(server)
-    idle_polls, use_health, failures = 0, True, 0
+    ready_polls, use_health, failures = 0, True, 0
+    mark: int | None = None  # the back-end's arrivals when the wait began
+    done_seen, t_progress = -1, t_end
     if options.corrections_max_wait_s <= 0:
         apply_pending()
         return
@@ -69,10 +86,11 @@ def wait_for_server(
         if stop.wait(0.5):
             return
         apply_pending()
-        quiet = time.monotonic() - max(last_correction(), t_end)
+        now = time.monotonic()
+        quiet = now - max(last_correction(), t_end)
         if use_health:
             try:
-                idle = backend_idle(url)
+                state = backend_state(url)
             except OSError as exc:
                 # a busy server can miss one poll's 5 s timeout: retry; the quiet timer only after several
                 failures += 1
@@ -83,14 +101,24 @@ def wait_for_server(
                     use_health = False
                 continue
             failures = 0
-            if idle is None:
+            if state is None:
                 log.warning("server reports no back-end state: waiting until %.0f s without corrections",
                             options.corrections_quiet_s)  # fmt: skip
                 use_health = False
                 continue
-            idle_polls = idle_polls + 1 if idle else 0
-            # idle twice in a row, and the last correction has had time to arrive
-            if idle_polls >= 2 and quiet >= options.corrections_grace_s:
+            ready = state["idle"]
+            if "done" in state:
+                if mark is None:
+                    mark = state["arrived"]
+                ready = ready or (state["done"] >= mark and not state["optimising"])
+                if state["done"] > done_seen:
+                    done_seen, t_progress = state["done"], now
+            ready_polls = ready_polls + 1 if ready else 0
+            # ready twice in a row, and the last correction has had time to arrive
+            if ready_polls >= 2 and quiet >= options.corrections_grace_s:
+                break
+            if now - max(t_progress, last_correction()) >= options.corrections_stall_s:
+                log.warning("server made no progress for %.0f s: stopping", options.corrections_stall_s)
                 break
         elif quiet >= options.corrections_quiet_s:
             break

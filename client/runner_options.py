@@ -22,14 +22,16 @@ class RunnerOptions:
     colocation_gate_m: float = 1.0  # corrected poses farther than this from the agent's own are refused
     flush_timeout_s: float = 60.0  # streaming: wait this long for the server's acks at the end
     # streaming, after the last frame: the server's loop closures can come long after the last keyframe
-    # (factory06: 8.5 s after uav1 finished; a ugv loop 1 s after a 10 s quiet timer had run out). So the
-    # agent waits until the server's ``/health`` says its back-end is idle (nothing queued, nothing in
-    # flight) and then ``corrections_grace_s`` more for corrections on the wire; at most
-    # ``corrections_max_wait_s``. A server without that field: until no correction came for
-    # ``corrections_quiet_s``.
+    # (factory06: 8.5 s after uav1 finished; a server behind its team minutes later). So the agent waits
+    # until the server's ``/health`` says its back-end is through with every keyframe that had reached it
+    # when the wait began and runs no optimisation (or is idle), then ``corrections_grace_s`` more for
+    # corrections on the wire; it stops early when the server made no progress (no keyframe done, no
+    # correction) for ``corrections_stall_s``, and after ``corrections_max_wait_s`` in any case. A server
+    # without those fields: until no correction came for ``corrections_quiet_s``.
     corrections_grace_s: float = 2.0
     corrections_quiet_s: float = 10.0
-    corrections_max_wait_s: float = 120.0
+    corrections_stall_s: float = 60.0
+    corrections_max_wait_s: float = 600.0
     health_max_failures: int = 5  # unanswered /health polls in a row before falling back to the quiet timer
     # co-location priors take the server's shape, placed by one free transform per agent (sigmas: tilt
     # 0.05 rad with IMU factors, else 0.01; yaw 0.01 rad; 0.1 m, or 0.01 m while the priors are ENU

@@ -46,6 +46,18 @@ class Health(BaseModel):
         "in flight (streaming agents wait for this before they stop); null when the back-end is off",
     )
     backend_queue: int = Field(default=0, description="keyframes waiting for place recognition")
+    backend_arrived: int = Field(
+        default=0, description="keyframes that have reached the back-end since the server started"
+    )
+    backend_done: int = Field(
+        default=0,
+        description="the back-end is through with the first this-many of them (looked up, and what they "
+        "found merged or added): a finishing agent waits until this reaches the arrivals it saw, so it "
+        "gets the corrections from everything the team had sent by then",
+    )
+    backend_optimising: bool = Field(
+        default=False, description="an optimisation is running or asked for (corrections still to come)"
+    )
 
 
 class BandwidthInfo(BaseModel):

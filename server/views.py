@@ -35,6 +35,9 @@ def health(server: HiveServer) -> schemas.Health:
         ),
         backend_idle=None if backend is None else backend.idle(),
         backend_queue=0 if backend is None else len(backend.queue),
+        backend_arrived=0 if backend is None else backend.queue.n_arrived,
+        backend_done=0 if backend is None else backend.queue.done_through(),
+        backend_optimising=False if backend is None else backend.optimising(),
     )
 
 

@@ -7,6 +7,10 @@ increasing keyframe ids, as the consistency check of detections needs (consecuti
 place its agent has just queried is skipped: the agent's last queried keyframe is one of its
 ``NEIGHBOURS`` best covisible keyframes. That thins each agent's queries to about one in three keyframes,
 which keeps consecutive detections of one place well inside the consistency gap.
+
+Each keyframe also gets its arrival number, held until the back-end has finished with it (:meth:`finished`),
+so that :meth:`done_through` can tell a finishing agent whether everything that reached the server
+before its own last keyframe has been looked up.
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ class QueryQueue:
         self.dropped = 0  # pushed out of the full queue
         self.skipped = 0  # not queried in a backlog: their agent had just queried their place
         self._last: dict[str, KfKey] = {}  # per agent, its last keyframe taken for a query
+        self.n_arrived = 0  # keyframes pushed so far; the n-th has arrival number n
+        self._open: dict[KfKey, int] = {}  # arrival numbers of the keyframes not finished yet
 
     def __len__(self) -> int:
         return len(self._keys)
@@ -49,9 +55,12 @@ class QueryQueue:
         if len(self._keys) >= self.queue_max:
             dropped = self._keys.popleft()
             self.arrived.pop(dropped, None)
+            self._open.pop(dropped, None)
             self.dropped += 1
         self._keys.append(key)
         self.arrived[key] = time.monotonic()
+        self.n_arrived += 1
+        self._open.setdefault(key, self.n_arrived)
         return dropped
 
     def pop(self, best_covisible: Callable[[KfKey, int], Iterable[KfKey]]) -> tuple[KfKey, list[KfKey]]:
@@ -65,6 +74,7 @@ class QueryQueue:
             backlog = 0 < self.backlog < len(self._keys) + 1
             if self._keys and backlog and last is not None and last in set(best_covisible(key, NEIGHBOURS)):
                 self.arrived.pop(key, None)
+                self._open.pop(key, None)
                 self.skipped += 1
                 skipped.append(key)
                 continue
@@ -75,3 +85,13 @@ class QueryQueue:
         """Seconds from ``key``'s arrival to now (its query done)."""
         now = time.monotonic()
         return now - self.arrived.pop(key, now)
+
+    def finished(self, key: KfKey) -> None:
+        """The back-end is through with ``key``: queried, and what it found merged or added (an
+        optimisation it asked for runs on: see ``Backend.optimising``)."""
+        self._open.pop(key, None)
+
+    def done_through(self) -> int:
+        """The largest n such that the first n arrivals are all finished (skipped and dropped ones
+        count as finished)."""
+        return min(self._open.values()) - 1 if self._open else self.n_arrived

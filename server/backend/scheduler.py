@@ -127,6 +127,10 @@ class Backend(Pipeline):
         """Nothing queued and nothing in flight (tests and benches wait for this)."""
         return not self.queue and self._busy == 0 and not self._tasks and not self._inflight
 
+    def optimising(self) -> bool:
+        """An optimisation (or a merge's task) is running or asked for: corrections are still to come."""
+        return bool(self._opt_running or self._tasks)
+
     # -- observers ----------------------------------------------------------------------------------
     async def on_rendezvous(self, rid: int) -> None:
         await rendezvous.process(self, [rid])
@@ -319,6 +323,8 @@ class Backend(Pipeline):
             logger.exception("back-end query %s failed", key)
             self.server.events.add("error", f"back-end query {key} failed (see log)")
         finally:
+            # finished only now: the merge or loop it found has been applied and its optimisation asked for
+            self.queue.finished(key)
             self._busy -= 1
             done.set_result(None)
 

@@ -3,6 +3,8 @@ synthetic stereo + IMU sequence (the front-end's own synthetic scene), GNSS from
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -74,9 +76,10 @@ def test_health_url_from_the_websocket_address() -> None:
 
 
 class _FlakyHealth:
-    """A real HTTP /health endpoint whose first ``drop`` requests get no answer (connection closed)."""
+    """A real HTTP /health endpoint whose first ``drop`` requests get no answer (connection closed);
+    ``body(n)``, if given, is the n-th answer's JSON (1-based), else ``backend_idle`` = ``idle``."""
 
-    def __init__(self, drop: int, idle: bool | None) -> None:
+    def __init__(self, drop: int, idle: bool | None, body: Any = None) -> None:
         import http.server
         import json
         import threading
@@ -91,12 +94,14 @@ class _FlakyHealth:
                     self.close_connection = True
                     self.connection.close()
                     return
-                body = json.dumps({"status": "ok"} if idle is None else {"backend_idle": idle}).encode()
+                answer = body(outer.requests - drop) if body is not None else (
+                    {"status": "ok"} if idle is None else {"backend_idle": idle})  # fmt: skip
+                data = json.dumps(answer).encode()
                 self.send_response(200)
                 self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(body)))
+                self.send_header("Content-Length", str(len(data)))
                 self.end_headers()
-                self.wfile.write(body)
+                self.wfile.write(data)
 
             def log_message(self, *args: object) -> None:
                 pass
@@ -137,3 +142,49 @@ def test_wait_for_server_retries_unanswered_health_polls(drop: int, idle: bool |
     else:
         assert took >= 6.0, took
         assert srv.requests == (5 if drop else 1), srv.requests  # health_max_failures, or one answer
+
+
+def _team_server(n: int, done_from: int | None) -> dict[str, Any]:
+    """A back-end never idle (the team still streams: 10 new keyframes a poll) that is through with the
+    first 100 arrivals from poll ``done_from`` on (None: never gets past 90); its optimisation runs on
+    poll ``done_from + 1`` only."""
+    arrived = 100 + 10 * (n - 1)
+    done = 90 if done_from is None or n < done_from else arrived - 5
+    return {"backend_idle": False, "backend_arrived": arrived, "backend_done": done,
+            "backend_optimising": done_from is not None and n == done_from + 1}  # fmt: skip
+
+
+def test_a_finishing_agent_waits_until_the_server_caught_up_with_its_end_not_until_it_is_idle():
+    import time
+
+    from hivemap.client.health import wait_for_server
+
+    srv = _FlakyHealth(0, None, lambda n: _team_server(n, done_from=6))
+    try:
+        opts = RunnerOptions(corrections_grace_s=0.0, corrections_stall_s=20.0, corrections_max_wait_s=30.0)
+        t0 = time.monotonic()
+        wait_for_server(srv.url, opts, lambda: 0.0, lambda: None)
+        took = time.monotonic() - t0
+    finally:
+        srv.close()
+    # the first answer sets the mark (100 arrivals); done reaches it at poll 6, poll 7 still optimises, so
+    # polls 8 and 9 end the wait, though the server is never idle
+    assert srv.requests == 9, srv.requests
+    assert took < 10.0, took
+
+
+def test_a_server_that_makes_no_progress_ends_the_wait_early():
+    import time
+
+    from hivemap.client.health import wait_for_server
+
+    srv = _FlakyHealth(0, None, lambda n: _team_server(n, done_from=None))
+    try:
+        opts = RunnerOptions(corrections_grace_s=0.0, corrections_stall_s=3.0, corrections_max_wait_s=30.0)
+        t0 = time.monotonic()
+        wait_for_server(srv.url, opts, lambda: 0.0, lambda: None)
+        took = time.monotonic() - t0
+    finally:
+        srv.close()
+    # "done" stays at 90 < 100: the stall timer (3 s from the first answer), not the 30 s cap
+    assert 3.0 <= took < 6.0, took
