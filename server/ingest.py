@@ -280,24 +280,7 @@ class Ingest:
         if moves and m is not None:
             changed_points += _points_follow(m, moves, set(point_ids), am.folded)
         if point_ids and m is not None:
-            sent = np.asarray(msg.xyz, dtype=np.float64)
-            xyz = g.apply(sent)
-            for i, p in enumerate(point_ids):
-                mp = m.points.get((am.folded, p))
-                if mp is None:
-                    continue
-                # a point follows its first observer (as the back-end's corrections move it): placed
-                # where the agent sees it from that keyframe, it keeps the keyframe's share of a loop
-                # closure, which g alone would drop
-                obs = next(iter(mp.observations), None)
-                V = am.vio_poses.get(obs[1]) if obs is not None and obs[0] == am.folded else None
-                kf = m.keyframes.get(obs) if V is not None else None
-                if kf is not None and V is not None:
-                    in_cam = V[:3, :3].T @ (sent[i] - V[:3, 3]) * g.s
-                    mp.xyz = kf.world_from_cam[:3, :3] @ in_cam + kf.world_from_cam[:3, 3]
-                else:
-                    mp.xyz = xyz[i].copy()
-                changed_points.append(mp)
+            changed_points += _place_listed(m, am, point_ids, np.asarray(msg.xyz, dtype=np.float64))
         map_id, folded = (m.id if m is not None else -1), am.folded
 
         def op(store: ServerStore) -> None:
@@ -331,6 +314,38 @@ class Ingest:
         self.fresh_rendezvous.append(rid)
         rec = obs.record()
         return lambda store: store.maps.put_rendezvous(rid, rec)
+
+
+def _place_listed(m: Any, am: Any, point_ids: Any, sent: F64) -> list[Any]:
+    """The points a pose update lists, at the agent's new positions ``sent`` (its VIO frame). A point
+    follows its first observer, as the back-end's corrections move it: placed where the agent sees it from
+    that keyframe, it keeps the keyframe's share of a loop closure, which the agent's transform alone
+    would drop; a point whose first observer the server has no VIO pose of goes through the transform."""
+    g = am.global_from_vio
+    found: list[tuple[int, Any]] = []
+    by_observer: dict[Any, list[int]] = {}
+    plain: list[int] = []
+    for i, p in enumerate(point_ids):
+        mp = m.points.get((am.folded, p))
+        if mp is None:
+            continue
+        obs = next(iter(mp.observations), None)
+        if obs is not None and obs[0] == am.folded and obs[1] in am.vio_poses and obs in m.keyframes:
+            by_observer.setdefault(obs, []).append(len(found))
+        else:
+            plain.append(len(found))
+        found.append((i, mp))
+    rows = np.array([i for i, _ in found], dtype=np.int64)
+    xyz = np.empty((len(found), 3))
+    if plain:
+        xyz[plain] = g.apply(sent[rows[plain]])
+    for obs, at in by_observer.items():
+        V, W = am.vio_poses[obs[1]], m.keyframes[obs].world_from_cam
+        in_cam = (sent[rows[at]] - V[:3, 3]) @ V[:3, :3] * g.s  # V^-1 applied, scaled like the map
+        xyz[at] = in_cam @ W[:3, :3].T + W[:3, 3]
+    for (_, mp), x in zip(found, xyz, strict=True):
+        mp.xyz = x.copy()
+    return [mp for _, mp in found]
 
 
 def _points_follow(m: Any, moves: list[tuple[Any, F64]], listed: set[int], folded: str) -> list[Any]:

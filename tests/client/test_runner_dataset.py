@@ -85,8 +85,11 @@ def test_streaming_agent_command_reaches_the_server(dataset, tmp_path):
         # every keyframe the second stage saw reached the server, nothing was rejected
         assert agents["uav1"]["keyframes"] == summary["keyframes"] > 5
         assert agents["uav1"]["errors"] == 0
-        # the agent stopped only once the server's back-end had nothing left to do for it
-        assert httpx.get(url + "/health", timeout=5).json()["backend_idle"] is True
+        # the agent stopped only once the server's back-end had nothing left to do for it: every keyframe
+        # that reached the back-end (this agent's alone) is done, no optimisation is running
+        health = httpx.get(url + "/health", timeout=5).json()
+        assert health["backend_idle"] is True and health["backend_optimising"] is False
+        assert health["backend_done"] == health["backend_arrived"] >= summary["keyframes"]
         # a wrong token is refused with a clear exit code, not retried forever
         bad = CliRunner().invoke(
             app, [*base, "--token", "wrong", "--out", str(tmp_path / "bad"), "--max-frames", "5"]

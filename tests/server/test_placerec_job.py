@@ -131,3 +131,25 @@ def test_a_full_queue_drops_the_oldest() -> None:
     assert q.push(("a", 0)) is None and q.push(("a", 1)) is None
     assert q.push(("a", 2)) == ("a", 0) and q.dropped == 1
     assert list(q) == [("a", 1), ("a", 2)]
+
+
+def test_done_through_counts_the_arrivals_the_back_end_has_finished_in_order() -> None:
+    """A finishing agent compares ``done_through`` with the arrivals it saw: every arrival up to it is
+    finished (queried and concluded, skipped or dropped), whatever order queries end in."""
+    q = QueryQueue(queue_max=3, backlog=0)
+    for k in range(3):
+        q.push(("a", k))
+    assert (q.n_arrived, q.done_through()) == (3, 0)
+    a0, _ = q.pop(lambda key, n: [])
+    a1, _ = q.pop(lambda key, n: [])
+    q.done(a1)
+    q.finished(a1)  # the second query ends first: the first still holds the count
+    assert q.done_through() == 0
+    q.finished(a0)
+    assert q.done_through() == 2  # a2 still waits
+    for k in (3, 4, 5):  # the third fills the queue past 3: a2 (arrival 3) is dropped, i.e. finished
+        q.push(("a", k))
+    assert q.dropped == 1 and q.done_through() == 3
+    for key in list(q):
+        q.finished(key)
+    assert (q.n_arrived, q.done_through()) == (6, 6)
