@@ -173,9 +173,12 @@ class Pipeline(GnssSteps):
             self.server, m, corr, new_xyz, self.options.corrections, self.options.fix_scale
         )
 
-    async def _send_corrections(self, map_id: int, before: dict[KfKey, F64], t_det: float) -> None:
+    async def _send_corrections(
+        self, map_id: int, before: dict[KfKey, F64], t_det: float, covariances: Any = None
+    ) -> None:
         # the corrections carry each agent's latest keyframe's covariance in the map as it is now
-        await self.uncertainty.latest_now(map_id)
+        # (``covariances``: that solve already started, awaited here)
+        await (covariances if covariances is not None else self.uncertainty.latest_now(map_id))
         await corrections.send_corrections(
             self.server, map_id, before, t_det, self.options.corrections, map_id in self._enu_maps,
             self.correction_bytes, self.correction_latencies, self.uncertainty.of_agent,
@@ -313,11 +316,18 @@ class Pipeline(GnssSteps):
         kfs, pts = list(m.keyframes.values()), list(m.points.values())
         graph = GraphSnapshot(m)
         book = evidence_store.to_json(self.evidence)  # the verdicts go with the poses they led to
-        await server.persist_exclusive(
-            lambda store: (store.maps.update_poses(map_id, kfs, pts), store.sync_graph(graph),
-                           store.maps.set_meta(evidence_store.META_KEY, book))
-        )  # fmt: skip
-        await self._send_corrections(map_id, before, t_det)
+        # the covariances the corrections carry are solved (in the pose graph's process) while the writer
+        # thread persists: both read the map as it is now, and neither changes it
+        covs = asyncio.create_task(self.uncertainty.latest_now(map_id))
+        try:
+            await server.persist_exclusive(
+                lambda store: (store.maps.update_poses(map_id, kfs, pts), store.sync_graph(graph),
+                               store.maps.set_meta(evidence_store.META_KEY, book))
+            )  # fmt: skip
+        except BaseException:
+            covs.cancel()
+            raise
+        await self._send_corrections(map_id, before, t_det, covs)
         if map_id in self._enu_maps:
             await self._gnss_retry(map_id)
 
