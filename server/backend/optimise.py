@@ -310,7 +310,8 @@ def pose_graph_edges(
 
     per_edge = graph_sigmas if graph_sigmas is not None else [(sigmas[0], sigmas[1], 0.0)] * len(graph_edges)
     ij = np.asarray(graph_edges, dtype=np.int64).reshape(-1, 2)
-    rel = relative_poses(poses[ij[:, 0]], poses[ij[:, 1]])
+    stack = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    rel = relative_poses(stack[ij[:, 0]], stack[ij[:, 1]])
     edges = [
         PoseGraphEdge(
             i,

@@ -14,6 +14,7 @@ from hivemap.maps.geometry import (
     Sim3,
     levelled_similarity,
     quat_wxyz_from_rotmat,
+    relative_poses,
     rotation_angle_deg,
     rotation_between,
     rotmat_from_quat_wxyz,
@@ -223,3 +224,20 @@ def test_levelled_similarity_weights_favour_the_near_points() -> None:
         e_eq.append(np.abs(eq.apply(probe) - T.apply(probe)).max())
         e_w.append(np.abs(w.apply(probe) - T.apply(probe)).max())
     assert np.median(e_w) < 0.5 * np.median(e_eq), (np.median(e_w), np.median(e_eq))
+
+
+def test_batched_relative_poses_match_the_per_pair_ones_also_off_so3() -> None:
+    """``relative_poses`` is ``Sim3.from_se3(inv(a) @ b)`` per pair in one batch: the same rotations (also
+    for matrices a composition left slightly off SO(3), which both project), the same translations to
+    rounding, and rotations that are rotations."""
+    rng = np.random.default_rng(3)
+    a = np.array([se3(so3_exp(rng.normal(size=3)), rng.normal(size=3) * 20) for _ in range(200)])
+    b = np.array([se3(so3_exp(rng.normal(size=3)), rng.normal(size=3) * 20) for _ in range(200)])
+    a[::2, :3, :3] += rng.normal(size=(100, 3, 3)) * 1e-7  # off SO(3) by more than the 1e-9 tolerance
+    batched = relative_poses(a, b)
+    for A, B, r in zip(a, b, batched, strict=True):
+        one = Sim3.from_se3(se3_inverse(A) @ B)
+        np.testing.assert_allclose(r.R, one.R, atol=1e-12)
+        np.testing.assert_allclose(r.t, one.t, atol=1e-9)
+        assert r.s == 1.0 and np.abs(r.R @ r.R.T - np.eye(3)).max() < 1e-12
+    assert relative_poses(np.zeros((0, 4, 4)), np.zeros((0, 4, 4))) == []

@@ -15,7 +15,7 @@ import pytest
 
 from hivemap.maps.geometry import Sim3, se3, se3_inverse, so3_exp
 from hivemap.maps.odometry import Chains
-from hivemap.server.backend.optimise import edge_sigmas, odometry_sigmas
+from hivemap.server.backend.optimise import edge_sigmas, odometry_sigmas, odometry_sigmas_many
 from hivemap.server.backend.options import OptimiseOptions
 from hivemap.server.optim import PoseGraphEdge, PoseGraphOptions, relative_sim3, solve_pose_graph_se3
 
@@ -133,3 +133,39 @@ def test_an_edge_across_agents_is_weighed_by_both_keyframes_tracking() -> None:
     fixed = (o.pose_graph_sigma_rot, o.pose_graph_sigma_trans)
     assert across_c[:2] == fixed
     assert edge_sigmas(m, chains, keys, [(0, 1)], OptimiseOptions())[0][:2] == fixed
+
+
+def test_batched_chains_equal_the_per_edge_ones_and_weigh_weak_tracking() -> None:
+    """``Chains.between_many`` (the pose graph's per-edge work, batched) gives what ``between`` gives edge by
+    edge: within an agent, across weak tracking, with and without tracked sigmas, across agents and for an
+    unknown keyframe; ``odometry_sigmas_many`` gives the fixed sigmas across agents and adds the weak
+    sigma (as extra yaw) exactly where an edge crosses weak tracking."""
+    rng = np.random.default_rng(5)
+    kfs = {}
+    for agent in ("a", "b"):
+        for k in range(30):
+            kf = _keyframe(se3(so3_exp(rng.normal(size=3) * 0.1), rng.normal(size=3)), k,
+                           None if k % 7 == 3 else (0.002 * (1 + k % 3), 0.03))  # fmt: skip
+            kf.odom_sigma = np.array([0.2, 1.5]) if k in (11, 12, 20) else None
+            kfs[(agent, k)] = kf
+    m = SimpleNamespace(keyframes=kfs)
+    chains = Chains(m)
+    keys = list(kfs)
+    pairs = [(keys[i], keys[j]) for i, j in rng.integers(0, len(keys), size=(300, 2))] + [
+        (("a", 0), ("c", 1))
+    ]
+    d, same = chains.between_many([p for p, _ in pairs], [q for _, q in pairs])
+    o = OptimiseOptions()
+    many = odometry_sigmas_many(d, same, o)
+    for n, (p, q) in enumerate(pairs):
+        one = chains.between(p, q)
+        assert same[n] == (one is not None)
+        if one is None:
+            assert tuple(many[n]) == (o.pose_graph_sigma_rot, o.pose_graph_sigma_trans, 0.0)
+            continue
+        np.testing.assert_array_equal(d[n], one)
+        lo, hi = sorted((p[1], q[1]))
+        crosses = any(lo < k <= hi for k in (11, 12, 20))
+        assert (many[n][2] > 0) == crosses
+        if crosses:  # the weak sigma in quadrature: never below it
+            assert many[n][1] >= np.hypot(o.pose_graph_sigma_trans, 0.2) - 1e-12
