@@ -93,12 +93,12 @@ class SolverProcess:
     def __init__(self, name: str) -> None:
         self.name = name
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
-        self._running = False
+        self._running = 0  # jobs submitted and not ended (the pose graph and the covariances share one)
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         if self._pool is None:
             self._pool = spawn_pool()
-        self._running = True
+        self._running += 1
         try:
             return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
         except BrokenProcessPool:
@@ -107,7 +107,7 @@ class SolverProcess:
             self._pool = None
             raise
         finally:
-            self._running = False
+            self._running -= 1
 
     def stop(self) -> None:
         if self._pool is None:
