@@ -115,6 +115,20 @@ class _FlakyHealth:
         self.httpd.server_close()
 
 
+def _timed_wait(srv: _FlakyHealth, **options: float) -> float:
+    """Seconds ``wait_for_server`` took against ``srv`` (grace 0, the given ``RunnerOptions``)."""
+    import time
+
+    from hivemap.client.health import wait_for_server
+
+    try:
+        t0 = time.monotonic()
+        wait_for_server(srv.url, RunnerOptions(corrections_grace_s=0.0, **options), lambda: 0.0, lambda: None)
+        return time.monotonic() - t0
+    finally:
+        srv.close()
+
+
 @pytest.mark.parametrize(
     ("drop", "idle", "expect_health"),
     [
@@ -124,18 +138,8 @@ class _FlakyHealth:
     ],
 )
 def test_wait_for_server_retries_unanswered_health_polls(drop: int, idle: bool | None, expect_health: bool):
-    import time
-
-    from hivemap.client.health import wait_for_server
-
     srv = _FlakyHealth(drop, idle)
-    try:
-        opts = RunnerOptions(corrections_grace_s=0.0, corrections_quiet_s=6.0, corrections_max_wait_s=30.0)
-        t0 = time.monotonic()
-        wait_for_server(srv.url, opts, lambda: 0.0, lambda: None)
-        took = time.monotonic() - t0
-    finally:
-        srv.close()
+    took = _timed_wait(srv, corrections_quiet_s=6.0, corrections_max_wait_s=30.0)
     if expect_health:
         # 3 dropped + 2 idle polls at 0.5 s: well before the 6 s quiet timer
         assert took < 5.0 and srv.requests == drop + 2, (took, srv.requests)
@@ -155,18 +159,8 @@ def _team_server(n: int, done_from: int | None) -> dict[str, Any]:
 
 
 def test_a_finishing_agent_waits_until_the_server_caught_up_with_its_end_not_until_it_is_idle():
-    import time
-
-    from hivemap.client.health import wait_for_server
-
     srv = _FlakyHealth(0, None, lambda n: _team_server(n, done_from=6))
-    try:
-        opts = RunnerOptions(corrections_grace_s=0.0, corrections_stall_s=20.0, corrections_max_wait_s=30.0)
-        t0 = time.monotonic()
-        wait_for_server(srv.url, opts, lambda: 0.0, lambda: None)
-        took = time.monotonic() - t0
-    finally:
-        srv.close()
+    took = _timed_wait(srv, corrections_stall_s=20.0, corrections_max_wait_s=30.0)
     # the first answer sets the mark (100 arrivals); done reaches it at poll 6, poll 7 still optimises, so
     # polls 8 and 9 end the wait, though the server is never idle
     assert srv.requests == 9, srv.requests
@@ -174,17 +168,7 @@ def test_a_finishing_agent_waits_until_the_server_caught_up_with_its_end_not_unt
 
 
 def test_a_server_that_makes_no_progress_ends_the_wait_early():
-    import time
-
-    from hivemap.client.health import wait_for_server
-
     srv = _FlakyHealth(0, None, lambda n: _team_server(n, done_from=None))
-    try:
-        opts = RunnerOptions(corrections_grace_s=0.0, corrections_stall_s=3.0, corrections_max_wait_s=30.0)
-        t0 = time.monotonic()
-        wait_for_server(srv.url, opts, lambda: 0.0, lambda: None)
-        took = time.monotonic() - t0
-    finally:
-        srv.close()
+    took = _timed_wait(srv, corrections_stall_s=3.0, corrections_max_wait_s=30.0)
     # "done" stays at 90 < 100: the stall timer (3 s from the first answer), not the 30 s cap
     assert 3.0 <= took < 6.0, took
