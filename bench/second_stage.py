@@ -109,9 +109,10 @@ def server_priors(st: Any, server: Any, body_from_cam: Any, stride: int) -> dict
     glob = {ids[i]: T_gc[j[i]] @ np.linalg.inv(body_from_cam) for i in np.flatnonzero(ok)}
     if len(glob) < 3:
         raise SystemExit("the server estimate shares fewer than 3 keyframe times with the recording")
-    keys = sorted(glob, key=ids.index)
+    row = {k: i for i, k in enumerate(ids)}
+    keys = sorted(glob, key=row.__getitem__)
     A = rigid_alignment(
-        np.array([glob[k][:3, 3] for k in keys]), np.array([own[ids.index(k)][:3, 3] for k in keys])
+        np.array([glob[k][:3, 3] for k in keys]), np.array([own[row[k]][:3, 3] for k in keys])
     )
     return {k: A @ glob[k] for k in keys[::stride]}
 

@@ -137,13 +137,7 @@ def clique_marginals(tree: Any, keys: Sequence[int], dim: int = 6) -> dict[int, 
     one pass from the root down over the cliques that hold them and their ancestors
     (:func:`clique_joints`)."""
     home, joint = clique_joints(tree, keys, dim)
-    out: dict[int, F64] = {}
-    for k, f in home.items():
-        off, C = joint[f]
-        o = off[k]
-        block = C[o : o + dim, o : o + dim]
-        out[k] = np.asarray(0.5 * (block + block.T), dtype=np.float64)
-    return out
+    return {k: _block(joint, home, k, k, dim) for k in home}
 
 
 def clique_joints(
