@@ -54,7 +54,6 @@ def main() -> None:
     store.close()
     o = BackendOptions().optimise
     kept = [ev.edge for ev in book.kept_edges(mid, m.keyframes) if not ev.rejected]
-    apart = book.apart(mid)
     print(f"map {mid}: {len(m.keyframes)} keyframes, {len(m.points)} points, {len(kept)} kept loop/merge "
           f"edges (loaded in {time.perf_counter() - t0:.1f} s)")  # fmt: skip
     snap = optimise.snapshot(m, 0)
@@ -62,7 +61,7 @@ def main() -> None:
     _best("essential edges", lambda: m.essential_edges(), a.repeat)
 
     def build() -> Any:
-        return optimise.pose_graph_problem(m, snap, kept, None, fixed, o, apart)
+        return optimise.pose_graph_problem(m, snap, kept, None, fixed, o, o.gnc)
 
     problem = _best("pose graph problem", build, a.repeat)
     print(f"  ({len(problem.graph_edges)} essential edges)")

@@ -147,10 +147,6 @@ class EvidenceBook:
     def on_trial(self, map_id: int) -> list[MergeHypothesis]:
         return [h for h in self.merges.get(map_id, []) if not h.confirmed]
 
-    def apart(self, map_id: int) -> list[tuple[frozenset[str], frozenset[str]]]:
-        """The agent groups whose essential edges the pose graph leaves out (merges on trial)."""
-        return [(h.source_agents, h.target_agents) for h in self.on_trial(map_id)]
-
     def dependent_on(self, m: Any, a: KfKey, b: KfKey) -> MergeHypothesis | None:
         """The merge on trial that a loop ``a``-``b`` across its sides merely repeats: either end is one of
         the merge's keyframes or covisible with it (the same place, e.g. the rest of a room that looks like

@@ -77,7 +77,7 @@ class PoseGraphProblem:
     ups: F64 | None
     # for each of ``new_edges``, its index in the ``edges`` the problem was built from
     new_edge_source: list[int] = field(default_factory=list)
-    loose: list[int] = field(default_factory=list)  # one keyframe per side held apart (a loose prior)
+    loose: list[int] = field(default_factory=list)  # per agent joined only by robust edges: one held loosely
     # per graph edge (sigma_rot rad, sigma_trans m, extra yaw sigma rad); None: the options' sigmas
     graph_sigmas: list[tuple[float, float, float]] | None = None
     move_slack_m: float = 0.0  # how much farther than the options' limit weak tracking lets a keyframe move
@@ -91,30 +91,30 @@ def pose_graph_problem(
     pre: tuple[Sim3, list[KfKey]] | None,
     fixed: list[int],
     o: OptimiseOptions,
-    apart: Sequence[tuple[frozenset[str], frozenset[str]]] = (),
+    measured_only: bool = False,
 ) -> PoseGraphProblem:
     """The pose graph of ``m``'s essential graph plus ``edges``, from ``snap``; ``pre``: a correction that
     the listed keyframes start from (a loop's query neighbourhood), ``fixed``: the held keyframes.
-    ``apart``: pairs of agent groups joined only by merges still on trial; the essential edges between
-    them (their merges' fused points) are left out, so only the measured edges, which the robust solve
-    can reject, hold the groups together."""
+
+    ``measured_only``: ``edges`` are all the map's measured loop, merge and rendezvous edges, and only
+    they join its agents: the essential edges between two agents (points fused at a loop or merge) are
+    left out. Their relative poses are the map's current ones, not a measurement, so a bend the map had
+    when the points were fused would be held forever and outvote the loops that could straighten it.
+    Each agent without a held keyframe gets a loose prior on its first one (its gauge, should the robust
+    solve reject every edge to it)."""
     index = {k: i for i, k in enumerate(snap.keys)}
     new_pairs = {(e.candidate, e.query) for e in edges} | {(e.query, e.candidate) for e in edges}
-
-    def across(a: KfKey, b: KfKey) -> bool:
-        return any((a[0] in s and b[0] in t) or (a[0] in t and b[0] in s) for s, t in apart)
-
     graph_edges = [
         (index[a], index[b])
         for a, b in m.essential_edges()
-        if a in index and b in index and (a, b) not in new_pairs and not (apart and across(a, b))
+        if a in index and b in index and (a, b) not in new_pairs and not (measured_only and a[0] != b[0])
     ]
     kept = [n for n, e in enumerate(edges) if e.candidate in index and e.query in index]
-    # each side of a merge on trial without a held keyframe gets a loose prior on its first keyframe
     held = {snap.keys[i][0] for i in fixed}
-    sides = [side for pair in apart for side in pair if not side & held]
-    loose = sorted({next(i for i, k in enumerate(snap.keys) if k[0] in side) for side in sides
-                    if any(k[0] in side for k in snap.keys)})  # fmt: skip
+    first: dict[str, int] = {}
+    for i, k in enumerate(snap.keys):
+        first.setdefault(k[0], i)
+    loose = sorted(i for a, i in first.items() if a not in held) if measured_only else []
     new_edges = [
         (index[edges[n].candidate], index[edges[n].query], edges[n].measured, edges[n].sigma_rot,
          edges[n].sigma_trans)

@@ -347,12 +347,10 @@ class Pipeline(GnssSteps):
         o, map_id = self.options.optimise, m.id
         snap = self._snapshot(m)
         fixed = optimise.anchor(m, snap.keys, self._agent_kind, POSE_GRAPH_ANCHORS_PER_AGENT)
-        # robust: every kept loop and merge edge of the map is judged again, merges on trial held only by
-        # their measured edges
+        # robust: every kept loop and merge edge of the map is judged again, and only they join its agents
         judged = self.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
-        apart = self.evidence.apart(map_id) if o.gnc else []
         problem = optimise.pose_graph_problem(
-            m, snap, [ev.edge for ev in judged] if o.gnc else edges, pre, fixed, o, apart
+            m, snap, [ev.edge for ev in judged] if o.gnc else edges, pre, fixed, o, o.gnc
         )
         t0 = time.perf_counter()
         res = await self._solve_pose_graph(problem, snap.poses)

@@ -2,9 +2,9 @@
 (:mod:`hivemap.server.marginals`; its docstring gives the map-frame convention), kept for REST and for
 the corrections.
 
-The graph is the one the pipeline's pose-graph step solves (:func:`.optimise.pose_graph_problem`: the
-essential graph plus the map's kept loop, merge and rendezvous edges, the same gauge), linearised at the
-map's poses now; never on the event loop. Two kinds:
+The graph is the one the pipeline's pose-graph step solves (:func:`.optimise.pose_graph_problem`: each
+agent's essential graph plus the map's kept loop, merge and rendezvous edges, the same gauge), linearised
+at the map's poses now; never on the event loop. Two kinds:
 
 * every keyframe of a map, after new keyframes or an optimisation: at most once per
   ``min_interval_s`` per map, and no sooner after the last than its CPU time / ``max_duty``, so a large
@@ -181,8 +181,7 @@ class Uncertainty:
         fixed = optimise.anchor(m, snap.keys, bk._agent_kind, 1)
         judged = bk.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
         kept = [ev.edge for ev in judged if not ev.rejected]  # the edges the last pose graph kept
-        apart = bk.evidence.apart(map_id) if o.gnc else []
-        problem = optimise.pose_graph_problem(m, snap, kept, None, fixed, o, apart)
+        problem = optimise.pose_graph_problem(m, snap, kept, None, fixed, o, o.gnc)
         two = latest_two(m)
         latest = {a: k for a, (k, _) in two.items()}
         kfs = m.keyframes
