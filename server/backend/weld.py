@@ -14,7 +14,8 @@ may correct its tilt within a prior of ``FitOptions.weld_tilt_sigma_deg`` (defau
 directions' own error was most of what loops were off by), 0 turns it only about the up axis (4 DoF);
 negative, or without up directions: 6 DoF. A weld whose 99 % bound
 exceeds ``weld_max_bound_m`` / ``weld_max_bound_deg`` is refused, and so is the detection (its RANSAC
-transform was fitted to the same points, so it is no better determined).
+transform was fitted to the same points, so it is no better determined); so is a weld that moved the fit
+farther than the weld's bound and the fit's own (its bootstrap sigmas) allow together.
 
 Built on the event loop (:func:`build`: arrays only), solved in the worker pool (:func:`solve`), applied
 on the loop (:func:`welded`). Why the defaults are what they are: ``docs/decisions.md``.
@@ -80,6 +81,9 @@ class WeldJob:
     max_bound_deg: float
     min_points: int
     variants: tuple[tuple[str, float], ...] = ()
+    # the fit's own sigmas (rad, m; its bootstrap spread): a weld that moves the fit farther than both
+    # estimates' 99 % bounds together is refused (inf: never)
+    fit_sigmas: tuple[float, float] = (math.inf, math.inf)
 
 
 @dataclass
@@ -143,9 +147,16 @@ def _point_cov(m: Any, p: Any, fixed: dict[KfKey, F64], y: F64) -> F64 | None:
     return cov
 
 
-def build(maps: Any, det: Detection, up_q: F64 | None, o: FitOptions) -> WeldJob | None:
+def build(
+    maps: Any,
+    det: Detection,
+    up_q: F64 | None,
+    o: FitOptions,
+    fit_sigmas: tuple[float, float] = (math.inf, math.inf),
+) -> WeldJob | None:
     """The weld of ``det`` (its ``target_from_source``, SE(3)); ``up_q``: the query camera's up direction
-    if the transform was levelled by it (4 DoF), else None. None when a keyframe is gone."""
+    if the transform was levelled by it (4 DoF), else None; ``fit_sigmas``: the fit's (rad, m). None when
+    a keyframe is gone."""
     mq, mc = maps.get(det.query_map), maps.get(det.candidate_map)
     if mq is None or mc is None or det.query_key not in mq.keyframes or det.candidate_key not in mc.keyframes:
         return None
@@ -203,7 +214,7 @@ def build(maps: Any, det: Detection, up_q: F64 | None, o: FitOptions) -> WeldJob
         np.concatenate(rows_z) if n else np.zeros((0, 3)), np.concatenate(rows_s) if n else np.zeros(0),
         np.concatenate(rows_k) if n else np.zeros((0, 5)), np.array(rows_p, dtype=np.int64),
         np.array(rows_c).reshape(n, 3, 3), o.weld_tilt_sigma_deg, o.weld_max_bound_m,
-        o.weld_max_bound_deg, o.weld_min_points, variants,
+        o.weld_max_bound_deg, o.weld_min_points, variants, fit_sigmas,
     )  # fmt: skip
 
 
@@ -382,6 +393,15 @@ def _solve_one(job: WeldJob, tilt_sigma_deg: float) -> WeldResult:
         res.reason = (f"99 % bound {res.bound_m:.2f} m / {res.bound_deg:.2f} deg (limits "
                       f"{job.max_bound_m} m / {job.max_bound_deg} deg)")  # fmt: skip
         return res
+    # the fit and the weld estimate one transform from the same points: where they disagree beyond their
+    # bounds together, the points hold it only along a valley (distant points, one depth) and either may
+    # sit at the wrong end of it
+    lim_m = math.hypot(res.bound_m, BOUND_SIGMAS * job.fit_sigmas[1])
+    lim_deg = math.hypot(res.bound_deg, BOUND_SIGMAS * math.degrees(job.fit_sigmas[0]))
+    if res.moved_m > lim_m or res.turned_deg > lim_deg:
+        res.reason = (f"moved the fit {res.moved_m:.2f} m / {res.turned_deg:.2f} deg, beyond both 99 % "
+                      f"bounds together ({lim_m:.2f} m / {lim_deg:.2f} deg)")  # fmt: skip
+        return res
     res.ok = True
     return res
 
@@ -417,7 +437,12 @@ def _stereo(kf: Any) -> bool:
 
 
 async def weld_detection(
-    verifier: Any, maps: Any, det: Detection, up_q: F64 | None, o: FitOptions
+    verifier: Any,
+    maps: Any,
+    det: Detection,
+    up_q: F64 | None,
+    o: FitOptions,
+    fit_sigmas: tuple[float, float] = (math.inf, math.inf),
 ) -> tuple[Detection | None, dict[str, Any]]:
     """``det`` welded in the worker pool (``verifier``, :meth:`~.executor.Verifier.call`), or None if the
     weld is refused or a keyframe went meanwhile (``det`` itself if either keyframe has no stereo
@@ -429,7 +454,7 @@ async def weld_detection(
     if q is not None and c is not None and not (_stereo(q) and _stereo(c)):
         # nothing to weld by (a monocular keyframe, an older agent): the fit stands as it is
         return det, {"ok": False, "skipped": True, "reason": "no stereo observations"}
-    job = build(maps, det, up_q, o)
+    job = build(maps, det, up_q, o, fit_sigmas)
     if job is None:
         return None, {"ok": False, "reason": "a keyframe is gone"}
     try:
@@ -451,15 +476,16 @@ async def weld_detection(
 
 
 async def run(
-    backend: Any, det: Detection, up_q: F64 | None
+    backend: Any, det: Detection, up_q: F64 | None, fit_sigmas: tuple[float, float]
 ) -> tuple[Detection | None, dict[str, Any] | None]:
     """The back-end's weld of ``det`` (itself when ``FitOptions.weld`` is off or the maps are not metric;
-    None, with a refusal event, when refused) and the weld's record. A weld too unsure to bound the edge
-    refuses its loop or merge: the fit was made from the same points, so it is no better determined."""
+    None, with a refusal event, when refused) and the weld's record; ``fit_sigmas``: the fit's (rad, m).
+    A weld too unsure to bound the edge refuses its loop or merge: the fit was made from the same points,
+    so it is no better determined. So does a weld that disagrees with the fit beyond both their bounds."""
     o = backend.options
     if not o.fit.weld or not o.fix_scale:
         return det, None
-    out, rec = await weld_detection(backend.verifier, backend.server.stack.maps, det, up_q, o.fit)
+    out, rec = await weld_detection(backend.verifier, backend.server.stack.maps, det, up_q, o.fit, fit_sigmas)
     if out is None:
         kind = "loop" if det.is_loop else "merge"
         backend.server.events.add(

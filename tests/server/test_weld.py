@@ -143,10 +143,16 @@ def _rel_error(s: dict[str, Any], det: Detection) -> tuple[float, float]:
     return float(np.linalg.norm(d[:3, 3])), rotation_angle_deg(d[:3, :3])
 
 
-def _weld(s: dict[str, Any], det: Detection, up: bool, o: FitOptions) -> tuple[Any, Detection | None]:
+def _weld(
+    s: dict[str, Any],
+    det: Detection,
+    up: bool,
+    o: FitOptions,
+    fit_sigmas: tuple[float, float] = (np.inf, np.inf),
+) -> tuple[Any, Detection | None]:
     mq = s["maps"][0]
     up_q = np.asarray(mq.keyframes[s["qk"]].up_cam) if up else None
-    job = build(s["maps"], det, up_q, o)
+    job = build(s["maps"], det, up_q, o, fit_sigmas)
     assert job is not None
     res = solve(job)
     return res, welded(s["maps"], det, job, res) if res.ok else None
@@ -185,6 +191,22 @@ def test_gross_outliers_are_dropped() -> None:
     s["pairs"] = (q, c)
     start = se3(so3_exp(np.radians(3.0) * UP), np.array([0.2, -0.2, 0.1])) @ s["true"]
     res, out = _weld(s, _detection(s, start), True, FitOptions())
+    assert res.ok and out is not None, res.reason
+    err = _rel_error(s, out)
+    assert err[0] < 0.02 and err[1] < 0.1, err
+
+
+def test_a_weld_that_disagrees_with_the_fit_beyond_both_bounds_is_refused() -> None:
+    """The fit is 0.3 m / 3 deg off. Had it claimed 1 cm / 0.06 deg (its bootstrap sigmas), the weld's
+    move would contradict it beyond both estimates' 99 % bounds together: one of the two is wrong, and
+    the detection is refused. With the spread such a fit really has (0.15 m / 1.1 deg) it is welded."""
+    s = _scene(8)
+    start = se3(so3_exp(np.radians(3.0) * UP), np.array([0.2, -0.2, 0.1])) @ s["true"]
+    res, out = _weld(s, _detection(s, start), True, FitOptions(), fit_sigmas=(0.001, 0.01))
+    assert not res.ok and out is None
+    assert "moved the fit" in res.reason, res.reason
+    assert res.moved_m > 0.25 and res.bound_m < 0.05, (res.moved_m, res.bound_m)
+    res, out = _weld(s, _detection(s, start), True, FitOptions(), fit_sigmas=(0.02, 0.15))
     assert res.ok and out is not None, res.reason
     err = _rel_error(s, out)
     assert err[0] < 0.02 and err[1] < 0.1, err
