@@ -339,7 +339,7 @@ class Backend(Pipeline):
         if levelled is not None:
             det = replace(det, target_from_source=levelled)
         up_q = self._up_cam(maps[det.query_map], det.query_key) if levelled is not None else None
-        welded, weld_rec = await weld.run(self, det, up_q, sigmas)
+        welded, weld_rec = await weld.run(self, det, up_q, sigmas if levelled is not None else None)
         if welded is None:
             return
         det = welded
@@ -466,7 +466,8 @@ class Backend(Pipeline):
         levelled, sigmas = fit.levelled(o, self.server.stack.maps, self._gnss_unbend, det, ups)
         if levelled is not None:
             det = replace(det, target_from_source=levelled)
-        welded, weld_rec = await weld.run(self, det, ups[0] if levelled is not None else None, sigmas)
+        up_q, fitted = (ups[0], sigmas) if levelled is not None else (None, None)
+        welded, weld_rec = await weld.run(self, det, up_q, fitted)
         if welded is None or det.query_map not in self.server.stack.maps:
             return
         det, m = welded, self.server.stack.maps[det.query_map]

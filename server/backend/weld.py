@@ -476,16 +476,20 @@ async def weld_detection(
 
 
 async def run(
-    backend: Any, det: Detection, up_q: F64 | None, fit_sigmas: tuple[float, float]
+    backend: Any, det: Detection, up_q: F64 | None, fit_sigmas: tuple[float, float] | None
 ) -> tuple[Detection | None, dict[str, Any] | None]:
     """The back-end's weld of ``det`` (itself when ``FitOptions.weld`` is off or the maps are not metric;
-    None, with a refusal event, when refused) and the weld's record; ``fit_sigmas``: the fit's (rad, m).
+    None, with a refusal event, when refused) and the weld's record; ``fit_sigmas``: the levelled fit's
+    (rad, m; None: no levelled fit, whose spread would say how far the weld may move it).
     A weld too unsure to bound the edge refuses its loop or merge: the fit was made from the same points,
     so it is no better determined. So does a weld that disagrees with the fit beyond both their bounds."""
     o = backend.options
     if not o.fit.weld or not o.fix_scale:
         return det, None
-    out, rec = await weld_detection(backend.verifier, backend.server.stack.maps, det, up_q, o.fit, fit_sigmas)
+    unbounded = (math.inf, math.inf)
+    out, rec = await weld_detection(
+        backend.verifier, backend.server.stack.maps, det, up_q, o.fit, fit_sigmas or unbounded
+    )
     if out is None:
         kind = "loop" if det.is_loop else "merge"
         backend.server.events.add(
