@@ -110,11 +110,13 @@ def pose_graph_problem(
         if a in index and b in index and (a, b) not in new_pairs and not (measured_only and a[0] != b[0])
     ]
     kept = [n for n, e in enumerate(edges) if e.candidate in index and e.query in index]
-    held = {snap.keys[i][0] for i in fixed}
-    first: dict[str, int] = {}
-    for i, k in enumerate(snap.keys):
-        first.setdefault(k[0], i)
-    loose = sorted(i for a, i in first.items() if a not in held) if measured_only else []
+    loose: list[int] = []
+    if measured_only:  # each agent's first keyframe, unless the agent is held
+        held = {snap.keys[i][0] for i in fixed}
+        first: dict[str, int] = {}
+        for i, k in enumerate(snap.keys):
+            first.setdefault(k[0], i)
+        loose = sorted(i for a, i in first.items() if a not in held)
     new_edges = [
         (index[edges[n].candidate], index[edges[n].query], edges[n].measured, edges[n].sigma_rot,
          edges[n].sigma_trans)

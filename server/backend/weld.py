@@ -81,9 +81,9 @@ class WeldJob:
     max_bound_deg: float
     min_points: int
     variants: tuple[tuple[str, float], ...] = ()
-    # the fit's own sigmas (rad, m; its bootstrap spread): a weld that moves the fit farther than both
-    # estimates' 99 % bounds together is refused (inf: never)
-    fit_sigmas: tuple[float, float] = (math.inf, math.inf)
+    # the levelled fit's own sigmas (rad, m; its bootstrap spread): a weld that moves the fit farther than
+    # both estimates' 99 % bounds together is refused (None: no levelled fit, no such check)
+    fit_sigmas: tuple[float, float] | None = None
 
 
 @dataclass
@@ -152,11 +152,11 @@ def build(
     det: Detection,
     up_q: F64 | None,
     o: FitOptions,
-    fit_sigmas: tuple[float, float] = (math.inf, math.inf),
+    fit_sigmas: tuple[float, float] | None = None,
 ) -> WeldJob | None:
     """The weld of ``det`` (its ``target_from_source``, SE(3)); ``up_q``: the query camera's up direction
-    if the transform was levelled by it (4 DoF), else None; ``fit_sigmas``: the fit's (rad, m). None when
-    a keyframe is gone."""
+    if the transform was levelled by it (4 DoF), else None; ``fit_sigmas``: the levelled fit's (rad, m), if
+    any. None when a keyframe is gone."""
     mq, mc = maps.get(det.query_map), maps.get(det.candidate_map)
     if mq is None or mc is None or det.query_key not in mq.keyframes or det.candidate_key not in mc.keyframes:
         return None
@@ -396,12 +396,13 @@ def _solve_one(job: WeldJob, tilt_sigma_deg: float) -> WeldResult:
     # the fit and the weld estimate one transform from the same points: where they disagree beyond their
     # bounds together, the points hold it only along a valley (distant points, one depth) and either may
     # sit at the wrong end of it
-    lim_m = math.hypot(res.bound_m, BOUND_SIGMAS * job.fit_sigmas[1])
-    lim_deg = math.hypot(res.bound_deg, BOUND_SIGMAS * math.degrees(job.fit_sigmas[0]))
-    if res.moved_m > lim_m or res.turned_deg > lim_deg:
-        res.reason = (f"moved the fit {res.moved_m:.2f} m / {res.turned_deg:.2f} deg, beyond both 99 % "
-                      f"bounds together ({lim_m:.2f} m / {lim_deg:.2f} deg)")  # fmt: skip
-        return res
+    if job.fit_sigmas is not None:
+        lim_m = math.hypot(res.bound_m, BOUND_SIGMAS * job.fit_sigmas[1])
+        lim_deg = math.hypot(res.bound_deg, BOUND_SIGMAS * math.degrees(job.fit_sigmas[0]))
+        if res.moved_m > lim_m or res.turned_deg > lim_deg:
+            res.reason = (f"moved the fit {res.moved_m:.2f} m / {res.turned_deg:.2f} deg, beyond both 99 % "
+                          f"bounds together ({lim_m:.2f} m / {lim_deg:.2f} deg)")  # fmt: skip
+            return res
     res.ok = True
     return res
 
@@ -442,7 +443,7 @@ async def weld_detection(
     det: Detection,
     up_q: F64 | None,
     o: FitOptions,
-    fit_sigmas: tuple[float, float] = (math.inf, math.inf),
+    fit_sigmas: tuple[float, float] | None = None,
 ) -> tuple[Detection | None, dict[str, Any]]:
     """``det`` welded in the worker pool (``verifier``, :meth:`~.executor.Verifier.call`), or None if the
     weld is refused or a keyframe went meanwhile (``det`` itself if either keyframe has no stereo
@@ -486,10 +487,7 @@ async def run(
     o = backend.options
     if not o.fit.weld or not o.fix_scale:
         return det, None
-    unbounded = (math.inf, math.inf)
-    out, rec = await weld_detection(
-        backend.verifier, backend.server.stack.maps, det, up_q, o.fit, fit_sigmas or unbounded
-    )
+    out, rec = await weld_detection(backend.verifier, backend.server.stack.maps, det, up_q, o.fit, fit_sigmas)
     if out is None:
         kind = "loop" if det.is_loop else "merge"
         backend.server.events.add(

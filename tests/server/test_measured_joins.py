@@ -37,7 +37,7 @@ def _map() -> tuple[SimpleNamespace, Snapshot, list[NewEdge], dict[tuple[str, in
 
 
 def _solve(measured_only: bool) -> tuple[float, int, int]:
-    """(b's largest error in m after aligning on a's first keyframe, loops rejected, cross-agent edges)."""
+    """(the largest keyframe error in m, a's first keyframe held; loops rejected; cross-agent edges)."""
     m, snap, loops, truth = _map()
     o = OptimiseOptions()
     fixed = [snap.keys.index(("a", 0))]

@@ -148,7 +148,7 @@ def _weld(
     det: Detection,
     up: bool,
     o: FitOptions,
-    fit_sigmas: tuple[float, float] = (np.inf, np.inf),
+    fit_sigmas: tuple[float, float] | None = None,
 ) -> tuple[Any, Detection | None]:
     mq = s["maps"][0]
     up_q = np.asarray(mq.keyframes[s["qk"]].up_cam) if up else None
