@@ -64,7 +64,7 @@ def main() -> None:
         return optimise.pose_graph_problem(m, snap, kept, None, fixed, o, o.gnc)
 
     problem = _best("pose graph problem", build, a.repeat)
-    print(f"  ({len(problem.graph_edges)} essential edges)")
+    print(f"  ({len(problem.graph_edges)} odometry or essential edges)")
     index = {k: i for i, k in enumerate(snap.keys)}
     two = uncertainty.latest_two(m)
     wanted = sorted(index[k] for k, _ in two.values())

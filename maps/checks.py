@@ -79,7 +79,8 @@ def map_differences(a: Map, b: Map) -> list[str]:
     for k in a.keyframes.keys() & b.keyframes.keys():
         x, y = a.keyframes[k], b.keyframes[k]
         arrays: tuple[str, ...] = ("world_from_cam", "keypoints", "octaves", "descriptors", "point_ids")
-        for f in (*arrays, "gnss_enu", "gnss_cov", "up_cam", "u_right", "odom_sigma", "track_sigma"):
+        optional = ("gnss_enu", "gnss_cov", "up_cam", "u_right", "odom_sigma", "track_sigma", "vio_from_cam")
+        for f in (*arrays, *optional):
             if not _arr_eq(getattr(x, f), getattr(y, f)):
                 d.append(f"keyframe {k}: {f} differs")
         if np.float64(x.timestamp).tobytes() != np.float64(y.timestamp).tobytes():

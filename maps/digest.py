@@ -47,6 +47,8 @@ def map_digest(m: Map) -> str:
             _arr(h, kf.odom_sigma)
         if kf.track_sigma is not None:
             _arr(h, kf.track_sigma)
+        if kf.vio_from_cam is not None:
+            _arr(h, kf.vio_from_cam)
     for k in sorted(m.points):
         p = m.points[k]
         h.update(json.dumps([list(k), sorted((list(o), i) for o, i in p.observations.items())]).encode())

@@ -67,7 +67,9 @@ class Keyframe:
     camera frame); ``odom_sigma`` f64 (2,) [m, deg] or None (the error weak or lost tracking added to the
     pose relative to the agent's previous keyframe, ``protocol.Keyframe.odom_sigma``); ``track_sigma`` f64
     (2,) [m, deg] or None (that pose's per-axis sigma as the agent's tracking measured it,
-    ``protocol.Keyframe.track_sigma``).
+    ``protocol.Keyframe.track_sigma``); ``vio_from_cam`` f64 (4, 4) or None (the pose in the agent's own
+    odometry frame as the agent last sent it: its keyframe message or a later pose update; the pose graph's
+    odometry edges hold it).
 
     Point references: keypoint ``i`` references point ``(agent, point_ids[i])`` where ``agent`` is
     ``point_agents.get(i, agent_id)`` (``point_agents`` only lists keypoints that reference another agent's
@@ -96,6 +98,7 @@ class Keyframe:
         "stereo_baseline",
         "odom_sigma",
         "track_sigma",
+        "vio_from_cam",
         "parent",
     )
 
@@ -119,6 +122,7 @@ class Keyframe:
         stereo_baseline: float | None = None,
         odom_sigma: ArrayLike | None = None,
         track_sigma: ArrayLike | None = None,
+        vio_from_cam: ArrayLike | None = None,
     ) -> None:
         self.agent_id = str(agent_id)
         self.id = int(id)
@@ -180,6 +184,9 @@ class Keyframe:
         )
         self.track_sigma: F64 | None = (
             None if track_sigma is None else np.array(track_sigma, np.float64).reshape(2)
+        )
+        self.vio_from_cam: F64 | None = (
+            None if vio_from_cam is None else np.array(vio_from_cam, np.float64).reshape(4, 4)
         )
         self.parent: KfKey | None = None
 

@@ -50,8 +50,9 @@ __all__ = [
     "unpack_array",
 ]  # fmt: skip
 
-# 2: map_keyframes.up_cam; 3: u_right, stereo_baseline; 4: odom_sigma; 5: map_rendezvous; 6: track_sigma
-SCHEMA_VERSION = 6
+# 2: map_keyframes.up_cam; 3: u_right, stereo_baseline; 4: odom_sigma; 5: map_rendezvous; 6: track_sigma;
+# 7: vio_from_cam
+SCHEMA_VERSION = 7
 
 
 class StoreError(RuntimeError):
@@ -109,6 +110,7 @@ class MapStore:
                     ("odom_sigma", "BLOB"),  # 3 -> 4: and the error weak or lost tracking added
                     # 4 -> 5: the table map_rendezvous, created below with the others
                     ("track_sigma", "BLOB"),  # 5 -> 6: and how well the agent tracked
+                    ("vio_from_cam", "BLOB"),  # 6 -> 7: and the agent's own pose of it
                 )
                 with self._tx():
                     for col, kind in added:
@@ -240,13 +242,23 @@ class MapStore:
     def update_poses(
         self, map_id: int, keyframes: Iterable[Keyframe] = (), points: Iterable[MapPoint] = ()
     ) -> None:
-        """Write only the current ``world_from_cam`` of ``keyframes`` and ``xyz`` of ``points``
-        (rows already stored; unknown ones are ignored)."""
+        """Write only the current ``world_from_cam`` and ``vio_from_cam`` of ``keyframes`` and ``xyz`` of
+        ``points`` (rows already stored; unknown ones are ignored)."""
         map_id = int(map_id)
         with self._tx():
             self.conn.executemany(
-                "UPDATE map_keyframes SET world_from_cam = ? WHERE map_id = ? AND agent = ? AND id = ?",
-                [(pack_array(kf.world_from_cam), map_id, kf.agent_id, kf.id) for kf in keyframes],
+                "UPDATE map_keyframes SET world_from_cam = ?, vio_from_cam = ? "
+                "WHERE map_id = ? AND agent = ? AND id = ?",
+                [
+                    (
+                        pack_array(kf.world_from_cam),
+                        None if kf.vio_from_cam is None else pack_array(kf.vio_from_cam),
+                        map_id,
+                        kf.agent_id,
+                        kf.id,
+                    )
+                    for kf in keyframes
+                ],
             )
             self.conn.executemany(
                 "UPDATE map_points SET xyz = ? WHERE map_id = ? AND agent = ? AND id = ?",

@@ -47,7 +47,7 @@ def read_map(conn: sqlite3.Connection, map_id: int) -> Map:
         f"SELECT {_KF_COLS} FROM map_keyframes WHERE map_id = ? ORDER BY seq", (mid,)
     ).fetchall():
         (_, agent, kid, _, ts, pose, cam, kps, octs, descs, pids, pag, genu, gcov, up, ur, base, odom,
-         track, pa, pi) = row  # fmt: skip
+         track, vio, pa, pi) = row  # fmt: skip
         camera = cameras.get(cam)
         if camera is None:
             camera = cameras[cam] = PinholeCamera.from_dict(json.loads(cam))
@@ -68,6 +68,7 @@ def read_map(conn: sqlite3.Connection, map_id: int) -> Map:
             stereo_baseline=base,
             odom_sigma=None if odom is None else unpack_array(odom),
             track_sigma=None if track is None else unpack_array(track),
+            vio_from_cam=None if vio is None else unpack_array(vio),
         )
         if pag:
             kf.point_agents = {int(i): a for i, a in json.loads(pag).items()}

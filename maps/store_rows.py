@@ -56,6 +56,7 @@ def _kf_row(map_id: int, kf: Keyframe, seq: int) -> tuple[Any, ...]:
         kf.stereo_baseline,
         None if kf.odom_sigma is None else pack_array(kf.odom_sigma),
         None if kf.track_sigma is None else pack_array(kf.track_sigma),
+        None if kf.vio_from_cam is None else pack_array(kf.vio_from_cam),
         None if parent is None else parent[0],
         None if parent is None else parent[1],
     )

@@ -40,6 +40,7 @@ CREATE TABLE IF NOT EXISTS map_keyframes (
     stereo_baseline REAL,
     odom_sigma BLOB,
     track_sigma BLOB,
+    vio_from_cam BLOB,                    -- the agent's own pose of it (odometry frame), as last sent
     parent_agent TEXT,
     parent_id INTEGER,
     PRIMARY KEY (map_id, agent, id)
@@ -80,16 +81,17 @@ CREATE TABLE IF NOT EXISTS map_rendezvous (
 _KF_COLS = (
     "map_id, agent, id, seq, timestamp, world_from_cam, camera, keypoints, octaves, descriptors, "
     "point_ids, point_agents, gnss_enu, gnss_cov, up_cam, u_right, stereo_baseline, odom_sigma, "
-    "track_sigma, parent_agent, parent_id"
+    "track_sigma, vio_from_cam, parent_agent, parent_id"
 )
 _KF_UPSERT = (
-    f"INSERT INTO map_keyframes ({_KF_COLS}) VALUES ({', '.join('?' * 21)}) "
+    f"INSERT INTO map_keyframes ({_KF_COLS}) VALUES ({', '.join('?' * 22)}) "
     "ON CONFLICT (map_id, agent, id) DO UPDATE SET timestamp = excluded.timestamp, "
     "world_from_cam = excluded.world_from_cam, camera = excluded.camera, keypoints = excluded.keypoints, "
     "octaves = excluded.octaves, descriptors = excluded.descriptors, point_ids = excluded.point_ids, "
     "point_agents = excluded.point_agents, gnss_enu = excluded.gnss_enu, gnss_cov = excluded.gnss_cov, "
     "up_cam = excluded.up_cam, u_right = excluded.u_right, stereo_baseline = excluded.stereo_baseline, "
     "odom_sigma = excluded.odom_sigma, track_sigma = excluded.track_sigma, "
+    "vio_from_cam = excluded.vio_from_cam, "
     "parent_agent = excluded.parent_agent, parent_id = excluded.parent_id"
 )
 _PT_UPSERT = (

@@ -49,6 +49,7 @@ def keyframe_from_msg(
         stereo_baseline=stereo_baseline,
         odom_sigma=None if msg.odom_sigma is None else np.array(msg.odom_sigma, dtype=np.float64),
         track_sigma=None if msg.track_sigma is None else np.array(msg.track_sigma, dtype=np.float64),
+        vio_from_cam=np.array(msg.world_from_cam, dtype=np.float64),
     )
 
 

@@ -261,7 +261,7 @@ class Ingest:
                 continue
             kf = m.keyframes.get((am.folded, k)) if m is not None else None
             if kf is not None:  # None: removed by the back-end (culled); the update is moot
-                old = am.vio_poses.get(k)
+                old = am.vio_poses.get(k, kf.vio_from_cam)
                 if old is None:  # not seen since a restart: the agent's transform alone
                     kf.world_from_cam = g.transform_pose(T)
                 else:
@@ -275,6 +275,7 @@ class Ingest:
                     if msg.points_follow:
                         moves.append((kf, kf.world_from_cam @ np.linalg.inv(before)))
                 am.vio_poses[k] = T
+                kf.vio_from_cam = T
                 changed_kfs.append(kf)
         changed_points = []
         if moves and m is not None:

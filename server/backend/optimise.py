@@ -13,7 +13,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import Sim3
+from hivemap.maps.geometry import Sim3, relative_poses
 from hivemap.maps.odometry import Chains
 from hivemap.server.backend.options import OptimiseOptions
 from hivemap.server.optim import PoseGraphOptions, PoseGraphResult
@@ -82,6 +82,8 @@ class PoseGraphProblem:
     graph_sigmas: list[tuple[float, float, float]] | None = None
     move_slack_m: float = 0.0  # how much farther than the options' limit weak tracking lets a keyframe move
     new_edge_covs: list[F64 | None] = field(default_factory=list)  # per new edge, its covariance or None
+    # per graph edge, the relative pose it holds (i_from_j); None: the snapshot's (the map's shape)
+    graph_rel: list[Sim3] | None = None
 
 
 def pose_graph_problem(
@@ -92,6 +94,7 @@ def pose_graph_problem(
     fixed: list[int],
     o: OptimiseOptions,
     measured_only: bool = False,
+    metric: bool = True,
 ) -> PoseGraphProblem:
     """The pose graph of ``m``'s essential graph plus ``edges``, from ``snap``; ``pre``: a correction that
     the listed keyframes start from (a loop's query neighbourhood), ``fixed``: the held keyframes.
@@ -101,7 +104,8 @@ def pose_graph_problem(
     left out. Their relative poses are the map's current ones, not a measurement, so a bend the map had
     when the points were fused would be held forever and outvote the loops that could straighten it.
     Each agent without a held keyframe gets a loose prior on its first one (its gauge, should the robust
-    solve reject every edge to it)."""
+    solve reject every edge to it). With ``metric`` it also takes each agent's odometry from the agent
+    (:func:`odometry_chain`) instead of the map's essential graph."""
     index = {k: i for i, k in enumerate(snap.keys)}
     new_pairs = {(e.candidate, e.query) for e in edges} | {(e.query, e.candidate) for e in edges}
     graph_edges = [
@@ -129,6 +133,13 @@ def pose_graph_problem(
             if k in index and index[k] not in fixed:
                 initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
+    if measured_only and metric:
+        chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
+        graph_edges, rel, sigmas = odometry_chain(m, snap, chains, o)
+        slack = max((3.0 * float(chains.weak_total(a)[0]) for a in chains.order), default=0.0)
+        return PoseGraphProblem(
+            initial, graph_edges, new_edges, fixed, ups, kept, loose, sigmas, slack, covs, graph_rel=rel
+        )
     kfs = [m.keyframes[k] for k in snap.keys]
     tracked = o.pose_graph_tracked and any(kf.track_sigma is not None for kf in kfs)
     if not tracked and not any(kf.odom_sigma is not None for kf in kfs):
@@ -138,6 +149,52 @@ def pose_graph_problem(
     sigmas = edge_sigmas(m, chains, snap.keys, graph_edges, o)
     slack = max((3.0 * float(chains.weak_total(a)[0]) for a in {k[0] for k in snap.keys}), default=0.0)
     return PoseGraphProblem(initial, graph_edges, new_edges, fixed, ups, kept, loose, sigmas, slack, covs)
+
+
+def odometry_chain(
+    m: Any, snap: Snapshot, chains: Chains, o: OptimiseOptions
+) -> tuple[list[tuple[int, int]], list[Sim3], list[tuple[float, float, float]]]:
+    """Each agent's consecutive keyframes in time (graph indices), the relative pose its own odometry
+    measured between them (``Keyframe.vio_from_cam``, the pose it last sent; the map's where either has
+    none, as in a store written before it was kept) and :func:`chain_sigmas`.
+
+    The agent's odometry is a measurement; the map's shape is an estimate. Edges holding the map's shape
+    carry every bend an earlier solve put in it into the next, and the covisibility graph's dozens of
+    edges per keyframe make an agent as stiff as its scene is textured, not as sure as its tracking."""
+    index = {k: i for i, k in enumerate(snap.keys)}
+    a_keys = [k for ks in chains.order.values() for k in ks[:-1]]
+    b_keys = [k for ks in chains.order.values() for k in ks[1:]]
+    if not a_keys:
+        return [], [], []
+    ia = np.array([index[k] for k in a_keys])
+    ib = np.array([index[k] for k in b_keys])
+    va = [m.keyframes[k].vio_from_cam for k in a_keys]
+    vb = [m.keyframes[k].vio_from_cam for k in b_keys]
+    own = np.array([x is not None and y is not None for x, y in zip(va, vb, strict=True)])
+    A, B = snap.poses[ia].copy(), snap.poses[ib].copy()
+    for n in np.flatnonzero(own):
+        A[n], B[n] = va[n], vb[n]
+    rel = relative_poses(A, B)
+    d, _ = chains.between_many(a_keys, b_keys)
+    sig = chain_sigmas(d, o)
+    edges = [(int(i), int(j)) for i, j in zip(ia, ib, strict=True)]
+    return edges, rel, [(float(r), float(t), float(y)) for r, t, y in sig]
+
+
+def chain_sigmas(d: F64, o: OptimiseOptions) -> F64:
+    """(n, 3): (sigma_rot rad, sigma_trans m, extra yaw sigma rad) of odometry edges between consecutive
+    keyframes whose ends are ``d`` (:meth:`Chains.between_many`) apart: the odometry's floor and its random
+    walk over the path travelled in quadrature (with ``pose_graph_tracked`` at least the tracking's own
+    error), plus, in quadrature, what weak or lost tracking added."""
+    path, _, weak_m, weak_deg, track_m, track_deg, untracked = d.T
+    base_t = np.hypot(o.odometry_sigma_m, o.odometry_walk_m * np.sqrt(path))
+    base_r = np.radians(np.hypot(o.odometry_sigma_deg, o.odometry_walk_deg * np.sqrt(path)))
+    if o.pose_graph_tracked:
+        use = (untracked == 0) & ((track_m > 0) | (track_deg > 0))
+        base_t[use] = np.maximum(base_t[use], o.pose_graph_track_scale * track_m[use])
+        base_r[use] = np.maximum(base_r[use], o.pose_graph_track_scale * np.radians(track_deg[use]))
+    weak_r = np.radians(weak_deg)
+    return np.stack([np.hypot(base_r, weak_r), np.hypot(base_t, weak_m), weak_r], axis=1)
 
 
 def across_weak_tracking(
@@ -243,7 +300,7 @@ def solve_pose_graph(p: PoseGraphProblem, poses: F64, metric: bool, o: OptimiseO
         sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
         sigma_yaw=o.pose_graph_sigma_yaw if o.pose_graph_sigma_yaw > 0 else None, ups=p.ups,
         options=PoseGraphOptions(gnc=o.gnc, gnc_inlier_probability=o.gnc_inlier_probability), loose=p.loose,
-        graph_sigmas=p.graph_sigmas, covariances=p.new_edge_covs,
+        graph_sigmas=p.graph_sigmas, covariances=p.new_edge_covs, graph_rel=p.graph_rel,
     )  # fmt: skip
     n = len(p.graph_edges)
     return PoseGraphResult(res.poses, res.inlier[n:], res.chi2[n:], (time.process_time() - t0) * 1e3)
@@ -264,6 +321,7 @@ def pose_graph(
     loose: Sequence[int] = (),
     graph_sigmas: Sequence[tuple[float, float, float]] | None = None,
     covariances: Sequence[F64 | None] = (),
+    graph_rel: Sequence[Sim3] | None = None,
 ) -> PoseGraphResult:
     """Initial values ``initial``; the graph's edges keep the relative poses of ``poses`` (uncorrected),
     with ``sigmas`` (rad, m); ``new_edges`` (i, j, i_from_j, sigma_rot, sigma_trans) are robust (Huber,
@@ -272,6 +330,7 @@ def pose_graph(
     is none): the graph's edges hold the rotation about the far keyframe's up with this sigma instead.
     ``graph_sigmas``: per graph edge (sigma_rot, sigma_trans, extra yaw sigma), instead of ``sigmas``.
     ``covariances``: per new edge, a (6, 6) covariance instead of its two sigmas, or None.
+    ``graph_rel``: per graph edge, the relative pose it holds instead of that of ``poses``.
 
     ``metric``: the map has metric scale (stereo agents), so the graph is SE(3) (gtsam Pose3). A Sim(3)
     graph let scale creep in at each of the dozens of loop closures of a factory run until poses
@@ -281,7 +340,7 @@ def pose_graph(
 
     edges = pose_graph_edges(
         poses, graph_edges, new_edges, sigmas=sigmas, sigma_yaw=sigma_yaw, ups=ups, graph_sigmas=graph_sigmas,
-        covariances=covariances,
+        covariances=covariances, graph_rel=graph_rel,
     )  # fmt: skip
     opts = options or PoseGraphOptions()
     if metric:
@@ -299,10 +358,11 @@ def pose_graph_edges(
     ups: F64 | None = None,
     graph_sigmas: Sequence[tuple[float, float, float]] | None = None,
     covariances: Sequence[F64 | None] = (),
+    graph_rel: Sequence[Sim3] | None = None,
 ) -> list[Any]:
     """The :class:`~hivemap.server.optim.PoseGraphEdge` list of :func:`pose_graph` (its arguments): the
-    graph's edges first, holding the relative poses of ``poses``, then the robust new edges."""
-    from hivemap.maps.geometry import relative_poses
+    graph's edges first, holding ``graph_rel`` or else the relative poses of ``poses``, then the robust
+    new edges."""
     from hivemap.server.optim import PoseGraphEdge
 
     def up(j: int) -> tuple[float, float, float] | None:
@@ -311,9 +371,12 @@ def pose_graph_edges(
         return (float(ups[j][0]), float(ups[j][1]), float(ups[j][2]))
 
     per_edge = graph_sigmas if graph_sigmas is not None else [(sigmas[0], sigmas[1], 0.0)] * len(graph_edges)
-    ij = np.asarray(graph_edges, dtype=np.int64).reshape(-1, 2)
-    stack = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-    rel = relative_poses(stack[ij[:, 0]], stack[ij[:, 1]])
+    if graph_rel is not None:
+        rel = list(graph_rel)
+    else:
+        ij = np.asarray(graph_edges, dtype=np.int64).reshape(-1, 2)
+        stack = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        rel = relative_poses(stack[ij[:, 0]], stack[ij[:, 1]])
     edges = [
         PoseGraphEdge(
             i,
@@ -338,7 +401,7 @@ def problem_edges(p: PoseGraphProblem, poses: F64, o: OptimiseOptions) -> list[A
     return pose_graph_edges(
         poses, p.graph_edges, p.new_edges, sigmas=(o.pose_graph_sigma_rot, o.pose_graph_sigma_trans),
         sigma_yaw=o.pose_graph_sigma_yaw if o.pose_graph_sigma_yaw > 0 else None, ups=p.ups,
-        graph_sigmas=p.graph_sigmas, covariances=p.new_edge_covs,
+        graph_sigmas=p.graph_sigmas, covariances=p.new_edge_covs, graph_rel=p.graph_rel,
     )  # fmt: skip
 
 

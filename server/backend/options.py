@@ -118,6 +118,13 @@ class OptimiseOptions:
     # in quadrature, the error the front-end reported (``Keyframe.odom_sigma``)
     pose_graph_drift_trans: float = 0.02
     pose_graph_drift_rot: float = 0.02
+    # With ``gnc``, each agent's odometry edge between consecutive keyframes (its own relative pose) is as
+    # sure as a floor plus, in quadrature, a random walk over the path travelled (sigma after 1 m of path,
+    # growing with its square root, so a stretch is as sure whether it took few keyframes or many).
+    odometry_sigma_m: float = 0.005
+    odometry_sigma_deg: float = 0.03
+    odometry_walk_m: float = 0.01
+    odometry_walk_deg: float = 0.02
     # With ``pose_graph_tracked``, an agent's odometry edges are as sure as its tracking says
     # (``Keyframe.track_sigma``, summed along its keyframes) times the scale (the front-end's covariance is
     # its observations' alone, which the map points' own error adds to), at least the floors. Off: the

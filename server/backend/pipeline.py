@@ -350,8 +350,9 @@ class Pipeline(GnssSteps):
         # robust: every kept loop and merge edge of the map is judged again, and only they join its agents
         judged = self.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
         problem = optimise.pose_graph_problem(
-            m, snap, [ev.edge for ev in judged] if o.gnc else edges, pre, fixed, o, o.gnc
-        )
+            m, snap, [ev.edge for ev in judged] if o.gnc else edges, pre, fixed, o, o.gnc,
+            metric=self.options.fix_scale,
+        )  # fmt: skip
         t0 = time.perf_counter()
         res = await self._solve_pose_graph(problem, snap.poses)
         pg_ms = (time.perf_counter() - t0) * 1e3

@@ -181,7 +181,7 @@ class Uncertainty:
         fixed = optimise.anchor(m, snap.keys, bk._agent_kind, 1)
         judged = bk.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
         kept = [ev.edge for ev in judged if not ev.rejected]  # the edges the last pose graph kept
-        problem = optimise.pose_graph_problem(m, snap, kept, None, fixed, o, o.gnc)
+        problem = optimise.pose_graph_problem(m, snap, kept, None, fixed, o, o.gnc, bk.options.fix_scale)
         two = latest_two(m)
         latest = {a: k for a, (k, _) in two.items()}
         kfs = m.keyframes

@@ -25,7 +25,8 @@ def _map() -> tuple[SimpleNamespace, Snapshot, list[NewEdge], dict[tuple[str, in
     now = {key: T.copy() for key, T in truth.items()}
     for k in range(N):
         now["b", k][:3, 3] += OFF  # the map holds b off to the side
-    kfs = {key: SimpleNamespace(world_from_cam=T, odom_sigma=None, track_sigma=None, timestamp=0.5 * key[1])
+    kfs = {key: SimpleNamespace(world_from_cam=T, odom_sigma=None, track_sigma=None, vio_from_cam=None,
+                                timestamp=0.5 * key[1])
            for key, T in now.items()}  # fmt: skip
     within = [((a, k), (a, k + 1)) for a in ("a", "b") for k in range(N - 1)]
     across = [(("a", k), ("b", k)) for k in FUSED] + [(("a", k), ("b", k + 1)) for k in FUSED]
