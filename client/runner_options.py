@@ -18,7 +18,9 @@ class RunnerOptions:
     seed: int = 0  # for random GNSS modes
     max_frames: int | None = None  # stop after this many frames (tests, quick looks)
     gnss_max_dt_s: float = 0.03  # a fix is attached to the frame closest in time within this
-    colocation_sigma: tuple[float, float] = (0.01, 0.05)  # rad, m: prior of a server-corrected pose
+    # rad, m: prior of a server-corrected pose. The server's estimate holds this agent's own odometry and
+    # the team's loops, so its shape is the better one; looser priors kept a third to a half of its gain.
+    colocation_sigma: tuple[float, float] = (0.003, 0.02)
     colocation_gate_m: float = 1.0  # corrected poses farther than this from the agent's own are refused
     flush_timeout_s: float = 60.0  # streaming: wait this long for the server's acks at the end
     # streaming, after the last frame: the server's loop closures can come long after the last keyframe
