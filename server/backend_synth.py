@@ -7,6 +7,8 @@ observation, clutter keypoints). Each agent's map is the world under its own ``l
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from hivemap.maps.geometry import Sim3, se3, so3_exp
@@ -114,8 +116,10 @@ def loop_passes(
     seed: int = 5, local_from_world: Sim3 = UGV_FROM_WORLD
 ) -> tuple[list[Message], list[Message], np.ndarray, np.ndarray]:
     """One agent passes a place twice, the second pass with its own keyframe and point ids and under a
-    rigid drift (2.3 deg + ~0.5 m, as odometry accumulates): an intra-map loop closure. Returns the two
-    passes' messages and the second pass's true and sent poses."""
+    rigid drift (2.3 deg + ~0.5 m): an intra-map loop closure. No keyframe lies between the passes, 12 m
+    apart, so the agent did not track that stretch: the second pass's first keyframe says so
+    (``odom_sigma``), as a front-end does after a tracking loss, and the server's pose graph lets the loop
+    take the drift there. Returns the two passes' messages and the second pass's true and sent poses."""
     rng = np.random.default_rng(seed)
     pts, desc = make_world(rng, 2500, (-20, 30))
     drift = Sim3(so3_exp(np.array([0.0, 0.04, 0.0])), np.array([0.4, -0.2, 0.3]), 1.0)
@@ -123,4 +127,7 @@ def loop_passes(
     second, true2, sent2 = agent_stream(
         rng, pts, desc, np.linspace(-4, 10, 10), local_from_world, id0=1000, point_id0=100000, drift=drift
     )
+    untracked = np.array([0.5, 3.0])  # m, deg: at least the drift
+    second = [replace(msg, odom_sigma=untracked) if isinstance(msg, Keyframe) and msg.kf_id == 1000 else msg
+              for msg in second]  # fmt: skip
     return first, second, true2, sent2

@@ -96,7 +96,7 @@ def pose_graph_problem(
     measured_only: bool = False,
     metric: bool = True,
 ) -> PoseGraphProblem:
-    """The pose graph of ``m``'s essential graph plus ``edges``, from ``snap``; ``pre``: a correction that
+    """The pose graph of ``m``'s odometry plus ``edges``, from ``snap``; ``pre``: a correction that
     the listed keyframes start from (a loop's query neighbourhood), ``fixed``: the held keyframes.
 
     ``measured_only``: ``edges`` are all the map's measured loop, merge and rendezvous edges, and only
@@ -104,15 +104,16 @@ def pose_graph_problem(
     left out. Their relative poses are the map's current ones, not a measurement, so a bend the map had
     when the points were fused would be held forever and outvote the loops that could straighten it.
     Each agent without a held keyframe gets a loose prior on its first one (its gauge, should the robust
-    solve reject every edge to it). With ``metric`` it also takes each agent's odometry from the agent
-    (:func:`odometry_chain`) instead of the map's essential graph."""
+    solve reject every edge to it). With ``metric`` too, each agent's odometry is its own
+    (:func:`odometry_chain`); else it is the map's essential graph, holding the map's relative poses."""
     index = {k: i for i, k in enumerate(snap.keys)}
+    own_odometry = measured_only and metric
     new_pairs = {(e.candidate, e.query) for e in edges} | {(e.query, e.candidate) for e in edges}
-    graph_edges = [
+    graph_edges = [] if own_odometry else [
         (index[a], index[b])
         for a, b in m.essential_edges()
         if a in index and b in index and (a, b) not in new_pairs and not (measured_only and a[0] != b[0])
-    ]
+    ]  # fmt: skip
     kept = [n for n, e in enumerate(edges) if e.candidate in index and e.query in index]
     loose: list[int] = []
     if measured_only:  # each agent's first keyframe, unless the agent is held
@@ -133,7 +134,7 @@ def pose_graph_problem(
             if k in index and index[k] not in fixed:
                 initial[index[k]] = pre[0].transform_pose(snap.poses[index[k]])
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
-    if measured_only and metric:
+    if own_odometry:
         chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
         graph_edges, rel, sigmas = odometry_chain(m, snap, chains, o)
         slack = max((3.0 * float(chains.weak_total(a)[0]) for a in chains.order), default=0.0)
