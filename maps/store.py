@@ -240,26 +240,37 @@ class MapStore:
             self.conn.executemany(_PT_UPSERT, [_pt_row(map_id, p, self._next_seq("map_points")) for p in pts])
 
     def update_poses(
-        self, map_id: int, keyframes: Iterable[Keyframe] = (), points: Iterable[MapPoint] = ()
+        self,
+        map_id: int,
+        keyframes: Iterable[Keyframe] = (),
+        points: Iterable[MapPoint] = (),
+        vio: bool = False,
     ) -> None:
-        """Write only the current ``world_from_cam`` and ``vio_from_cam`` of ``keyframes`` and ``xyz`` of
-        ``points`` (rows already stored; unknown ones are ignored)."""
+        """Write only the current ``world_from_cam`` of ``keyframes`` (with ``vio`` their ``vio_from_cam``
+        too: an agent's pose update changes it, a back-end correction does not) and ``xyz`` of ``points``
+        (rows already stored; unknown ones are ignored)."""
         map_id = int(map_id)
         with self._tx():
-            self.conn.executemany(
-                "UPDATE map_keyframes SET world_from_cam = ?, vio_from_cam = ? "
-                "WHERE map_id = ? AND agent = ? AND id = ?",
-                [
-                    (
-                        pack_array(kf.world_from_cam),
-                        None if kf.vio_from_cam is None else pack_array(kf.vio_from_cam),
-                        map_id,
-                        kf.agent_id,
-                        kf.id,
-                    )
-                    for kf in keyframes
-                ],
-            )
+            if vio:
+                self.conn.executemany(
+                    "UPDATE map_keyframes SET world_from_cam = ?, vio_from_cam = ? "
+                    "WHERE map_id = ? AND agent = ? AND id = ?",
+                    [
+                        (
+                            pack_array(kf.world_from_cam),
+                            None if kf.vio_from_cam is None else pack_array(kf.vio_from_cam),
+                            map_id,
+                            kf.agent_id,
+                            kf.id,
+                        )
+                        for kf in keyframes
+                    ],
+                )
+            else:
+                self.conn.executemany(
+                    "UPDATE map_keyframes SET world_from_cam = ? WHERE map_id = ? AND agent = ? AND id = ?",
+                    [(pack_array(kf.world_from_cam), map_id, kf.agent_id, kf.id) for kf in keyframes],
+                )
             self.conn.executemany(
                 "UPDATE map_points SET xyz = ? WHERE map_id = ? AND agent = ? AND id = ?",
                 [

@@ -286,7 +286,7 @@ class Ingest:
 
         def op(store: ServerStore) -> None:
             if changed_kfs or changed_points:
-                store.maps.update_poses(map_id, changed_kfs, changed_points)
+                store.maps.update_poses(map_id, changed_kfs, changed_points, vio=True)
             for pmsg in changed_pending:
                 store.put_pending(folded, pmsg)
 

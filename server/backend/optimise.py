@@ -136,7 +136,7 @@ def pose_graph_problem(
     ups = up_rows(m, snap.keys) if o.pose_graph_sigma_yaw > 0 else None
     if own_odometry:
         chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
-        graph_edges, rel, sigmas = odometry_chain(m, snap, chains, o)
+        graph_edges, rel, sigmas = odometry_chain(m, index, chains, snap.poses, o)
         slack = max((3.0 * float(chains.weak_total(a)[0]) for a in chains.order), default=0.0)
         return PoseGraphProblem(
             initial, graph_edges, new_edges, fixed, ups, kept, loose, sigmas, slack, covs, graph_rel=rel
@@ -153,16 +153,15 @@ def pose_graph_problem(
 
 
 def odometry_chain(
-    m: Any, snap: Snapshot, chains: Chains, o: OptimiseOptions
+    m: Any, index: dict[KfKey, int], chains: Chains, poses: F64, o: OptimiseOptions
 ) -> tuple[list[tuple[int, int]], list[Sim3], list[tuple[float, float, float]]]:
-    """Each agent's consecutive keyframes in time (graph indices), the relative pose its own odometry
-    measured between them (``Keyframe.vio_from_cam``, the pose it last sent; the map's where either has
-    none, as in a store written before it was kept) and :func:`chain_sigmas`.
+    """Each agent's consecutive keyframes in time (``index``: graph index per key), the relative pose its
+    own odometry measured between them (``Keyframe.vio_from_cam``, the pose it last sent; the map's where
+    either has none, as in a store written before it was kept) and :func:`chain_sigmas`.
 
     The agent's odometry is a measurement; the map's shape is an estimate. Edges holding the map's shape
     carry every bend an earlier solve put in it into the next, and the covisibility graph's dozens of
     edges per keyframe make an agent as stiff as its scene is textured, not as sure as its tracking."""
-    index = {k: i for i, k in enumerate(snap.keys)}
     a_keys = [k for ks in chains.order.values() for k in ks[:-1]]
     b_keys = [k for ks in chains.order.values() for k in ks[1:]]
     if not a_keys:
@@ -172,7 +171,7 @@ def odometry_chain(
     va = [m.keyframes[k].vio_from_cam for k in a_keys]
     vb = [m.keyframes[k].vio_from_cam for k in b_keys]
     own = np.array([x is not None and y is not None for x, y in zip(va, vb, strict=True)])
-    A, B = snap.poses[ia].copy(), snap.poses[ib].copy()
+    A, B = poses[ia].copy(), poses[ib].copy()
     for n in np.flatnonzero(own):
         A[n], B[n] = va[n], vb[n]
     rel = relative_poses(A, B)
