@@ -137,6 +137,7 @@ class Agent:
         self._stream: AgentStream | None = None
         self._first_session = 0  # the mission's session this process's front-end session 0 is
         self._last_correction = time.monotonic()
+        self._corrected: dict[int, str] = {}  # per mission session its latest correction's frame
         self._corrections_log = CorrectionSummary(log)  # DEBUG each, INFO every 10 s
         self.link_error: BaseException | None = None  # why the link ended (refused, unreachable), if it did
         self.link_stats: Any = None  # hivemap.client.link.LinkStats of the last connection
@@ -335,10 +336,35 @@ class Agent:
                 c.global_from_local,
                 enu=c.global_frame == "enu",
             )
+            self._corrected[int(c.session)] = str(c.global_frame)
             self._corrections_log.add(int(c.map_id), str(c.global_frame), n)
             out.append(CorrectionInfo(int(c.map_id), str(c.global_frame), int(c.session), n,
                                       np.asarray(c.global_from_local, dtype=np.float64)))  # fmt: skip
         return out
+
+    def corrected_sessions(self) -> dict[int, str]:
+        """Each mission session of this process that the server corrected, with the frame ("map" or
+        "enu") of its latest correction."""
+        with self._lock:
+            return dict(self._corrected)
+
+    def snapshot_frame(self, session: int) -> str:
+        """The frame :meth:`apply_snapshot` wants ``session``'s poses in: "global" when its corrections
+        are absolute ENU poses for this agent (it fused a GNSS fix), else "local" (the frame it sent
+        them in)."""
+        with self._lock:
+            return "global" if self._corrected.get(session) == "enu" and self.core.gnss_used > 0 else "local"
+
+    def apply_snapshot(self, session: int, kf_ids: NDArray[np.int64], world_from_cam: F64) -> int:
+        """The server's estimate of every keyframe of ``session``, in :meth:`snapshot_frame`, as one
+        correction's co-location priors (they replace the session's earlier ones); the agent's frame
+        transform is left as it is. Returns the keyframes fused."""
+        with self._lock:
+            frame = self._corrected.get(session)
+            if frame is None or session < self._first_session:
+                return 0
+            return self.core.apply_correction(session - self._first_session, kf_ids, world_from_cam,
+                                              np.eye(4), enu=frame == "enu")  # fmt: skip
 
     # -- streaming ------------------------------------------------------------------------------------
     def connect(

@@ -136,7 +136,7 @@ class AgentStream:
         return self.task.exception()
 
     def close(self, timeout: float, stop: threading.Event | None) -> int:
-        from hivemap.client.health import wait_for_server
+        from hivemap.client.health import adopt_final_estimate, wait_for_server
 
         def stopping() -> bool:
             return stop is not None and stop.is_set()
@@ -149,6 +149,8 @@ class AgentStream:
             agent = self.agent
             wait_for_server(self.server, agent.options.runner, lambda: agent._last_correction,
                             agent.apply_corrections, stop)  # fmt: skip
+            if not stopping():
+                adopt_final_estimate(self.server, agent)
 
         async def end(finish_mission: bool) -> None:
             # all acknowledged: the next start on this outbox is a new mission (before close shuts it)

@@ -1,8 +1,11 @@
-"""After the last frame: wait for the corrections the server still owes, watching its ``/health``.
+"""After the last frame: wait for the corrections the server still owes, watching its ``/health``, then
+take the server's final estimate of every keyframe.
 
 The server's loop closures can come long after an agent's last keyframe (a server behind its team
 looks them up minutes later), so a finishing agent waits until the server's back-end has caught up with
-what the team had sent when the agent finished (see ``RunnerOptions.corrections_*``).
+what the team had sent when the agent finished (see ``RunnerOptions.corrections_*``). A correction
+carries only every ``stride``-th keyframe and the moved ones (it bounds the downlink), so at the end the
+agent reads all of them once (``/agents/{id}/trajectory``) and fuses them as its last correction.
 """
 
 from __future__ import annotations
@@ -14,14 +17,25 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 if TYPE_CHECKING:
+    from hivemap.client.agent import Agent
     from hivemap.client.runner import RunnerOptions
+
+F64 = NDArray[np.float64]
 
 log = logging.getLogger(__name__)
 
 
 def health_url(server: str) -> str:
     """The server's ``/health`` address from its WebSocket address (``ws://HOST:PORT/ws``)."""
+    return rest_url(server, "/health")
+
+
+def rest_url(server: str, route: str, query: str = "") -> str:
+    """The address of the server's REST ``route`` (e.g. ``/health``) from its WebSocket address."""
     from urllib.parse import urlsplit, urlunsplit
 
     u = urlsplit(server)
@@ -29,7 +43,51 @@ def health_url(server: str) -> str:
     if scheme is None or not u.netloc:
         raise ValueError(f"server address {server!r} is not ws://HOST:PORT/ws")
     path = u.path[: -len("/ws")] if u.path.endswith("/ws") else u.path.rstrip("/")
-    return urlunsplit((scheme, u.netloc, path + "/health", "", ""))
+    return urlunsplit((scheme, u.netloc, path + route, query, ""))
+
+
+def fetch_trajectory(server: str, agent_id: str, session: int, frame: str) -> tuple[NDArray[np.int64], F64]:
+    """The server's current pose of every keyframe of the agent's ``session`` (``frame``: "local" or
+    "global"): keyframe ids and world_from_cam (K, 4, 4). Raises ``OSError`` when the server does not
+    answer, ``ValueError`` when the answer is not a trajectory."""
+    import urllib.request
+    from urllib.parse import quote, urlencode
+
+    from hivemap.maps.geometry import rotmat_from_quat_wxyz
+
+    url = rest_url(server, f"/agents/{quote(agent_id, safe='')}/trajectory",
+                   urlencode({"frame": frame, "format": "json", "session": session}))  # fmt: skip
+    with urllib.request.urlopen(url, timeout=30.0) as r:  # noqa: S310 (http(s) only, see rest_url)
+        body = json.loads(r.read())
+    try:
+        poses = body["poses"]
+        ids = np.array([int(p["kf_id"]) for p in poses], dtype=np.int64)
+        T = np.tile(np.eye(4), (len(poses), 1, 1))
+        for n, p in enumerate(poses):
+            T[n, :3, :3] = rotmat_from_quat_wxyz(np.asarray(p["quat_wxyz"], dtype=np.float64))
+            T[n, :3, 3] = np.asarray(p["position"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{url}: not a trajectory ({exc})") from exc
+    return ids, T
+
+
+def adopt_final_estimate(server: str, agent: Agent) -> int:
+    """Fuse the server's pose of every keyframe of each session it corrected as that session's last
+    correction (:meth:`Agent.apply_snapshot`); returns the keyframes fused. A server that does not answer
+    leaves the agent with its last corrections, and says so."""
+    total = 0
+    for session in sorted(agent.corrected_sessions()):
+        frame = agent.snapshot_frame(session)
+        try:
+            ids, poses = fetch_trajectory(server, agent.agent_id, session, frame)
+        except (OSError, ValueError) as exc:
+            log.warning("server's final estimate of session %d not read (%s): the last corrections stand",
+                        session, exc)  # fmt: skip
+            continue
+        n = agent.apply_snapshot(session, ids, poses)
+        log.info("server's final estimate of session %d: %d of %d keyframes fused", session, n, len(ids))
+        total += n
+    return total
 
 
 def backend_state(url: str) -> dict[str, Any] | None:

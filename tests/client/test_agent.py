@@ -232,3 +232,61 @@ def test_keyframes_the_odometry_moved_later_are_sent_again(tiny_agent: Path, tmp
     for k, T in last.items():
         final = agent.core.stream_from_vio(0, k) @ vio[k]
         assert np.linalg.norm(final[:3, 3] - T[:3, 3]) < 0.002 + 1e-9, k
+
+
+def _shape_error(a: np.ndarray, b: np.ndarray) -> float:
+    """RMS distance (m) between two sets of positions after the rigid motion that best aligns them."""
+    ca, cb = a - a.mean(0), b - b.mean(0)
+    U, _, Vt = np.linalg.svd(ca.T @ cb)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    return float(np.sqrt(np.mean(np.sum((ca @ (Vt.T @ D @ U.T).T - cb) ** 2, axis=1))))
+
+
+def test_a_finished_agent_takes_the_servers_estimate_of_all(tiny_agent: Path, tmp_path: Path) -> None:
+    """A correction carries only some keyframes (every stride-th and the moved ones), and an agent used
+    to end with whatever priors its last one left. Here a stale correction holds the first half of the
+    keyframes 0.5 m off the rest, bending the agent's trajectory; at the end the agent reads the
+    server's estimate of all its keyframes and fuses it in place of those priors: every keyframe gets
+    one, and the agent's keyframes take the server's shape again (within 2 mm after a rigid alignment;
+    the stale correction had bent them by over 1 cm)."""
+    from srv_helpers import TOKENS, ServerProcess, write_config
+
+    from hivemap.client.health import fetch_trajectory
+
+    server = ServerProcess(tmp_path / "data", write_config(tmp_path / "server.toml")).start()
+    try:
+        agent = Agent.from_calibration([tiny_agent], agent_id="uav1")
+        agent.connect(server.ws_url, TOKENS["uav1"], tmp_path / "agent")
+        events: list = []
+        on_event = agent.core.on_event
+        assert on_event is not None
+
+        def both(ev: object) -> None:
+            events.append(ev)
+            on_event(ev)
+
+        agent.core.on_event = both
+        _feed(agent, load_dataset(tiny_agent))
+        kfs = [e for e in events if hasattr(e, "keypoints")]
+        assert len(kfs) > 3
+        session = agent.mission_session
+        assert session is not None
+        off = np.eye(4)
+        off[:3, 3] = [0.5, 0.0, 0.0]
+        half = len(kfs) // 2
+        held_off = np.array([(off if n < half else np.eye(4)) @ e.world_from_cam for n, e in enumerate(kfs)])
+        ids = np.array([e.kf_id for e in kfs], np.int64)
+        stale = Correction(0, np.eye(4), ids, held_off, session=session)
+        agent.submit_correction(stale)
+        agent.apply_corrections()
+        assert agent.core.corrections_applied == len(kfs)
+        _, bent = agent.core.stage.keyframe_poses()
+        assert agent.close(timeout=30) == 0
+        all_ids, held = fetch_trajectory(server.ws_url, "uav1", session, "local")
+        assert agent.core.corrections_applied == len(kfs) + len(all_ids) and len(all_ids) >= len(kfs)
+        _, final = agent.core.stage.keyframe_poses()
+        n = len(bent)
+        assert _shape_error(bent[:, :3, 3], held[:n, :3, 3]) > 0.01
+        assert _shape_error(final[:n, :3, 3], held[:n, :3, 3]) < 0.002
+    finally:
+        server.stop()
