@@ -61,9 +61,6 @@ class AgentMap:
     arrived_kfs: set[int] = field(default_factory=set)
     pending: dict[int, PendingKeyframe] = field(default_factory=dict)
     waiting: dict[int, set[int]] = field(default_factory=dict)
-    # the last VIO pose received per keyframe (memory only): a pose update moves the keyframe by the
-    # agent's refinement and keeps the back-end's own correction of it (loop, GNSS bend and tilt)
-    vio_poses: dict[int, NDArray[np.float64]] = field(default_factory=dict)
     # the first keyframe's guess of this session's VIO frame in the previous session's (kf id,
     # prev_from_this 4x4, sigmas [m, deg]) until the back-end has used it (memory only)
     session_guess: tuple[int, NDArray[np.float64], NDArray[np.float64]] | None = None

@@ -175,7 +175,6 @@ class Ingest:
         kf = keyframe_from_msg(am.folded, msg, am.camera, am.global_from_vio, baseline)
         m.add_keyframe(kf)
         am.arrived_kfs.add(msg.kf_id)
-        am.vio_poses[msg.kf_id] = np.array(msg.world_from_cam, dtype=np.float64)
         if msg.prev_session_from_world is not None and msg.prev_session_sigma is not None:
             guess = np.array(msg.prev_session_from_world, dtype=np.float64)
             am.session_guess = (int(msg.kf_id), guess, np.array(msg.prev_session_sigma, dtype=np.float64))
@@ -261,8 +260,8 @@ class Ingest:
                 continue
             kf = m.keyframes.get((am.folded, k)) if m is not None else None
             if kf is not None:  # None: removed by the back-end (culled); the update is moot
-                old = am.vio_poses.get(k, kf.vio_from_cam)
-                if old is None:  # not seen since a restart: the agent's transform alone
+                old = kf.vio_from_cam
+                if old is None:  # a keyframe of a store from before it was kept: the agent's transform alone
                     kf.world_from_cam = g.transform_pose(T)
                 else:
                     # the agent's refinement, in the keyframe's frame (scaled like the agent's map), on
@@ -274,7 +273,6 @@ class Ingest:
                     kf.world_from_cam = before @ delta
                     if msg.points_follow:
                         moves.append((kf, kf.world_from_cam @ np.linalg.inv(before)))
-                am.vio_poses[k] = T
                 kf.vio_from_cam = T
                 changed_kfs.append(kf)
         changed_points = []
@@ -331,7 +329,8 @@ def _place_listed(m: Any, am: Any, point_ids: Any, sent: F64) -> list[Any]:
         if mp is None:
             continue
         obs = next(iter(mp.observations), None)
-        if obs is not None and obs[0] == am.folded and obs[1] in am.vio_poses and obs in m.keyframes:
+        own = obs is not None and obs[0] == am.folded and obs in m.keyframes
+        if own and m.keyframes[obs].vio_from_cam is not None:
             by_observer.setdefault(obs, []).append(len(found))
         else:
             plain.append(len(found))
@@ -341,7 +340,7 @@ def _place_listed(m: Any, am: Any, point_ids: Any, sent: F64) -> list[Any]:
     if plain:
         xyz[plain] = g.apply(sent[rows[plain]])
     for obs, at in by_observer.items():
-        V, W = am.vio_poses[obs[1]], m.keyframes[obs].world_from_cam
+        V, W = m.keyframes[obs].vio_from_cam, m.keyframes[obs].world_from_cam
         in_cam = (sent[rows[at]] - V[:3, 3]) @ V[:3, :3] * g.s  # V^-1 applied, scaled like the map
         xyz[at] = in_cam @ W[:3, :3].T + W[:3, 3]
     for (_, mp), x in zip(found, xyz, strict=True):

@@ -89,9 +89,9 @@ def plan(
     last = max(own, key=lambda k: (mp.keyframes[k].timestamp, k[1]))
     Mp = np.asarray(mp.keyframes[last].world_from_cam, dtype=np.float64)
     Mn = np.asarray(mn.keyframes[first].world_from_cam, dtype=np.float64)
-    Vp = prev.vio_poses.get(last[1])
-    Vn = new.vio_poses.get(first[1])
-    # without the VIO poses (a restart): the sessions' transforms alone
+    Vp = mp.keyframes[last].vio_from_cam
+    Vn = mn.keyframes[first].vio_from_cam
+    # without the VIO poses (a store from before they were kept): the sessions' transforms alone
     map_from_prev = prev.global_from_vio if Vp is None else frame_at(Mp, Vp, prev.global_from_vio.s)
     map_from_new = new.global_from_vio if Vn is None else frame_at(Mn, Vn, new.global_from_vio.s)
     mp_from_mn = (

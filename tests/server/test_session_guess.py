@@ -188,13 +188,13 @@ def test_guess_goes_through_the_frame_the_previous_session_has_merged_into() -> 
     guess = se3(so3_exp(np.array([0.0, 0.0, 0.1])), np.array([0.5, 0.0, 0.0]))  # prev VIO from new VIO
     ugv_map.agents.update({"ugv1", "uav1"})
     ugv_map.add_keyframe(kf("uav1", 7, (fix @ moved).transform_pose(vio_last)))
+    ugv_map.keyframes[("uav1", 7)].vio_from_cam = vio_last
     new_map.agents.add("uav1#1")
     new_map.add_keyframe(kf("uav1#1", 0, vio_first))
+    new_map.keyframes[("uav1#1", 0)].vio_from_cam = vio_first
     agent = AgentState("uav1")
     prev = AgentMap("uav1", 0, "uav1", CAMERA, "m", 0, global_from_vio=moved)
-    prev.vio_poses[7] = vio_last
     new = AgentMap("uav1#1", 1, "uav1#1", CAMERA, "m", 1)
-    new.vio_poses[0] = vio_first
     agent.maps = {0: prev, 1: new}
     assert sessionguess.previous_session(agent, new, stack) is prev
     plan = sessionguess.plan(stack, prev, new, ("uav1#1", 0), guess, np.array([0.3, 2.0]), lambda f: "uav")
