@@ -260,13 +260,21 @@ def test_gnss_stage_moves_merged_map_into_enu(srv: Server) -> None:
     assert cvs and all(set(d["cv_scores"]) == {"1.0", "0.3", "0.1", "0.03"} for d in cvs)
     assert all(d["stiffness_scale"] == float(min(d["cv_scores"], key=d["cv_scores"].get)) for d in cvs)
     n_before = len(stages())
-    first = srv.call(positions)
     m = srv.call(lambda: next(iter(srv.hive.stack.maps.values())))
-    for _ in range(5):
+
+    def optimise() -> None:
         asyncio.run_coroutine_threadsafe(
             srv.backend._optimise_once(m.id, [], time.monotonic(), []), srv.hive.loop
         ).result(60)
-    # 0.05 mm here; with no unbending at all (neither here nor in the stage) keyframes moved 25 mm in 5 runs
+
+    # The first run may still take in what reached the map after its last optimisation (under load the
+    # last global BA can run before the last points are in: 0.96 -> 0.91 px, keyframes moved 2.6 mm);
+    # from then on the same fixes must give the same poses.
+    optimise()
+    first = srv.call(positions)
+    for _ in range(4):
+        optimise()
+    # 0.005 mm here; with no unbending at all (neither here nor in the stage) keyframes moved ~5 mm a run
     assert float(np.abs(srv.call(positions) - first).max()) < 1e-3
     # no new fixes: the five stages kept the last cross-validated scale without validating again
     again = stages()[n_before:]
