@@ -37,6 +37,20 @@ def _feed(agent: Agent, ds, events: list | None = None) -> list:  # type: ignore
     return results
 
 
+def _tap_events(agent: Agent) -> list:  # type: ignore[type-arg]
+    """Every front-end event of a connected agent, collected after its link has taken it."""
+    events: list = []
+    on_event = agent.core.on_event
+    assert on_event is not None
+
+    def both(ev: object) -> None:
+        events.append(ev)
+        on_event(ev)
+
+    agent.core.on_event = both
+    return events
+
+
 def test_live_agent_tracks_into_enu_with_its_fixes(tiny_agent: Path) -> None:
     ds = load_dataset(tiny_agent)
     agent = Agent.from_calibration([tiny_agent / "mav0"])
@@ -99,17 +113,8 @@ def test_connected_agent_streams_its_keyframes(tiny_agent: Path, tmp_path: Path)
         with pytest.raises(ValueError, match="server URL"):
             agent.connect("127.0.0.1:8765", TOKENS["uav1"], tmp_path / "agent")
         agent.connect(server.ws_url, TOKENS["uav1"], tmp_path / "agent")
-        events: list = []
-        ds = load_dataset(tiny_agent)
-        on_event = agent.core.on_event
-        assert on_event is not None
-
-        def both(ev: object) -> None:
-            events.append(ev)
-            on_event(ev)
-
-        agent.core.on_event = both
-        _feed(agent, ds)
+        events = _tap_events(agent)
+        _feed(agent, load_dataset(tiny_agent))
         assert agent.close(timeout=30) == 0
         n_kf = sum(hasattr(e, "keypoints") for e in events)
         info = server.json("/agents/uav1")
@@ -257,15 +262,7 @@ def test_a_finished_agent_takes_the_servers_estimate_of_all(tiny_agent: Path, tm
     try:
         agent = Agent.from_calibration([tiny_agent], agent_id="uav1")
         agent.connect(server.ws_url, TOKENS["uav1"], tmp_path / "agent")
-        events: list = []
-        on_event = agent.core.on_event
-        assert on_event is not None
-
-        def both(ev: object) -> None:
-            events.append(ev)
-            on_event(ev)
-
-        agent.core.on_event = both
+        events = _tap_events(agent)
         _feed(agent, load_dataset(tiny_agent))
         kfs = [e for e in events if hasattr(e, "keypoints")]
         assert len(kfs) > 3
