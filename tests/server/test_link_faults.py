@@ -12,6 +12,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -121,11 +122,14 @@ def test_link_through_a_connection_cut_every_150ms(server: ServerProcess, tmp_pa
 
 def test_link_survives_server_sigkill_and_restart(server: ServerProcess, tmp_path: Path) -> None:
     msgs, truth = synthetic_stream("uav2", 60, features=300, seed=42, kf_before_points_every=5)
+    # FAST's attempts span ~4 s: on a loaded machine the restarted server took longer to listen, and the
+    # link gave up; as many attempts as span a minute, as the default options do
+    patient = replace(FAST, max_connect_attempts=120)
 
     async def main() -> None:
         link = AgentLink(
             server.ws_url, "uav2", "uav", CAMERA.to_dict(), TOKENS["uav2"], tmp_path / "outbox.sqlite",
-            options=FAST,
+            options=patient,
         )  # fmt: skip
         runner = asyncio.create_task(link.run())
         half = len(msgs) // 2
