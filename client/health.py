@@ -53,7 +53,7 @@ def fetch_trajectory(server: str, agent_id: str, session: int, frame: str) -> tu
     import urllib.request
     from urllib.parse import quote, urlencode
 
-    from hivemap.maps.geometry import rotmat_from_quat_wxyz
+    from hivemap.maps.geometry import rotmat_from_quat_wxyz, se3
 
     url = rest_url(server, f"/agents/{quote(agent_id, safe='')}/trajectory",
                    urlencode({"frame": frame, "format": "json", "session": session}))  # fmt: skip
@@ -62,10 +62,8 @@ def fetch_trajectory(server: str, agent_id: str, session: int, frame: str) -> tu
     try:
         poses = body["poses"]
         ids = np.array([int(p["kf_id"]) for p in poses], dtype=np.int64)
-        T = np.tile(np.eye(4), (len(poses), 1, 1))
-        for n, p in enumerate(poses):
-            T[n, :3, :3] = rotmat_from_quat_wxyz(np.asarray(p["quat_wxyz"], dtype=np.float64))
-            T[n, :3, 3] = np.asarray(p["position"], dtype=np.float64)
+        T = np.array([se3(rotmat_from_quat_wxyz(np.asarray(p["quat_wxyz"], dtype=np.float64)), p["position"])
+                      for p in poses]).reshape(-1, 4, 4)  # fmt: skip
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{url}: not a trajectory ({exc})") from exc
     return ids, T

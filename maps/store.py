@@ -251,26 +251,16 @@ class MapStore:
         (rows already stored; unknown ones are ignored)."""
         map_id = int(map_id)
         with self._tx():
-            if vio:
-                self.conn.executemany(
-                    "UPDATE map_keyframes SET world_from_cam = ?, vio_from_cam = ? "
-                    "WHERE map_id = ? AND agent = ? AND id = ?",
-                    [
-                        (
-                            pack_array(kf.world_from_cam),
-                            None if kf.vio_from_cam is None else pack_array(kf.vio_from_cam),
-                            map_id,
-                            kf.agent_id,
-                            kf.id,
-                        )
-                        for kf in keyframes
-                    ],
-                )
-            else:
-                self.conn.executemany(
-                    "UPDATE map_keyframes SET world_from_cam = ? WHERE map_id = ? AND agent = ? AND id = ?",
-                    [(pack_array(kf.world_from_cam), map_id, kf.agent_id, kf.id) for kf in keyframes],
-                )
+            sets = "world_from_cam = ?, vio_from_cam = ?" if vio else "world_from_cam = ?"
+
+            def row(kf: Keyframe) -> tuple[Any, ...]:
+                own = (None if kf.vio_from_cam is None else pack_array(kf.vio_from_cam),) if vio else ()
+                return (pack_array(kf.world_from_cam), *own, map_id, kf.agent_id, kf.id)
+
+            self.conn.executemany(
+                f"UPDATE map_keyframes SET {sets} WHERE map_id = ? AND agent = ? AND id = ?",
+                [row(kf) for kf in keyframes],
+            )
             self.conn.executemany(
                 "UPDATE map_points SET xyz = ? WHERE map_id = ? AND agent = ? AND id = ?",
                 [

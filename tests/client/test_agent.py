@@ -241,10 +241,9 @@ def test_keyframes_the_odometry_moved_later_are_sent_again(tiny_agent: Path, tmp
 
 def _shape_error(a: np.ndarray, b: np.ndarray) -> float:
     """RMS distance (m) between two sets of positions after the rigid motion that best aligns them."""
-    ca, cb = a - a.mean(0), b - b.mean(0)
-    U, _, Vt = np.linalg.svd(ca.T @ cb)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    return float(np.sqrt(np.mean(np.sum((ca @ (Vt.T @ D @ U.T).T - cb) ** 2, axis=1))))
+    from hivemap.server.backend.fit import umeyama
+
+    return float(np.sqrt(np.mean(np.sum((umeyama(a, b, with_scale=False).apply(a) - b) ** 2, axis=1))))
 
 
 def test_a_finished_agent_takes_the_servers_estimate_of_all(tiny_agent: Path, tmp_path: Path) -> None:
