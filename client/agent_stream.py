@@ -110,17 +110,18 @@ class AgentStream:
             world_from_cam, xyz = self._streamed.update(ev)
             self._submit(PoseUpdates(ev.kf_ids, world_from_cam, ev.point_ids, xyz, session))
 
-    def _resend(self) -> None:
+    def _resend(self, final: bool = False) -> None:
         """The keyframes the odometry's smoothing moved since they were sent, as pose updates
-        (:meth:`StreamedPoses.refresh`)."""
+        (:meth:`StreamedPoses.refresh`); ``final``: at the end of the mission, by the finer threshold."""
         from hivemap.protocol import PoseUpdates
         from hivemap.protocol.limits import Limits
 
         o = self.agent.core.options
-        if o.stream_resend is None or not o.stream_imu_odometry:
+        threshold = o.stream_final_resend if final else o.stream_resend
+        if threshold is None or not o.stream_imu_odometry:
             return
         none, no_xyz, n = np.zeros(0, np.int64), np.zeros((0, 3)), Limits().max_poses_per_msg
-        for s, kf_ids, world_from_cam in self._streamed.refresh(*o.stream_resend):
+        for s, kf_ids, world_from_cam in self._streamed.refresh(*threshold):
             for i in range(0, len(kf_ids), n):
                 self._submit(PoseUpdates(kf_ids[i : i + n], world_from_cam[i : i + n], none, no_xyz,
                                          self.first_session + s, points_follow=True))  # fmt: skip
@@ -142,15 +143,15 @@ class AgentStream:
             return stop is not None and stop.is_set()
 
         if not stopping() and not self.task.done():
+            self._resend(final=True)  # queued before the flush: the server acknowledges it too
             flush = asyncio.run_coroutine_threadsafe(asyncio.wait_for(self.link.flush(), timeout), self.loop)
             if not _wait(flush, stop, self.task):
                 log.warning("server did not acknowledge everything within %.0f s", timeout)
-        if not stopping() and not self.task.done():
-            agent = self.agent
-            wait_for_server(self.server, agent.options.runner, lambda: agent._last_correction,
-                            agent.apply_corrections, stop)  # fmt: skip
-            if not stopping():
-                adopt_final_estimate(self.server, agent)
+        agent = self.agent
+        linked, through = not stopping() and not self.task.done(), False
+        if linked:
+            through = wait_for_server(self.server, agent.options.runner, lambda: agent._last_correction,
+                                      agent.apply_corrections, stop)  # fmt: skip
 
         async def end(finish_mission: bool) -> None:
             # all acknowledged: the next start on this outbox is a new mission (before close shuts it)
@@ -159,6 +160,13 @@ class AgentStream:
             await self.link.close()
 
         asyncio.run_coroutine_threadsafe(end(not stopping()), self.loop).result()
+        if linked and not stopping():
+            if through:
+                # the bye asked the server for the mission's last solve, on the odometry just resent: wait
+                # for it too (no correction reaches a closed link)
+                wait_for_server(self.server, agent.options.runner, lambda: 0.0, lambda: None, stop)
+            if not stopping():
+                adopt_final_estimate(self.server, agent)
         if (exc := self.failure()) is not None:  # refused or unreachable: what is left stays in the outbox
             log.debug("link ended: %s", exc)
         self.loop.call_soon_threadsafe(self.loop.stop)

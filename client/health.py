@@ -118,9 +118,10 @@ def wait_for_server(
     last_correction: Callable[[], float],
     apply_pending: Callable[[], object],
     stop: threading.Event | None = None,
-) -> None:
+) -> bool:
     """Poll the server's health until it has caught up with this agent's end, applying the corrections
-    that arrive meanwhile, then ``corrections_grace_s`` more after the last correction.
+    that arrive meanwhile, then ``corrections_grace_s`` more after the last correction. True when the
+    wait ended because the back-end said it was through (not by a timer, a stall or ``stop``).
 
     Caught up: the back-end is through with every keyframe that had reached it when the wait began (this
     agent's last ones and the team's up to then) and runs no optimisation, or it is idle, twice in a row.
@@ -137,10 +138,11 @@ def wait_for_server(
     done_seen, t_progress = -1, t_end
     if options.corrections_max_wait_s <= 0:
         apply_pending()
-        return
+        return False
+    through = False
     while time.monotonic() - t_end < options.corrections_max_wait_s:
         if stop.wait(0.5):
-            return
+            return False
         apply_pending()
         now = time.monotonic()
         quiet = now - max(last_correction(), t_end)
@@ -172,6 +174,7 @@ def wait_for_server(
             ready_polls = ready_polls + 1 if ready else 0
             # ready twice in a row, and the last correction has had time to arrive
             if ready_polls >= 2 and quiet >= options.corrections_grace_s:
+                through = True
                 break
             if now - max(t_progress, last_correction()) >= options.corrections_stall_s:
                 log.warning("server made no progress for %.0f s: stopping", options.corrections_stall_s)
@@ -181,3 +184,4 @@ def wait_for_server(
     else:
         log.warning("server still busy %.0f s after the last frame: stopping", options.corrections_max_wait_s)
     apply_pending()
+    return through

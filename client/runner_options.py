@@ -46,6 +46,9 @@ class RunnerOptions:
     # streaming the IMU-aided odometry: a keyframe whose pose there moved this far (m, deg) since it was
     # sent is sent again (a pose update), so the server holds the smoothed odometry (None: never)
     stream_resend: tuple[float, float] | None = (0.03, 0.5)
+    # at the end of a mission, every keyframe whose IMU-aided pose moved this far (m, deg) since it was sent
+    # is sent again, so the server's last solve holds the agent's final odometry (None: never)
+    stream_final_resend: tuple[float, float] | None = (0.001, 0.01)
     progress: bool = True
     max_connect_attempts: int = 10  # streaming: see LinkOptions.max_connect_attempts
     # issue 25: detect the marker carriers of the dataset's ``markers.yaml`` in cam0 (``enabled=False``:

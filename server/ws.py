@@ -239,9 +239,11 @@ class AgentConnection:
             )
             return
         if isinstance(msg, Bye):  # not stored, not acked: the agent leaves
-            await self.close(1000, f"bye: {msg.reason}")
+            # the mission's last optimisation is asked for before the socket closes, so that an agent
+            # polling /health after its close sees it running
             if self.agent_id is not None:
                 await self.server.agent_said_bye(self.agent_id)
+            await self.close(1000, f"bye: {msg.reason}")
             return
         try:
             await self.server.handle(self, seq, msg, received_at)

@@ -91,6 +91,7 @@ class Pipeline(GnssSteps):
         self._override = accept.PriorOverride()  # merges against the start prior, by independent places
         self.evidence = EvidenceBook()  # the maps' loop and merge edges, judged again at each pose graph
         self._opt_again: dict[int, list[NewEdge]] = {}
+        self._resolve_again: set[int] = set()  # maps whose next optimisation solves the pose graph anyway
         # figures
         self.queries = 0
         self.query_ms: list[float] = []
@@ -214,15 +215,20 @@ class Pipeline(GnssSteps):
         t_det: float,
         fuse: list[tuple[Any, Any]] | None = None,
         pre: tuple[Sim3, list[KfKey]] | None = None,
+        resolve: bool = False,
     ) -> None:
+        """Optimise map ``map_id`` with the new loop or merge ``edges`` (after the running optimisation, if
+        one runs). ``resolve``: solve the pose graph even without new edges (an agent's odometry changed)."""
         if map_id in self._opt_running:
             self._opt_again.setdefault(map_id, []).extend(edges)
+            if resolve:
+                self._resolve_again.add(map_id)
             return
         # busy from now, not from when the task first runs: requests in the same stretch of the loop (a
         # batch of rendezvous edges) would otherwise start optimisations side by side, each applying its
         # correction from the same snapshot on top of the others'
         self._opt_running.add(map_id)
-        task = asyncio.create_task(self._optimise(map_id, edges, t_det, fuse or [], pre))
+        task = asyncio.create_task(self._optimise(map_id, edges, t_det, fuse or [], pre, resolve))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
@@ -233,14 +239,17 @@ class Pipeline(GnssSteps):
         t_det: float,
         fuse: list[tuple[Any, Any]],
         pre: tuple[Sim3, list[KfKey]] | None = None,
+        resolve: bool = False,
     ) -> None:
         try:
             while True:
-                await self._optimise_once(map_id, edges, t_det, fuse, pre)
+                await self._optimise_once(map_id, edges, t_det, fuse, pre, resolve)
                 self._self_check(map_id)
                 self._refresh_loose()  # the verdict may have confirmed or undone a session guess
                 pre = None
                 again = self._opt_again.pop(map_id, None)
+                resolve = map_id in self._resolve_again
+                self._resolve_again.discard(map_id)
                 if again is None or map_id not in self.server.stack.maps:
                     break
                 edges, fuse, t_det = again, [], time.monotonic()
@@ -259,6 +268,7 @@ class Pipeline(GnssSteps):
         t_det: float,
         fuse: list[tuple[Any, Any]],
         pre: tuple[Sim3, list[KfKey]] | None = None,
+        resolve: bool = False,
     ) -> None:
         m = self.server.stack.maps.get(map_id)
         if m is None or len(m.keyframes) < 2:
@@ -266,7 +276,7 @@ class Pipeline(GnssSteps):
         before = corrections.local_poses(self.server, m)
         unbend = self._unbend_map(m) if self.options.gnss.enabled else None
         try:
-            await self._optimise_steps(map_id, edges, t_det, fuse, pre, before, unbend)
+            await self._optimise_steps(map_id, edges, t_det, fuse, pre, before, unbend, resolve)
         finally:
             m = self.server.stack.maps.get(map_id)
             if unbend is not None and m is not None and map_id not in self._gnss_unbend:
@@ -281,13 +291,16 @@ class Pipeline(GnssSteps):
         pre: tuple[Sim3, list[KfKey]] | None,
         before: dict[KfKey, F64],
         unbend: dict[KfKey, Sim3] | None,
+        resolve: bool = False,
     ) -> None:
         server = self.server
         m = server.stack.maps.get(map_id)
         if m is None:
             return
-        # 1. pose graph over the essential graph + the new edges
-        if edges and not await self._pose_graph_step(m, edges, pre):
+        # 1. pose graph over the essential graph + the new edges (the robust one over every kept edge also
+        # when asked to solve again without new ones: its odometry edges hold what the agents sent last)
+        solve = bool(edges) or (resolve and self.options.optimise.gnc)
+        if solve and not await self._pose_graph_step(m, edges, pre):
             return
         # the loop's duplicate points become one only now (fused earlier, their covisibility edges would
         # hold the uncorrected relative poses in the pose graph); the fusion is committed at once

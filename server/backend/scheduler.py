@@ -176,13 +176,16 @@ class Backend(Pipeline):
 
     # -- nominal start configuration (paper 2.4) -----------------------------------------------------
     async def on_mission_end(self, agent_id: str) -> None:
-        """An agent said bye: its maps get a last global BA (with nothing new to add, the pose graph is
-        skipped), so the map the team leaves is jointly refined with its points."""
-        if not self.options.optimise.global_ba:
+        """An agent said bye: its maps are optimised once more. Its last pose updates brought the odometry
+        edges up to its final, smoothed odometry, so the robust pose graph is solved again over every kept
+        edge; then the global BA, when on, refines the map with its points. The agent waits for this
+        before it reads its final estimate (``hivemap.client.health``)."""
+        o = self.options.optimise
+        if not (o.gnc or o.global_ba):
             return
         for m in list(self.server.stack.maps.values()):
             if any(split_folded(a)[0] == agent_id for a in m.agents):
-                self._schedule_optimisation(m.id, [], time.monotonic())
+                self._schedule_optimisation(m.id, [], time.monotonic(), resolve=True)
 
     def _record_start(self, map_id: int, key: KfKey) -> None:
         """An agent with a nominal start pose sent its first keyframe (taken at the start pose): its map's

@@ -222,7 +222,8 @@ def test_keyframes_the_odometry_moved_later_are_sent_again(tiny_agent: Path, tmp
         elif isinstance(ev, PoseUpdateEvent):
             vio.update(zip(np.asarray(ev.kf_ids).tolist(), ev.world_from_cam, strict=True))
 
-    runner = RunnerOptions(progress=False, stream_imu_odometry=True, stream_resend=(0.002, 0.1))
+    runner = RunnerOptions(progress=False, stream_imu_odometry=True, stream_resend=(0.002, 0.1),
+                           stream_final_resend=None)  # fmt: skip
     agent, msgs = _stream_tapped(tiny_agent, tmp_path, runner, tap)
     last: dict[int, np.ndarray] = {}
     resends = 0
@@ -237,6 +238,38 @@ def test_keyframes_the_odometry_moved_later_are_sent_again(tiny_agent: Path, tmp
     for k, T in last.items():
         final = agent.core.stream_from_vio(0, k) @ vio[k]
         assert np.linalg.norm(final[:3, 3] - T[:3, 3]) < 0.002 + 1e-9, k
+
+
+def test_a_finishing_agent_sends_its_final_odometry(tiny_agent: Path, tmp_path: Path) -> None:
+    """``stream_final_resend``: during the mission a keyframe is resent only once the smoothing moved it
+    3 cm, so the server's odometry lags the agent's by up to that; at the end of the mission every keyframe
+    that moved 1 mm is sent again, and the outbox's last pose of each is within 1 mm of where the fusion
+    ends (the smoothing had moved some by more than that after their keyframe message)."""
+    from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
+    from hivemap.client.runner import RunnerOptions
+    from hivemap.protocol import Keyframe, PoseUpdates
+
+    vio: dict[int, np.ndarray] = {}
+
+    def tap(agent: Agent, ev: object) -> None:
+        if isinstance(ev, KeyframeEvent):
+            vio[ev.kf_id] = ev.world_from_cam
+        elif isinstance(ev, PoseUpdateEvent):
+            vio.update(zip(np.asarray(ev.kf_ids).tolist(), ev.world_from_cam, strict=True))
+
+    runner = RunnerOptions(progress=False)
+    assert runner.stream_final_resend == (0.001, 0.01) and runner.stream_resend == (0.03, 0.5)
+    agent, msgs = _stream_tapped(tiny_agent, tmp_path, runner, tap)
+    first = {m.kf_id: m.world_from_cam for m in msgs if isinstance(m, Keyframe)}
+    last = dict(first)
+    for m in msgs:
+        if isinstance(m, PoseUpdates):
+            last.update(zip(m.kf_ids.tolist(), m.world_from_cam, strict=True))
+    final = {k: agent.core.stream_from_vio(0, k) @ vio[k] for k in first}
+    moved = max(float(np.linalg.norm(final[k][:3, 3] - T[:3, 3])) for k, T in first.items())
+    assert len(first) > 3 and moved > 0.001, moved
+    for k, T in last.items():
+        assert np.linalg.norm(final[k][:3, 3] - T[:3, 3]) < 0.001 + 1e-9, k
 
 
 def _shape_error(a: np.ndarray, b: np.ndarray) -> float:
