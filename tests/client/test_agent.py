@@ -204,24 +204,30 @@ def test_an_agent_streaming_its_imu_odometry_sends_each_keyframe_moved_to_it(
     assert max(moved) > 1e-4, moved
 
 
-def test_keyframes_the_odometry_moved_later_are_sent_again(tiny_agent: Path, tmp_path: Path) -> None:
-    """``stream_resend``: the IMU-only fusion is a smoother, and the last pose the outbox holds for each
-    keyframe (its keyframe message, then the pose updates that moved it) is within the resend threshold of
-    where the fusion puts it at the end; the resends are pose updates whose points follow their keyframes,
-    and the server takes them all."""
+def _latest_vio(vio: dict[int, np.ndarray]) -> object:
+    """A tap keeping each keyframe's latest tracking pose in ``vio``: its keyframe event, then the local
+    BA's updates."""
     from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
-    from hivemap.client.runner import RunnerOptions
-    from hivemap.protocol import Keyframe, PoseUpdates
-
-    vio: dict[int, np.ndarray] = {}
 
     def tap(agent: Agent, ev: object) -> None:
-        # each keyframe's latest tracking pose: its keyframe event, then the local BA's updates
         if isinstance(ev, KeyframeEvent):
             vio[ev.kf_id] = ev.world_from_cam
         elif isinstance(ev, PoseUpdateEvent):
             vio.update(zip(np.asarray(ev.kf_ids).tolist(), ev.world_from_cam, strict=True))
 
+    return tap
+
+
+def test_keyframes_the_odometry_moved_later_are_sent_again(tiny_agent: Path, tmp_path: Path) -> None:
+    """``stream_resend``: the IMU-only fusion is a smoother, and the last pose the outbox holds for each
+    keyframe (its keyframe message, then the pose updates that moved it) is within the resend threshold of
+    where the fusion puts it at the end; the resends are pose updates whose points follow their keyframes,
+    and the server takes them all."""
+    from hivemap.client.runner import RunnerOptions
+    from hivemap.protocol import Keyframe, PoseUpdates
+
+    vio: dict[int, np.ndarray] = {}
+    tap = _latest_vio(vio)
     runner = RunnerOptions(progress=False, stream_imu_odometry=True, stream_resend=(0.002, 0.1),
                            stream_final_resend=None)  # fmt: skip
     agent, msgs = _stream_tapped(tiny_agent, tmp_path, runner, tap)
@@ -245,18 +251,11 @@ def test_a_finishing_agent_sends_its_final_odometry(tiny_agent: Path, tmp_path: 
     3 cm, so the server's odometry lags the agent's by up to that; at the end of the mission every keyframe
     that moved 1 mm is sent again, and the outbox's last pose of each is within 1 mm of where the fusion
     ends (the smoothing had moved some by more than that after their keyframe message)."""
-    from hivemap.client.frontend.tracker import KeyframeEvent, PoseUpdateEvent
     from hivemap.client.runner import RunnerOptions
     from hivemap.protocol import Keyframe, PoseUpdates
 
     vio: dict[int, np.ndarray] = {}
-
-    def tap(agent: Agent, ev: object) -> None:
-        if isinstance(ev, KeyframeEvent):
-            vio[ev.kf_id] = ev.world_from_cam
-        elif isinstance(ev, PoseUpdateEvent):
-            vio.update(zip(np.asarray(ev.kf_ids).tolist(), ev.world_from_cam, strict=True))
-
+    tap = _latest_vio(vio)
     runner = RunnerOptions(progress=False)
     assert runner.stream_final_resend == (0.001, 0.01) and runner.stream_resend == (0.03, 0.5)
     agent, msgs = _stream_tapped(tiny_agent, tmp_path, runner, tap)
