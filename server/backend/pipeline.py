@@ -260,6 +260,7 @@ class Pipeline(GnssSteps):
             self.server.events.add("error", f"optimisation of map {map_id} failed (see log)", map_id=map_id)
         finally:
             self._opt_running.discard(map_id)
+            self._resolve_again.discard(map_id)
 
     async def _optimise_once(
         self,
