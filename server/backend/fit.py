@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from hivemap.maps.geometry import Sim3, levelled_similarity, rotation_angle_deg, rotation_between, se3_inverse
 from hivemap.server.backend.gnss import bend_corrections
 from hivemap.server.backend.options import BackendOptions
+from hivemap.server.backend.weld import BOUND_SIGMAS
 from hivemap.server.placerec import Detection, pair_observations, refine_sim3
 
 logger = logging.getLogger(__name__)
@@ -170,6 +171,21 @@ def levelled(
         sim = refine_levelled(mq, mc, det, sim, up[1], o.fix_scale)
     sd_rot, sd_trans = spread or (0.0, 0.0)
     return sim, (max(sd_rot, floor[0]), max(sd_trans, floor[1]))
+
+
+def welded_sigmas(
+    o: BackendOptions, weld_rec: dict[str, Any] | None, sigmas: tuple[float, float]
+) -> tuple[float, float]:
+    """The pose-graph edge's sigmas (rad, m) of a detection after its weld: an edge carries the covariance
+    of the estimate it carries, so a welded one the weld's own (its 99 % bound over the chi point it was
+    drawn at), at least the essential edges'; ``sigmas`` (the fit's) when there was no weld. With the
+    fit's wider spread on the weld's transform, a weld that slid along a valley of far points stayed
+    within its edge's sigmas, and the robust graph kept it (docs/decisions.md)."""
+    if not weld_rec or not weld_rec.get("ok"):
+        return sigmas
+    floor = (o.optimise.pose_graph_sigma_rot, o.optimise.pose_graph_sigma_trans)
+    rot = math.radians(float(weld_rec["bound_deg"])) / BOUND_SIGMAS
+    return max(rot, floor[0]), max(float(weld_rec["bound_m"]) / BOUND_SIGMAS, floor[1])
 
 
 def refine_levelled(mq: Any, mc: Any, det: Detection, sim: Sim3, up_c: F64, fix_scale: bool) -> Sim3:

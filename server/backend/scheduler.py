@@ -345,7 +345,7 @@ class Backend(Pipeline):
         welded, weld_rec = await weld.run(self, det, up_q, sigmas if levelled is not None else None)
         if welded is None:
             return
-        det = welded
+        det, sigmas = welded, fit.welded_sigmas(self.options, weld_rec, sigmas)
         if det.query_map not in maps or det.candidate_map not in maps or det.query_map == det.candidate_map:
             server.events.add("merge", f"stale merge detection {det.query_key} dropped", data=det.to_dict())
             return
@@ -474,6 +474,7 @@ class Backend(Pipeline):
         if welded is None or det.query_map not in self.server.stack.maps:
             return
         det, m = welded, self.server.stack.maps[det.query_map]
+        sigmas = fit.welded_sigmas(o, weld_rec, sigmas)
         Tc = Sim3.from_se3(m.keyframes[det.candidate_key].world_from_cam)
         Tq = Sim3.from_se3(m.keyframes[det.query_key].world_from_cam)
         measured = Tc.inverse() @ det.target_from_source @ Tq

@@ -70,7 +70,8 @@ def loop_record(
         # what the loop asks of the query keyframe (the correction the pose graph starts from)
         "move_m": float(np.linalg.norm(det.target_from_source.apply(Tq.t) - Tq.t)),
         "turn_deg": rotation_angle_deg(det.target_from_source.R),
-        # the pose-graph edge's sigmas (the fit's bootstrap spread, at least the essential edges')
+        # the pose-graph edge's sigmas (the weld's, else the fit's bootstrap spread; at least the essential
+        # edges')
         "sigma_rot_deg": math.degrees(sigmas[0]),
         "sigma_trans_m": sigmas[1],
     }
