@@ -43,7 +43,8 @@ def _rejected(sigmas: tuple[float, float]) -> tuple[bool, float]:
     snap.poses[:] = poses
     k = N // 2
     # what the slid weld measured: b's camera 0.64 m and 2.3 deg from where a's sees it
-    wrong = Sim3.from_se3(se3(np.eye(3), np.array([0.0, 1.0, 0.0])) @ se3(_rot_z(2.3), np.array([0.45, 0.45, 0.0])))
+    off = se3(_rot_z(2.3), np.array([0.45, 0.45, 0.0]))
+    wrong = Sim3.from_se3(se3(np.eye(3), np.array([0.0, 1.0, 0.0])) @ off)
     slid = NewEdge(("a", k), ("b", k), wrong, *sigmas)
     o = OptimiseOptions()
     p = pose_graph_problem(m, snap, [*loops, slid], None, [snap.keys.index(("a", 0))], o, True)
