@@ -241,9 +241,11 @@ class AgentConnection:
         if isinstance(msg, Bye):  # not stored, not acked: the agent leaves
             # the mission's last optimisation is asked for before the socket closes, so that an agent
             # polling /health after its close sees it running
-            if self.agent_id is not None:
-                await self.server.agent_said_bye(self.agent_id)
-            await self.close(1000, f"bye: {msg.reason}")
+            try:
+                if self.agent_id is not None:
+                    await self.server.agent_said_bye(self.agent_id)
+            finally:
+                await self.close(1000, f"bye: {msg.reason}")
             return
         try:
             await self.server.handle(self, seq, msg, received_at)
