@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -55,6 +55,15 @@ def agent_command(
         ),
     ] = None,
     max_frames: Annotated[int | None, typer.Option("--max-frames", help="Stop after N frames.")] = None,
+    pace: Annotated[
+        str,
+        typer.Option(
+            "--pace",
+            help="--dataset: asap (every frame, as fast as the front-end takes them), camera (at the "
+            "recording's clock, every frame however late) or live (the recording's clock; when the "
+            "front-end falls behind it takes the newest frame and the older ones are dropped).",
+        ),
+    ] = "asap",
     server: Annotated[
         str | None, typer.Option("--server", help="Stream to this server, e.g. ws://HOST:PORT/ws.")
     ] = None,
@@ -129,6 +138,7 @@ def agent_command(
     import cv2
 
     from hivemap.client.frontend.markers import MarkerOptions
+    from hivemap.client.pacing import PACES
     from hivemap.client.runner import RunnerOptions, parse_gnss_mode
 
     # One OpenCV thread: agents share the cores with each other and the server, and OpenCV's worker
@@ -145,6 +155,10 @@ def agent_command(
         raise typer.BadParameter("give exactly one of --dataset or --sim SCENARIO:AGENT")
     if (sim is not None) != live:
         raise typer.BadParameter("--sim and --live go together (a rendered dataset replays with --dataset)")
+    if pace not in PACES:
+        raise typer.BadParameter(f"one of {', '.join(PACES)}", param_hint="--pace")
+    if sim is not None and pace != "asap":
+        raise typer.BadParameter("a live agent runs at its simulation's clock", param_hint="--pace")
     if sim is not None:
         _live_agent(sim, seed, duration, hold, backend, out, offline, server, agent_id, token, mode,
                     max_connect_attempts, wait_corrections, no_imu_factors, stream_imu_odometry)  # fmt: skip
@@ -158,7 +172,7 @@ def agent_command(
         gnss=mode, seed=seed or 0, max_frames=max_frames, progress=not no_progress,
         imu_factors=not no_imu_factors, max_connect_attempts=max_connect_attempts,
         corrections_max_wait_s=wait_corrections, markers=MarkerOptions(enabled=not no_markers),
-        stream_imu_odometry=stream_imu_odometry,
+        stream_imu_odometry=stream_imu_odometry, pace=pace,
     )  # fmt: skip
     out_dir = (
         out
@@ -173,7 +187,7 @@ def agent_command(
             f"agent {summary.agent_id}: {summary.frames} frames ({summary.tracked_frames} tracked), "
             f"{summary.keyframes} keyframes, {summary.tracking_losses} tracking losses, "
             f"GNSS {summary.gnss_used} used / {summary.gnss_rejected} rejected ({summary.gnss_mode}), "
-            f"{summary.fps:.1f} frames/s -> {out_dir}"
+            f"{summary.fps:.1f} frames/s{_paced(summary)} -> {out_dir}"
         )
         return
     if not token:
@@ -197,8 +211,16 @@ def agent_command(
     typer.echo(
         f"agent {summary.agent_id}: {stopped} {summary.keyframes} keyframes of {summary.frames} frames to "
         f"{server}, {summary.tracking_losses} tracking losses, {summary.unsent} messages unsent "
-        f"in {out_dir / 'outbox.sqlite'} -> {out_dir}"
+        f"in {out_dir / 'outbox.sqlite'}{_paced(summary)} -> {out_dir}"
     )
+
+
+def _paced(summary: Any) -> str:
+    """What pacing did to the replay, for the closing line (nothing at the default pace)."""
+    if summary.pace == "asap":
+        return ""
+    late = f"at most {summary.late_max_s:.2f} s late"
+    return f", {summary.pace} pace: {summary.frames_dropped} frames dropped, {late}"
 
 
 def _live_agent(

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.client.pacing import Pacer
 from hivemap.client.replay_io import _frame_times, _Gnss, _gnss_table, _imu, _load_pair, select_gnss
 from hivemap.client.runner import RunnerOptions, RunSummary
 
@@ -33,6 +34,7 @@ class Replay:
     gnss: _Gnss
     selected: NDArray[np.int64]
     options: RunnerOptions
+    pacer: Pacer
 
     @classmethod
     def open(
@@ -56,20 +58,23 @@ class Replay:
             ds, agent_id=agent_id or str(ds.agent_id),
             options=AgentOptions(options, frontend_options, second_stage_options),
         )  # fmt: skip
-        return cls(ds, live, times, _imu(ds), gnss, selected, options)
+        return cls(ds, live, times, _imu(ds), gnss, selected, options, Pacer(times, options.pace))
 
     def feed(self, stop: Callable[[], bool] | None = None) -> int:
-        """Feed the frames (with a progress bar if the options ask for one) until the last or until
-        ``stop()`` says so before a frame; returns the number of frames fed."""
+        """Feed the frames at the options' pace (with a progress bar if they ask for one) until the last
+        or until ``stop()`` says so before a frame; returns the number of frames fed."""
         from tqdm import tqdm
 
         imu, gnss, selected, max_dt = self.imu, self.gnss, self.selected, self.options.gnss_max_dt_s
-        prev_t, next_fix, n = -math.inf, 0, 0
-        bar = tqdm(range(len(self.times)), desc=f"agent {self.live.agent_id}", unit="frame",
+        prev_t, next_fix, n, i = -math.inf, 0, 0, 0
+        bar = tqdm(total=len(self.times), desc=f"agent {self.live.agent_id}", unit="frame",
                    disable=not self.options.progress)  # fmt: skip
-        for i in bar:
+        while i < len(self.times):
             if stop is not None and stop():
                 break
+            j = self.pacer.take(i)
+            bar.update(j + 1 - i)
+            i = j
             t = float(self.times[i])
             left, right = _load_pair(self.ds, i)
             if len(imu):
@@ -79,7 +84,7 @@ class Replay:
                 self.live.feed_gnss_cov(float(gnss.t[k]), gnss.enu[k], gnss.cov[k])
                 next_fix += 1
             self.live.feed_stereo(t, left, right)
-            prev_t, n = t, i + 1
+            prev_t, n, i = t, n + 1, i + 1
         bar.close()
         return n
 
@@ -87,6 +92,7 @@ class Replay:
         s = RunSummary(agent_id=str(self.live.agent_id), gnss_mode=str(self.options.gnss))
         s.gnss_available = int(self.gnss.valid.sum())
         s.gnss_selected = len(self.selected)
+        s.pace, s.frames_dropped, s.late_max_s = self.options.pace, self.pacer.dropped, self.pacer.late_max_s
         rv = self.live.rendezvous
         if rv is not None:
             s.rendezvous_sent, s.marker_frames = rv.observations, rv.frames_run

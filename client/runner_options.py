@@ -50,6 +50,9 @@ class RunnerOptions:
     # is sent again, so the server's last solve holds the agent's final odometry (None: never)
     stream_final_resend: tuple[float, float] | None = (0.001, 0.01)
     progress: bool = True
+    # when frames reach the front-end (hivemap.client.pacing): asap (every frame, as fast as it takes
+    # them), camera (at the recording's clock, every frame), live (the camera's clock, late frames dropped)
+    pace: str = "asap"
     max_connect_attempts: int = 10  # streaming: see LinkOptions.max_connect_attempts
     # issue 25: detect the marker carriers of the dataset's ``markers.yaml`` in cam0 (``enabled=False``:
     # ``hivemap agent --no-markers``) and stream them as ``rendezvous`` messages
@@ -86,6 +89,9 @@ class RunSummary:
     second_stage_ms_max: float = 0.0
     wall_s: float = 0.0
     fps: float = 0.0
+    pace: str = "asap"  # RunnerOptions.pace
+    frames_dropped: int = 0  # pace live: frames skipped because a newer one was due
+    late_max_s: float = 0.0  # pace camera/live: the furthest behind the recording's clock a frame was taken
     outputs: dict[str, str] = field(default_factory=dict)
     rejected_fixes: list[dict[str, float]] = field(default_factory=list)
     unsent: int = 0  # streaming: messages left in the outbox (not acknowledged by the server)

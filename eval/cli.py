@@ -223,6 +223,15 @@ def experiment_command(
             "visual tracking (`hivemap agent --stream-tracking`); run each setting into its own --out.",
         ),
     ] = True,
+    pace: Annotated[
+        str,
+        typer.Option(
+            "--pace",
+            help="How agents replay their datasets (`hivemap agent --pace`): asap (default, every frame as "
+            "fast as it goes), camera (the recording's clock) or live (the recording's clock, late frames "
+            "dropped). The report's real-time section gives the agents' wall time against the data's.",
+        ),
+    ] = "asap",
 ) -> None:
     """Paper Tables 5-8: run scenarios x modes (resumable) and write report.md / report.html."""
     from hivemap.eval.experiment import ExperimentOptions, run_experiment
@@ -235,6 +244,10 @@ def experiment_command(
         starts = StartPoseOptions(start_poses, start_sigma_m, start_sigma_deg, seed)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--start-poses") from exc
+    from hivemap.client.pacing import PACES
+
+    if pace not in PACES:
+        raise typer.BadParameter(f"one of {', '.join(PACES)}", param_hint="--pace")
     if markers not in ("on", "off"):
         raise typer.BadParameter(f"expected 'on' or 'off', got {markers!r}", param_hint="--markers")
     opts = ExperimentOptions(
@@ -254,6 +267,7 @@ def experiment_command(
         markers=markers == "on",
         explore_duration_s=explore_duration,
         stream_imu_odometry=stream_imu_odometry,
+        pace=pace,
     )
     try:
         report = run_experiment(opts)

@@ -47,6 +47,7 @@ from hivemap.eval.processes import (
     versions,
     wait_health,
 )
+from hivemap.eval.realtime import realtime
 from hivemap.eval.rendezvous import all_together_s, merge_timeline
 from hivemap.eval.startposes import StartPoseOptions, start_poses
 from hivemap.maps.markers import LAYOUT_FILE
@@ -95,6 +96,7 @@ class ExperimentOptions:
     # issue 25: agents detect the marker carriers their datasets describe (off: same images, no detection)
     markers: bool = True
     stream_imu_odometry: bool = True  # agents stream an IMU-only fusion of their odometry (`hivemap agent`)
+    pace: str = "asap"  # how agents replay their datasets (hivemap.client.pacing)
     explore_duration_s: float = 120.0  # issue 26: mission time of the live agents of the explore modes
 
     def worlds(self) -> list[tuple[str, str, int | None]]:
@@ -163,6 +165,8 @@ def _agent_cmd(ds: Path, out: Path, gnss: str, opts: ExperimentOptions) -> list[
         cmd += ["--no-markers"]
     if not opts.stream_imu_odometry:
         cmd += ["--stream-tracking"]
+    if opts.pace != "asap":
+        cmd += ["--pace", opts.pace]
     return cmd
 
 
@@ -312,6 +316,7 @@ def run_colocation(scen: Path, agents: list[tuple[str, str]], mode: str, work: P
                 "layouts": sorted(a for a, _ in agents if (scen / a / LAYOUT_FILE).exists()),
             },
             "stream_imu_odometry": opts.stream_imu_odometry,
+            "realtime": realtime(results, {aid: work / aid for aid, _ in agents}, opts.pace),
             "events": events,
             "maps": maps,
             "server_start_wall": t_server,

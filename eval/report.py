@@ -19,6 +19,7 @@ from hivemap.eval.globalmap import globalmap_section
 from hivemap.eval.html import to_html
 from hivemap.eval.peer import peer_section
 from hivemap.eval.placerec_tables import table67
+from hivemap.eval.realtime import realtime_section
 from hivemap.eval.rendezvous import rendezvous_section
 from hivemap.eval.seeds import seeds_section
 
@@ -410,6 +411,7 @@ def write_report(out: Path, scenarios: list[str], modes: list[str], report_dir: 
     md += team_section(out, results)
     md += globalmap_section(results)
     md += rendezvous_section(results)
+    md += realtime_section(results)
     md += explore_section(out, results, dest)
     md += table67(results)
     # ---------------------------------------------------------------- plots

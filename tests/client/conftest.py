@@ -21,3 +21,15 @@ def tiny_agent(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )  # fmt: skip
     assert res.exit_code == 0, res.output
     return out / "uav1"
+
+
+@pytest.fixture(scope="session")
+def tiny_agent_6s(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny scenario's uav1 for 6 s: the 2-s one is mostly the standstill before take-off. Read-only."""
+    out = tmp_path_factory.mktemp("tiny6s")
+    res = CliRunner().invoke(
+        app, ["sim", "render", "--scenario", "tiny", "--agents", "uav1", "--duration", "6", "--out", str(out),
+              "--no-progress"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    return out / "uav1"

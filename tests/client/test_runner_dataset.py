@@ -19,14 +19,8 @@ from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("tiny")
-    res = CliRunner().invoke(
-        app, ["sim", "render", "--scenario", "tiny", "--agents", "uav1", "--duration", "6", "--out", str(out),
-              "--no-progress"],
-    )  # fmt: skip
-    assert res.exit_code == 0, res.output
-    return out / "uav1"
+def dataset(tiny_agent_6s):
+    return tiny_agent_6s
 
 
 def test_offline_agent_command_with_gnss(dataset, tmp_path):

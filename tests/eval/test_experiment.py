@@ -282,3 +282,27 @@ def test_unknown_start_poses_mode_is_one_clear_error(experiment):
     _, _, args = experiment
     res = CliRunner().invoke(app, [*args, "--start-poses", "exact"])
     assert res.exit_code != 0 and "perturbed, none, truth" in res.output
+
+
+def test_realtime_record_of_the_team_run(experiment):
+    """The denied run's real-time record (issue 23): the data's duration is the longest span an agent
+    tracked (its first to last frame, 0.1 s apart at 10 Hz), the wall time runs from the first agent's
+    start to the last one's end, and at the default pace no frame was dropped."""
+    _, out, _ = experiment
+    denied = json.loads((out / "results" / "tiny" / "denied.json").read_text())
+    rt = denied["realtime"]
+    assert rt["pace"] == "asap"
+    assert rt["data_s"] == pytest.approx((MAX_FRAMES - 1) * 0.1, abs=0.011)
+    walls = [a["end_wall"] - a["start_wall"] for a in denied["agents"]]
+    starts = [a["start_wall"] for a in denied["agents"]]
+    ends = [a["end_wall"] for a in denied["agents"]]
+    assert rt["agents_wall_s"] == pytest.approx(max(ends) - min(starts)) and rt["agents_wall_s"] >= max(walls)
+    assert rt["ratio"] == pytest.approx(rt["agents_wall_s"] / rt["data_s"])
+    for aid in AGENTS:
+        a = rt["agents"][aid]
+        assert a["frames"] == MAX_FRAMES and a["frames_dropped"] == 0
+    md = (out / "report.md").read_text()
+    assert (
+        f"| tiny | denied | asap | {rt['data_s']:.1f} | {rt['agents_wall_s']:.1f} | {rt['ratio']:.2f}x |"
+        in md
+    )
