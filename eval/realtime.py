@@ -6,13 +6,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from hivemap.eval.trajectory import read_tum
+
 
 def _span_s(tum: Path) -> float | None:
-    """First to last timestamp of a TUM file [s] (the frames the agent tracked), None when empty."""
-    if not tum.exists():
+    """First to last timestamp of a TUM file [s] (the frames the agent tracked), None when it has none."""
+    if not tum.exists() or not tum.read_text().strip():
         return None
-    stamps = [float(line.split()[0]) for line in tum.read_text().splitlines() if line and line[0] != "#"]
-    return stamps[-1] - stamps[0] if len(stamps) > 1 else None
+    stamps = read_tum(tum).timestamps
+    return float(stamps[-1] - stamps[0]) if len(stamps) > 1 else None
 
 
 def realtime(results: dict[str, Any], outs: dict[str, Path], pace: str) -> dict[str, Any]:

@@ -75,22 +75,22 @@ def test_unknown_pace_is_refused():
         Pacer(np.arange(3.0), "fast")
 
 
-def test_agent_at_live_pace_follows_the_recordings_clock(tiny_agent_6s, tmp_path):
+def test_agent_at_live_pace_follows_the_recordings_clock(tiny_uav, tmp_path):
     out = tmp_path / "live"
     res = CliRunner().invoke(
-        app, ["agent", "--dataset", str(tiny_agent_6s), "--offline", "--out", str(out), "--pace", "live",
+        app, ["agent", "--dataset", str(tiny_uav), "--offline", "--out", str(out), "--pace", "live",
               "--no-progress"],
     )  # fmt: skip
     assert res.exit_code == 0, res.output
     assert "live pace:" in res.output
     summary = json.loads((out / "run.json").read_text())
-    frames = load_dataset(tiny_agent_6s).frames.t_ns
+    frames = load_dataset(tiny_uav).frames.t_ns
     span = (int(frames[-1]) - int(frames[0])) * 1e-9
     assert summary["pace"] == "live"
     # every frame either processed or dropped, and the replay took at least the recording's duration
     assert summary["frames"] + summary["frames_dropped"] == len(frames)
     assert summary["wall_s"] >= span - 0.05
-    gt = groundtruth_trajectory(tiny_agent_6s)
+    gt = groundtruth_trajectory(tiny_uav)
     assert ate(read_tum(out / "local.tum"), gt, "se3").stats.rmse < 0.1
 
 

@@ -11,26 +11,20 @@ import time
 
 import httpx
 import numpy as np
-import pytest
 from typer.testing import CliRunner
 
 from hivemap.cli.main import app
 from hivemap.eval.trajectory import ate, groundtruth_trajectory, read_tum
 
 
-@pytest.fixture(scope="module")
-def dataset(tiny_agent_6s):
-    return tiny_agent_6s
-
-
-def test_offline_agent_command_with_gnss(dataset, tmp_path):
+def test_offline_agent_command_with_gnss(tiny_uav, tmp_path):
     out = tmp_path / "run"
-    args = ["agent", "--dataset", str(dataset), "--offline", "--out", str(out), "--gnss", "all"]
+    args = ["agent", "--dataset", str(tiny_uav), "--offline", "--out", str(out), "--gnss", "all"]
     args.append("--no-progress")
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     summary = json.loads((out / "run.json").read_text())
-    gt = groundtruth_trajectory(dataset)
+    gt = groundtruth_trajectory(tiny_uav)
     assert summary["frames"] == gt.num_poses or summary["frames"] > 50
     assert summary["tracking_losses"] == 0
     assert summary["keyframes"] >= 10
@@ -52,7 +46,7 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def test_streaming_agent_command_reaches_the_server(dataset, tmp_path):
+def test_streaming_agent_command_reaches_the_server(tiny_uav, tmp_path):
     port = _free_port()
     cfg = tmp_path / "server.toml"
     cfg.write_text('[tokens]\nuav1 = "tok-uav1"\n')
@@ -71,7 +65,7 @@ def test_streaming_agent_command_reaches_the_server(dataset, tmp_path):
                 time.sleep(0.2)
         out = tmp_path / "stream"
         ws = f"ws://127.0.0.1:{port}/ws"
-        base = ["agent", "--dataset", str(dataset), "--server", ws, "--agent-id", "uav1", "--no-progress"]
+        base = ["agent", "--dataset", str(tiny_uav), "--server", ws, "--agent-id", "uav1", "--no-progress"]
         res = CliRunner().invoke(app, [*base, "--token", "tok-uav1", "--out", str(out), "--gnss", "every:2s"])
         assert res.exit_code == 0, res.output
         summary = json.loads((out / "run.json").read_text())
@@ -100,7 +94,7 @@ def test_streaming_agent_command_reaches_the_server(dataset, tmp_path):
     stack = ServerStore(tmp_path / "data" / "hivemap.sqlite").load_all().stack
     kfs = [kf for m in stack.maps.values() for kf in m.keyframes.values() if kf.agent_id.startswith("uav1")]
     assert len(kfs) == summary["keyframes"]
-    gt = groundtruth_trajectory(dataset, sensor="cam0")
+    gt = groundtruth_trajectory(tiny_uav, sensor="cam0")
     errs = []
     for kf in kfs:
         assert kf.up_cam is not None
