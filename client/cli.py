@@ -138,7 +138,7 @@ def agent_command(
     import cv2
 
     from hivemap.client.frontend.markers import MarkerOptions
-    from hivemap.client.pacing import PACES
+    from hivemap.client.pacing import check_pace
     from hivemap.client.runner import RunnerOptions, parse_gnss_mode
 
     # One OpenCV thread: agents share the cores with each other and the server, and OpenCV's worker
@@ -155,8 +155,10 @@ def agent_command(
         raise typer.BadParameter("give exactly one of --dataset or --sim SCENARIO:AGENT")
     if (sim is not None) != live:
         raise typer.BadParameter("--sim and --live go together (a rendered dataset replays with --dataset)")
-    if pace not in PACES:
-        raise typer.BadParameter(f"one of {', '.join(PACES)}", param_hint="--pace")
+    try:
+        check_pace(pace)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--pace") from exc
     if sim is not None and pace != "asap":
         raise typer.BadParameter("a live agent runs at its simulation's clock", param_hint="--pace")
     if sim is not None:

@@ -20,6 +20,12 @@ from numpy.typing import NDArray
 PACES = ("asap", "camera", "live")
 
 
+def check_pace(pace: str) -> None:
+    """Raises ValueError naming the paces when ``pace`` is none of them."""
+    if pace not in PACES:
+        raise ValueError(f"unknown pace {pace!r} (one of {', '.join(PACES)})")
+
+
 @dataclass
 class Pacer:
     """Chooses the next frame to process and waits for it. ``times`` are the frames' timestamps [s]; the
@@ -34,8 +40,7 @@ class Pacer:
     _start: float | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        if self.pace not in PACES:
-            raise ValueError(f"unknown pace {self.pace!r} (one of {', '.join(PACES)})")
+        check_pace(self.pace)
 
     def take(self, i: int) -> int:
         """The index of the frame to process now, given that frame ``i`` is the next one not yet

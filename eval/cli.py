@@ -244,10 +244,12 @@ def experiment_command(
         starts = StartPoseOptions(start_poses, start_sigma_m, start_sigma_deg, seed)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--start-poses") from exc
-    from hivemap.client.pacing import PACES
+    from hivemap.client.pacing import check_pace
 
-    if pace not in PACES:
-        raise typer.BadParameter(f"one of {', '.join(PACES)}", param_hint="--pace")
+    try:
+        check_pace(pace)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--pace") from exc
     if markers not in ("on", "off"):
         raise typer.BadParameter(f"expected 'on' or 'off', got {markers!r}", param_hint="--markers")
     opts = ExperimentOptions(

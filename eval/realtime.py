@@ -11,7 +11,7 @@ from hivemap.eval.trajectory import read_tum
 
 def _span_s(tum: Path) -> float | None:
     """First to last timestamp of a TUM file [s] (the frames the agent tracked), None when it has none."""
-    if not tum.exists() or not tum.read_text().strip():
+    if not tum.exists() or tum.stat().st_size == 0:
         return None
     stamps = read_tum(tum).timestamps
     return float(stamps[-1] - stamps[0]) if len(stamps) > 1 else None
