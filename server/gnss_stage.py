@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -76,6 +77,19 @@ class GnssStageResult:
     cv_scores: dict[float, float] | None = None  # scale -> mean held-out Mahalanobis^2 (None: no CV run)
 
 
+@dataclass(frozen=True)
+class ShapeEdge:
+    """One relative-pose factor holding the map's shape between keyframes ``a`` and ``b`` at their
+    current relative pose: ``cov`` (6, 6) in gtsam's Between perturbation ([rot, trans], ``b`` side);
+    ``odometry``: an agent's own odometry, whose covariance the chain stiffness scales (a loop's or a
+    merge's is a measurement's, and stays)."""
+
+    a: int
+    b: int
+    cov: F64
+    odometry: bool
+
+
 class NotEnoughFixes(ValueError):
     """The fixes do not constrain the map's pose in ENU (too few or too close together)."""
 
@@ -88,6 +102,7 @@ def fuse_gnss(
     links: list[tuple[int, int]] | None = None,
     up_in_body: F64 | None = None,
     stiffness_scale: float | None = None,
+    shape: list[ShapeEdge] | None = None,
 ) -> GnssStageResult:
     """Move a map into ENU and bend it onto the GNSS fixes.
 
@@ -101,6 +116,8 @@ def fuse_gnss(
     the map in ENU (fewer than ``min_fixes``, or spread less than ``min_spread_m``).
     stiffness_scale: the relative sigmas' scale to use; None: chosen by cross-validation among
     ``options.stiffness_scales`` (a caller can keep the choice until more fixes arrive).
+    shape: the map's own relative-pose factors (:class:`ShapeEdge`), instead of the chains' per-metre
+    sigmas and the links' fixed ones.
     """
     import gtsam
 
@@ -131,8 +148,12 @@ def fuse_gnss(
     link_noise = gtsam.noiseModel.Diagonal.Sigmas(
         np.array([options.sigma_link_rot] * 3 + [options.sigma_link_trans] * 3)
     )
-    for a, b in links or []:
+    for a, b in [] if shape is not None else links or []:
         fixed.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(se3_inverse(poses[a]) @ poses[b]), link_noise))
+    for e in shape or []:
+        if not e.odometry:
+            rel = gtsam.Pose3(se3_inverse(poses[e.a]) @ poses[e.b])
+            fixed.add(gtsam.BetweenFactorPose3(e.a, e.b, rel, gtsam.noiseModel.Gaussian.Covariance(e.cov)))
     # Keyframes of no chain and without fixes would be unconstrained: anchor all loosely.
     loose = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0] * 3 + [100.0] * 3))
     for k in range(n):
@@ -149,8 +170,14 @@ def fuse_gnss(
                     gtsam.Unit3(down_in_body),
                 )
             )
-    chain_edges = []
-    for chain in chains:
+    # (a, b, relative pose, covariance of the stiffness scale 1)
+    chain_edges: list[tuple[int, int, Any, F64]] = []
+    if shape is not None:
+        for e in shape:
+            if e.odometry:
+                rel = se3_inverse(poses[e.a]) @ poses[e.b]
+                chain_edges.append((e.a, e.b, gtsam.Pose3(rel), np.asarray(e.cov, dtype=np.float64)))
+    for chain in [] if shape is not None else chains:
         for a, b in zip(chain[:-1], chain[1:], strict=False):
             rel = se3_inverse(poses[a]) @ poses[b]
             dist = float(np.linalg.norm(rel[:3, 3]))
@@ -158,7 +185,7 @@ def fuse_gnss(
                 [options.sigma_floor_rot + options.sigma_rel_rot * dist] * 3
                 + [options.sigma_floor_trans + options.sigma_rel_trans * dist] * 3
             )
-            chain_edges.append((a, b, gtsam.Pose3(rel), sig))
+            chain_edges.append((a, b, gtsam.Pose3(rel), np.diag(sig**2)))
     huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k)
     fix_models = [
         gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(f.cov)) for f in fixes
@@ -166,8 +193,9 @@ def fuse_gnss(
 
     def solve(mask: NDArray[np.bool_], scale: float = 1.0) -> F64:
         graph = gtsam.NonlinearFactorGraph()
-        for a, b, rel, sig in chain_edges:
-            graph.add(gtsam.BetweenFactorPose3(a, b, rel, gtsam.noiseModel.Diagonal.Sigmas(scale * sig)))
+        for a, b, rel, cov in chain_edges:
+            noise = gtsam.noiseModel.Gaussian.Covariance(scale**2 * cov)
+            graph.add(gtsam.BetweenFactorPose3(a, b, rel, noise))
         graph.push_back(fixed)
         for f, model, ok in zip(fixes, fix_models, mask, strict=True):
             if ok:

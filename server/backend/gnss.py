@@ -1,6 +1,7 @@
 """The server's GNSS stage around :func:`hivemap.server.gnss_stage.fuse_gnss`: its inputs from a map (fixes,
-lever arms, inter-agent links, IMU up directions), whether its result is applied, and the bend it gives
-the map (kept so the next optimisation can take it out and work on the visual shape).
+lever arms, the map's shape as its pose graph holds it, IMU up directions), whether its result is applied,
+and the bend it gives the map (kept so the next optimisation can take it out and work on the visual
+shape).
 
 Pure functions; the scheduler runs the solve in its optimisation thread and applies the result.
 """
@@ -15,8 +16,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3, se3, se3_inverse
-from hivemap.server.backend.options import GnssOptions
-from hivemap.server.gnss_stage import GnssFix, GnssStageResult
+from hivemap.server.backend import optimise
+from hivemap.server.backend.optimise import NewEdge, Snapshot
+from hivemap.server.backend.options import GnssOptions, OptimiseOptions
+from hivemap.server.gnss_stage import GnssFix, GnssStageResult, ShapeEdge
 
 KfKey = tuple[str, int]
 F64 = NDArray[np.float64]
@@ -32,7 +35,6 @@ class StageInput:
     world_from_ant: F64
     chains: list[list[int]]  # per agent, its keyframes' indices in time order
     fixes: list[GnssFix]
-    links: list[tuple[int, int]]
 
 
 def stage_input(
@@ -56,17 +58,29 @@ def stage_input(
     poses = np.array([m.keyframes[k].world_from_cam for k in keys])
     levers = {a: lever_of(a) for a in chains}
     cam_from_ant = np.array([se3(np.eye(3), levers[k[0]]) for k in keys])
-    links = gnss_links(m, keys)
-    return StageInput(keys, poses, cam_from_ant, poses @ cam_from_ant, list(chains.values()), fixes, links)
+    return StageInput(keys, poses, cam_from_ant, poses @ cam_from_ant, list(chains.values()), fixes)
 
 
-def gnss_links(m: Any, keys: list[KfKey]) -> list[tuple[int, int]]:
-    """Keyframe pairs that tie the agents of a map together in the GNSS stage: essential-graph edges
-    between different agents (shared points, loop and merge edges)."""
-    index = {k: i for i, k in enumerate(keys)}
-    return [
-        (index[a], index[b]) for a, b in m.essential_edges() if a[0] != b[0] and a in index and b in index
-    ]
+def shape_edges(
+    m: Any, snap: Snapshot, kept: list[NewEdge], o: OptimiseOptions, metric: bool, cam_from_ant: F64
+) -> list[ShapeEdge]:
+    """The map's shape as its pose-graph step holds it (:func:`.optimise.pose_graph_problem` over the map's
+    kept loop, merge and rendezvous edges ``kept``), as the GNSS stage's factors: each edge's covariance
+    moved from the keyframes' cameras onto their antennas (``cam_from_ant``, per keyframe of ``snap``)."""
+    import gtsam
+
+    problem = optimise.pose_graph_problem(m, snap, kept, None, [], o, measured_only=o.gnc, metric=metric)
+    out = []
+    for e in optimise.problem_edges(problem, snap.poses, o):
+        cov = e.covariance
+        if cov is None:
+            cov = np.zeros((6, 6))
+            cov[:3, :3] = e.rotation_covariance()
+            cov[3:, 3:] = np.eye(3) * e.sigma_trans**2
+        # the antenna's perturbation is the camera's seen through the lever arm (j side of the Between)
+        ad = gtsam.Pose3(se3_inverse(cam_from_ant[e.j])).AdjointMap()
+        out.append(ShapeEdge(e.i, e.j, ad @ np.asarray(cov, dtype=np.float64) @ ad.T, odometry=not e.robust))
+    return out
 
 
 def antenna_fixes(

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps.geometry import Sim3
 from hivemap.server.backend import detect, gnss, optimise
+from hivemap.server.backend.evidence import EvidenceBook
 from hivemap.server.backend.optimise import Snapshot
 from hivemap.server.backend.options import BackendOptions
 from hivemap.server.placerec import Detection, PlaceRecognizer
@@ -36,6 +37,7 @@ class GnssSteps:
     _gnss_unbend: dict[int, dict[KfKey, Sim3]]
     _retry_at: dict[tuple[int, int], float]
     _gnss_scale: dict[int, tuple[int, float]]
+    evidence: EvidenceBook
 
     def _apply_corrections(self, m: Any, corr: dict[KfKey, Sim3], new_xyz: dict[Any, F64]) -> None:
         raise NotImplementedError
@@ -75,18 +77,22 @@ class GnssSteps:
         inp = gnss.stage_input(m, self._cam_from_antenna)
         if inp is None:
             return
-        fixes, links = inp.fixes, inp.links
+        fixes = inp.fixes
         # the agents' IMU up directions (camera frame = antenna frame's rotation): the attitude factors hold
         # those keyframes to gravity, the others to the map's own roll/pitch
         up = optimise.up_rows(m, inp.keys)
         snap = Snapshot(m.id, self._generation.get(m.id, 0), inp.keys, inp.poses)
+        # the map's shape as the robust pose graph knows it: odometry and the loops and merges it kept
+        kept = [ev.edge for ev in self.evidence.kept_edges(m.id, m.keyframes) if not ev.rejected]
+        opt, metric = self.options.optimise, self.options.fix_scale
+        shape = gnss.shape_edges(m, snap, kept, opt, metric, inp.cam_from_ant)
         # the chain's stiffness is cross-validated on the fixes, again only once enough more have arrived
         cached = self._gnss_scale.get(m.id)
         scale = None if cached is None or gnss.cv_due(len(fixes), cached[0], o) else cached[1]
         try:
             res = await asyncio.get_running_loop().run_in_executor(
                 self._opt_exec,
-                partial(fuse_gnss, options=o.stage, links=links, up_in_body=up, stiffness_scale=scale),
+                partial(fuse_gnss, options=o.stage, up_in_body=up, stiffness_scale=scale, shape=shape),
                 inp.world_from_ant,
                 inp.chains,
                 fixes,
@@ -116,13 +122,15 @@ class GnssSteps:
         self._gnss_unbend[m.id] = gnss.unbend_of(res, inp, new_cam)
         self._generation[m.id] = self._generation.get(m.id, 0) + 1
         self._enu_maps.add(m.id)
+        n_odo = sum(e.odometry for e in shape)
         self.server.events.add(
             "gnss_stage",
-            f"map {m.id} bent onto {used}/{len(fixes)} fixes in ENU ({len(links)} inter-agent links, "
+            f"map {m.id} bent onto {used}/{len(fixes)} fixes in ENU (held by {n_odo} odometry and "
+            f"{len(shape) - n_odo} loop, merge and rendezvous edges, "
             f"median residual {float(np.median(res.residuals_m)):.2f} m, chain stiffness "
             f"x{res.stiffness_scale:g}{'' if cv is None else ' by cross-validation'})",
             map_id=m.id,
-            data={"used": used, "n_fixes": len(fixes), "n_links": len(links),
+            data={"used": used, "n_fixes": len(fixes), "n_odometry": n_odo, "n_measured": len(shape) - n_odo,
                   "enu_from_map": res.enu_from_map.tolist(), "stiffness_scale": res.stiffness_scale,
                   "cv_scores": None if cv is None else {str(k): v for k, v in cv.items()}},
         )  # fmt: skip

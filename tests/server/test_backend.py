@@ -259,6 +259,17 @@ def test_gnss_stage_moves_merged_map_into_enu(srv: Server) -> None:
     cvs = [d for d in stages() if d["cv_scores"] is not None]
     assert cvs and all(set(d["cv_scores"]) == {"1.0", "0.3", "0.1", "0.03"} for d in cvs)
     assert all(d["stiffness_scale"] == float(min(d["cv_scores"], key=d["cv_scores"].get)) for d in cvs)
+
+    # the stage held the map as its pose graph does: within each agent (this Sim(3) preset: its essential
+    # graph, at least a chain), and by the kept merge and loop edges (at least the merge that joined them)
+    def kept() -> tuple[int, int]:
+        m = next(iter(srv.hive.stack.maps.values()))
+        edges = srv.backend.evidence.kept_edges(m.id, m.keyframes)
+        return len(m.keyframes), sum(not ev.rejected for ev in edges)
+
+    n_kfs, n_kept = srv.call(kept)
+    assert stages()[-1]["n_odometry"] >= n_kfs - 2
+    assert stages()[-1]["n_measured"] == n_kept >= 1
     n_before = len(stages())
     m = srv.call(lambda: next(iter(srv.hive.stack.maps.values())))
 
