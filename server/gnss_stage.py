@@ -1,12 +1,15 @@
 """The server's global GNSS stage (paper 2.5.3; VINS-Fusion ``global_fusion`` style).
 
-After global BA, a gtsam graph over a merged map's keyframe poses: relative-pose factors between
-consecutive keyframes of each agent (from the BA result) plus a GNSS position factor per fix,
-weighted by the fix's covariance under a Huber loss. Its output is ``enu_from_map`` (the rigid
-transform that moves the whole map into ENU) and the corrected poses. Fixes more than
-``outlier_sigma`` sigmas off after a first solve are rejected and the graph is solved again. How stiffly
-the relative-pose factors hold the map's shape against the fixes is chosen by cross-validation on the
-fixes (``GnssStageOptions.stiffness_scales``).
+After global BA, a gtsam graph over a merged map's keyframe poses: the map's shape as its robust pose
+graph knows it (:class:`ShapeEdge`: every agent's odometry between consecutive keyframes and every kept
+loop, merge and rendezvous edge, each held at the map's current relative pose with that edge's own
+uncertainty) plus a GNSS position factor per fix, weighted by the fix's covariance under a Huber loss. Its
+output is ``enu_from_map`` (the rigid transform that moves the whole map into ENU) and the corrected
+poses. Fixes more than ``outlier_sigma`` sigmas off after a first solve are rejected and the graph is
+solved again. How stiffly the odometry holds the map's shape against the fixes is chosen by
+cross-validation on the fixes (``GnssStageOptions.stiffness_scales``); the loops and merges are
+measurements and keep their own covariances. (A chain of fixed per-metre sigmas dropped each agent's
+loops, so a few noisy fixes bent a map whose loops had closed it.)
 
 Roll/pitch: GNSS positions barely observe a keyframe's tilt, so on a gravity-aligned map an attitude
 factor holds each keyframe's up direction: the one the agent's IMU measured (``up_in_body``, sent with
@@ -19,7 +22,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,25 +36,17 @@ F64 = NDArray[np.float64]
 class GnssStageOptions:
     min_fixes: int = 3
     min_spread_m: float = 5.0  # the fixes must span this much horizontally to fix yaw
-    sigma_rel_rot: float = 0.002  # rad, per metre travelled (+ floor below)
-    sigma_rel_trans: float = 0.005  # m per metre travelled
-    sigma_floor_rot: float = 0.001
-    sigma_floor_trans: float = 0.005
     huber_k: float = 1.345
-    # links between agents (shared views, loop edges, known start configuration): held at their current
-    # relative pose with these sigmas, so that one agent's fixes also place the others
-    sigma_link_rot: float = 0.003  # rad
-    sigma_link_trans: float = 0.02  # m
     # The map is gravity-aligned (IMU): estimate only yaw + translation into ENU and hold each
     # keyframe's roll/pitch with an attitude factor, as GNSS barely observes tilt.
     gravity_aligned: bool = True
     sigma_attitude: float = 0.005  # rad
     outlier_sigma: float = 10.0
     max_iterations: int = 50
-    # How stiff the chain is (the relative sigmas above times a scale) is chosen by cross-validation: the
+    # How stiff the odometry is (its edges' sigmas times a scale) is chosen by cross-validation: the
     # fixes are split into ``cv_folds`` interleaved folds, each predicted by the stage solved without it,
-    # and the scale with the closest predictions (mean squared Mahalanobis distance) wins. A map whose
-    # loops closed is better held near rigid, a drifting one needs a looser chain (docs/decisions.md).
+    # and the scale with the closest predictions (mean squared Mahalanobis distance) wins. An agent's
+    # odometry may drift more or less than the pose graph's model of it says (docs/decisions.md).
     stiffness_scales: tuple[float, ...] = (1.0, 0.3, 0.1, 0.03)
     cv_folds: int = 5
     cv_min_fixes: int = 10  # fewer used fixes: scale 1 (the first one), no cross-validation
@@ -96,28 +90,23 @@ class NotEnoughFixes(ValueError):
 
 def fuse_gnss(
     world_from_body: F64,
-    chains: list[list[int]],
+    shape: list[ShapeEdge],
     fixes: list[GnssFix],
     options: GnssStageOptions = GnssStageOptions(),
-    links: list[tuple[int, int]] | None = None,
     up_in_body: F64 | None = None,
     stiffness_scale: float | None = None,
-    shape: list[ShapeEdge] | None = None,
 ) -> GnssStageResult:
     """Move a map into ENU and bend it onto the GNSS fixes.
 
     world_from_body: (N, 4, 4) keyframe poses in the map frame (after BA).
-    chains: per agent, keyframe indices in time order; consecutive ones get relative-pose factors.
-    links: other keyframe pairs (e.g. between agents) whose current relative pose is kept (sigma_link_*).
+    shape: the map's relative-pose factors (:class:`ShapeEdge`).
     up_in_body: (N, 3) the up direction measured in each keyframe's body frame (an agent's IMU), rows of
     NaN where there is none: the attitude factors hold those keyframes to it instead of to the map's own
     roll/pitch (which carries the visual tilt drift).
     fixes: GNSS fixes attached to keyframes. Raises :class:`NotEnoughFixes` when they cannot fix
     the map in ENU (fewer than ``min_fixes``, or spread less than ``min_spread_m``).
-    stiffness_scale: the relative sigmas' scale to use; None: chosen by cross-validation among
+    stiffness_scale: the odometry sigmas' scale to use; None: chosen by cross-validation among
     ``options.stiffness_scales`` (a caller can keep the choice until more fixes arrive).
-    shape: the map's own relative-pose factors (:class:`ShapeEdge`), instead of the chains' per-metre
-    sigmas and the links' fixed ones.
     """
     import gtsam
 
@@ -139,22 +128,17 @@ def fuse_gnss(
     init = np.array([enu_from_map0 @ p for p in poses])
     used = np.ones(len(fixes), dtype=bool)
 
-    # What every solve shares (the cross-validation solves 20 more times): the initial values, the links,
-    # the loose priors and attitude factors, and each chain edge's relative pose and unscaled sigmas.
+    # What every solve shares (the cross-validation solves 20 more times): the initial values, the loops,
+    # the loose priors and attitude factors, and each odometry edge's relative pose and unscaled covariance.
     values = gtsam.Values()
     for k in range(n):
         values.insert(k, gtsam.Pose3(init[k]))
     fixed = gtsam.NonlinearFactorGraph()
-    link_noise = gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([options.sigma_link_rot] * 3 + [options.sigma_link_trans] * 3)
-    )
-    for a, b in [] if shape is not None else links or []:
-        fixed.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(se3_inverse(poses[a]) @ poses[b]), link_noise))
-    for e in shape or []:
+    for e in shape:
         if not e.odometry:
             rel = gtsam.Pose3(se3_inverse(poses[e.a]) @ poses[e.b])
             fixed.add(gtsam.BetweenFactorPose3(e.a, e.b, rel, gtsam.noiseModel.Gaussian.Covariance(e.cov)))
-    # Keyframes of no chain and without fixes would be unconstrained: anchor all loosely.
+    # Keyframes of no edge and without fixes would be unconstrained: anchor all loosely.
     loose = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0] * 3 + [100.0] * 3))
     for k in range(n):
         fixed.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(init[k]), loose))
@@ -170,22 +154,12 @@ def fuse_gnss(
                     gtsam.Unit3(down_in_body),
                 )
             )
-    # (a, b, relative pose, covariance of the stiffness scale 1)
-    chain_edges: list[tuple[int, int, Any, F64]] = []
-    if shape is not None:
-        for e in shape:
-            if e.odometry:
-                rel = se3_inverse(poses[e.a]) @ poses[e.b]
-                chain_edges.append((e.a, e.b, gtsam.Pose3(rel), np.asarray(e.cov, dtype=np.float64)))
-    for chain in [] if shape is not None else chains:
-        for a, b in zip(chain[:-1], chain[1:], strict=False):
-            rel = se3_inverse(poses[a]) @ poses[b]
-            dist = float(np.linalg.norm(rel[:3, 3]))
-            sig = np.array(
-                [options.sigma_floor_rot + options.sigma_rel_rot * dist] * 3
-                + [options.sigma_floor_trans + options.sigma_rel_trans * dist] * 3
-            )
-            chain_edges.append((a, b, gtsam.Pose3(rel), np.diag(sig**2)))
+    # (a, b, relative pose, covariance at the stiffness scale 1)
+    chain_edges = [
+        (e.a, e.b, gtsam.Pose3(se3_inverse(poses[e.a]) @ poses[e.b]), np.asarray(e.cov, dtype=np.float64))
+        for e in shape
+        if e.odometry
+    ]
     huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k)
     fix_models = [
         gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(f.cov)) for f in fixes

@@ -33,7 +33,6 @@ class StageInput:
     poses: F64  # (N, 4, 4) world_from_cam (visual: the last stage's bend already taken out)
     cam_from_ant: F64  # (N, 4, 4) each keyframe's lever arm
     world_from_ant: F64
-    chains: list[list[int]]  # per agent, its keyframes' indices in time order
     fixes: list[GnssFix]
 
 
@@ -52,13 +51,10 @@ def stage_input(
             fixes.append(GnssFix(i, np.asarray(kf.gnss_enu), np.asarray(cov)))
     if len(fixes) < 3:
         return None
-    chains: dict[str, list[int]] = {}
-    for i, k in enumerate(keys):
-        chains.setdefault(k[0], []).append(i)
     poses = np.array([m.keyframes[k].world_from_cam for k in keys])
-    levers = {a: lever_of(a) for a in chains}
+    levers = {a: lever_of(a) for a in {k[0] for k in keys}}
     cam_from_ant = np.array([se3(np.eye(3), levers[k[0]]) for k in keys])
-    return StageInput(keys, poses, cam_from_ant, poses @ cam_from_ant, list(chains.values()), fixes)
+    return StageInput(keys, poses, cam_from_ant, poses @ cam_from_ant, fixes)
 
 
 def shape_edges(

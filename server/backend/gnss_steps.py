@@ -92,9 +92,9 @@ class GnssSteps:
         try:
             res = await asyncio.get_running_loop().run_in_executor(
                 self._opt_exec,
-                partial(fuse_gnss, options=o.stage, up_in_body=up, stiffness_scale=scale, shape=shape),
+                partial(fuse_gnss, options=o.stage, up_in_body=up, stiffness_scale=scale),
                 inp.world_from_ant,
-                inp.chains,
+                shape,
                 fixes,
             )
         except NotEnoughFixes as exc:

@@ -47,9 +47,7 @@ TODAY: dict[str, Any] = {
     "gnss_stage": {
         "cv_folds": 5, "cv_min_fixes": 10, "gravity_aligned": True, "huber_k": 1.345, "max_iterations": 50,
         "min_fixes": 3, "min_spread_m": 5.0, "outlier_sigma": 10.0, "sigma_attitude": 0.005,
-        "sigma_floor_rot": 0.001, "sigma_floor_trans": 0.005, "sigma_link_rot": 0.003,
-        "sigma_link_trans": 0.02,
-        "sigma_rel_rot": 0.002, "sigma_rel_trans": 0.005, "stiffness_scales": (1.0, 0.3, 0.1, 0.03),
+        "stiffness_scales": (1.0, 0.3, 0.1, 0.03),
     },
 }  # fmt: skip
 
