@@ -86,7 +86,7 @@ class GnssSteps:
         kept = [ev.edge for ev in self.evidence.kept_edges(m.id, m.keyframes) if not ev.rejected]
         opt, metric = self.options.optimise, self.options.fix_scale
         shape = gnss.shape_edges(m, snap, kept, opt, metric, inp.cam_from_ant)
-        # the chain's stiffness is cross-validated on the fixes, again only once enough more have arrived
+        # the odometry's stiffness is cross-validated on the fixes, again only once enough more have arrived
         cached = self._gnss_scale.get(m.id)
         scale = None if cached is None or gnss.cv_due(len(fixes), cached[0], o) else cached[1]
         try:
