@@ -62,6 +62,16 @@ class PoseGraphEdge:
         u = u / norm
         return cov + (self.sigma_yaw**2 - self.sigma_rot**2) * np.outer(u, u)
 
+    def se3_covariance(self) -> F64:
+        """(6, 6) [rot, trans] covariance in gtsam's Between perturbation: ``covariance`` where given, else
+        :meth:`rotation_covariance` and ``sigma_trans`` per axis."""
+        if self.covariance is not None:
+            return np.asarray(self.covariance, dtype=np.float64)
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = self.rotation_covariance()
+        cov[3:, 3:] = np.eye(3) * self.sigma_trans**2
+        return cov
+
 
 @dataclass(frozen=True)
 class PoseGraphOptions:
@@ -110,16 +120,12 @@ def _edge_noise(e: PoseGraphEdge, tail: list[float], options: PoseGraphOptions) 
     import gtsam
 
     noise: Any
-    if e.covariance is not None:
-        cov = np.zeros((3 + len(tail), 3 + len(tail)))
-        cov[:6, :6] = e.covariance
-        cov[6:, 6:] = np.diag(np.square(tail[3:]))
-        noise = gtsam.noiseModel.Gaussian.Covariance(cov)
-    elif e.sigma_yaw is None or e.up_j is None:
+    if e.covariance is None and (e.sigma_yaw is None or e.up_j is None):
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([e.sigma_rot] * 3 + tail))
     else:
-        cov = np.diag(np.r_[np.zeros(3), np.square(tail)])
-        cov[:3, :3] = e.rotation_covariance()
+        cov = np.zeros((3 + len(tail), 3 + len(tail)))
+        cov[:6, :6] = e.se3_covariance()
+        cov[6:, 6:] = np.diag(np.square(tail[3:]))
         noise = gtsam.noiseModel.Gaussian.Covariance(cov)
     if e.robust and not options.gnc:
         huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k)

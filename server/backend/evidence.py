@@ -168,6 +168,10 @@ class EvidenceBook:
             ev for ev in edges if ev.dependent is None and ev.edge.candidate in keys and ev.edge.query in keys
         ]
 
+    def held_edges(self, map_id: int, keys: Any) -> list[NewEdge]:
+        """The edges the map's last pose graph held: its kept edges (:meth:`kept_edges`) not rejected."""
+        return [ev.edge for ev in self.kept_edges(map_id, keys) if not ev.rejected]
+
     def judge(
         self, map_id: int, judged: list[Evidence], inlier: list[bool], chi2: list[float], confirmations: int
     ) -> Verdict:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +20,9 @@ from hivemap.server.backend import optimise
 from hivemap.server.backend.optimise import NewEdge, Snapshot
 from hivemap.server.backend.options import GnssOptions, OptimiseOptions
 from hivemap.server.gnss_stage import GnssFix, GnssStageResult, ShapeEdge
+
+if TYPE_CHECKING:
+    from hivemap.server.optim import PoseGraphEdge
 
 KfKey = tuple[str, int]
 F64 = NDArray[np.float64]
@@ -58,25 +61,35 @@ def stage_input(
 
 
 def shape_edges(
-    m: Any, snap: Snapshot, kept: list[NewEdge], o: OptimiseOptions, metric: bool, cam_from_ant: F64
-) -> list[ShapeEdge]:
-    """The map's shape as its pose-graph step holds it (:func:`.optimise.pose_graph_problem` over the map's
-    kept loop, merge and rendezvous edges ``kept``), as the GNSS stage's factors: each edge's covariance
-    moved from the keyframes' cameras onto their antennas (``cam_from_ant``, per keyframe of ``snap``)."""
+    m: Any, snap: Snapshot, kept: list[NewEdge], o: OptimiseOptions, metric: bool
+) -> list[PoseGraphEdge]:
+    """The map's shape as its pose-graph step holds it: the edges of :func:`.optimise.pose_graph_problem`
+    over the map's kept loop, merge and rendezvous edges ``kept`` (read from the map: the event loop's
+    part; :func:`on_antennas` makes them the stage's factors)."""
+    problem = optimise.pose_graph_problem(m, snap, kept, None, [], o, measured_only=o.gnc, metric=metric)
+    return optimise.problem_edges(problem, snap.poses, o)
+
+
+def on_antennas(edges: list[PoseGraphEdge], cam_from_ant: F64) -> list[ShapeEdge]:
+    """The GNSS stage's factors of :func:`shape_edges`: each edge's covariance moved from the keyframes'
+    cameras onto their antennas (``cam_from_ant``, per keyframe); robust edges are measurements, the
+    others an agent's odometry."""
     import gtsam
 
-    problem = optimise.pose_graph_problem(m, snap, kept, None, [], o, measured_only=o.gnc, metric=metric)
     out = []
-    for e in optimise.problem_edges(problem, snap.poses, o):
-        cov = e.covariance
-        if cov is None:
-            cov = np.zeros((6, 6))
-            cov[:3, :3] = e.rotation_covariance()
-            cov[3:, 3:] = np.eye(3) * e.sigma_trans**2
+    for e in edges:
         # the antenna's perturbation is the camera's seen through the lever arm (j side of the Between)
         ad = gtsam.Pose3(se3_inverse(cam_from_ant[e.j])).AdjointMap()
-        out.append(ShapeEdge(e.i, e.j, ad @ np.asarray(cov, dtype=np.float64) @ ad.T, odometry=not e.robust))
+        out.append(ShapeEdge(e.i, e.j, ad @ e.se3_covariance() @ ad.T, odometry=not e.robust))
     return out
+
+
+def fuse(inp: StageInput, edges: list[PoseGraphEdge], **kwargs: Any) -> GnssStageResult:
+    """:func:`hivemap.server.gnss_stage.fuse_gnss` of a stage input and its :func:`shape_edges` (in the
+    optimisation thread; ``kwargs`` go to ``fuse_gnss``)."""
+    from hivemap.server.gnss_stage import fuse_gnss
+
+    return fuse_gnss(inp.world_from_ant, on_antennas(edges, inp.cam_from_ant), inp.fixes, **kwargs)
 
 
 def antenna_fixes(

@@ -71,7 +71,7 @@ class GnssSteps:
     async def _gnss_stage(self, m: Any) -> None:
         """Paper 2.5.3: bend the whole map onto every agent's GNSS fixes (antenna positions, through each
         agent's lever arm) with the agents tied together, and move it into ENU."""
-        from hivemap.server.gnss_stage import NotEnoughFixes, fuse_gnss
+        from hivemap.server.gnss_stage import NotEnoughFixes
 
         o = self.options.gnss
         inp = gnss.stage_input(m, self._cam_from_antenna)
@@ -83,19 +83,16 @@ class GnssSteps:
         up = optimise.up_rows(m, inp.keys)
         snap = Snapshot(m.id, self._generation.get(m.id, 0), inp.keys, inp.poses)
         # the map's shape as the robust pose graph knows it: odometry and the loops and merges it kept
-        kept = [ev.edge for ev in self.evidence.kept_edges(m.id, m.keyframes) if not ev.rejected]
         opt, metric = self.options.optimise, self.options.fix_scale
-        shape = gnss.shape_edges(m, snap, kept, opt, metric, inp.cam_from_ant)
+        kept = self.evidence.held_edges(m.id, m.keyframes) if opt.gnc else []
+        shape = gnss.shape_edges(m, snap, kept, opt, metric)
         # the odometry's stiffness is cross-validated on the fixes, again only once enough more have arrived
         cached = self._gnss_scale.get(m.id)
         scale = None if cached is None or gnss.cv_due(len(fixes), cached[0], o) else cached[1]
         try:
             res = await asyncio.get_running_loop().run_in_executor(
                 self._opt_exec,
-                partial(fuse_gnss, options=o.stage, up_in_body=up, stiffness_scale=scale),
-                inp.world_from_ant,
-                shape,
-                fixes,
+                partial(gnss.fuse, inp, shape, options=o.stage, up_in_body=up, stiffness_scale=scale),
             )
         except NotEnoughFixes as exc:
             self.server.events.add("gnss_stage", f"map {m.id}: {exc}", map_id=m.id)
@@ -122,7 +119,7 @@ class GnssSteps:
         self._gnss_unbend[m.id] = gnss.unbend_of(res, inp, new_cam)
         self._generation[m.id] = self._generation.get(m.id, 0) + 1
         self._enu_maps.add(m.id)
-        n_odo = sum(e.odometry for e in shape)
+        n_odo = sum(not e.robust for e in shape)
         self.server.events.add(
             "gnss_stage",
             f"map {m.id} bent onto {used}/{len(fixes)} fixes in ENU (held by {n_odo} odometry and "

@@ -179,8 +179,7 @@ class Uncertainty:
         snap = bk._snapshot(m)
         index = {k: i for i, k in enumerate(snap.keys)}
         fixed = optimise.anchor(m, snap.keys, bk._agent_kind, 1)
-        judged = bk.evidence.kept_edges(map_id, m.keyframes) if o.gnc else []
-        kept = [ev.edge for ev in judged if not ev.rejected]  # the edges the last pose graph kept
+        kept = bk.evidence.held_edges(map_id, m.keyframes) if o.gnc else []
         problem = optimise.pose_graph_problem(m, snap, kept, None, fixed, o, o.gnc, bk.options.fix_scale)
         two = latest_two(m)
         latest = {a: k for a, (k, _) in two.items()}
