@@ -9,6 +9,8 @@ BIN := $(VENV)/bin
 # Debian packages the renderer (headless EGL/Mesa) and the browser tests need.
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 chromium chromium-driver docker-compose
 STAMP := $(VENV)/.installed
+# pytest-xdist processes for `make test`; each test file stays on one (its module fixtures run once).
+TEST_WORKERS ?= 2
 
 .PHONY: setup sysdeps test lint typecheck pytest demo bench clean
 
@@ -32,7 +34,7 @@ typecheck: setup
 	$(BIN)/mypy protocol server maps client sim eval cli
 
 pytest: setup
-	$(BIN)/pytest -q -x --durations=15
+	$(BIN)/pytest -q -x -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 test: lint typecheck pytest
 
