@@ -58,6 +58,7 @@ class AgentStats:
     keyframes: int = 0
     acked: int = 0
     corrections: int = 0
+    last_ack: int = 0  # the highest seq the server acked or refused
     errors: list[str] = field(default_factory=list)
     late_s: list[float] = field(default_factory=list)  # how far behind its recorded time a keyframe went out
 
@@ -83,13 +84,19 @@ async def replay_agent(url: str, s: Stream, t_start: float, window: int = 512) -
                 _, msg = decode(frame)
                 if isinstance(msg, Ack):
                     st.acked += 1
+                    st.last_ack = max(st.last_ack, msg.seq)
                     inflight.release()
                     if msg.seq >= last:
                         done.set()
                 elif isinstance(msg, Correction):
                     st.corrections += 1
-                elif isinstance(msg, ErrorMsg):
+                elif isinstance(msg, ErrorMsg):  # a refused message is answered, not acked
                     st.errors.append(f"{msg.code}: {msg.message}")
+                    if msg.seq is not None:
+                        st.last_ack = max(st.last_ack, msg.seq)
+                        inflight.release()
+                        if msg.seq >= last:
+                            done.set()
 
         task = asyncio.create_task(reader())
         for t, frame, is_kf in s.frames:
@@ -102,7 +109,10 @@ async def replay_agent(url: str, s: Stream, t_start: float, window: int = 512) -
                 st.late_s.append(max(0.0, -delay))
             await ws.send(frame)
         if s.frames:
-            await asyncio.wait_for(done.wait(), 300.0)
+            try:
+                await asyncio.wait_for(done.wait(), 300.0)
+            except TimeoutError:  # reported, not raised: the other streams' figures still count
+                st.errors.append(f"{s.agent_id}: no answer to seq {last} in 300 s (last {st.last_ack})")
         task.cancel()
     return st
 

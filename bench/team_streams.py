@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hivemap.protocol import Hello, Keyframe, MapPoints, Message, PoseUpdates, decode, encode
+from hivemap.protocol import Hello, Keyframe, MapPoints, Message, PoseUpdates, Rendezvous, decode, encode
 
 KM = 1000.0
 
@@ -76,8 +76,9 @@ def _shift(T: np.ndarray, off: np.ndarray) -> np.ndarray:
     return out
 
 
-def copy_message(msg: Message, off: np.ndarray, mask: np.ndarray | None) -> Message:
-    """``msg`` of copy ``c``: shifted by ``off``, descriptors XOR ``mask`` (None: the original team)."""
+def copy_message(msg: Message, off: np.ndarray, mask: np.ndarray | None, suffix: str = "") -> Message:
+    """``msg`` of a copy: shifted by ``off``, descriptors XOR ``mask`` (None: the original team), and an
+    observed agent renamed with the copy's ``suffix`` (a copy's agents see their own team's carriers)."""
     if isinstance(msg, Keyframe):
         return replace(
             msg,
@@ -91,6 +92,8 @@ def copy_message(msg: Message, off: np.ndarray, mask: np.ndarray | None) -> Mess
         )
     if isinstance(msg, PoseUpdates):
         return replace(msg, world_from_cam=_shift(msg.world_from_cam, off), xyz=msg.xyz + off)
+    if isinstance(msg, Rendezvous):  # relative poses only: nothing to shift
+        return replace(msg, observed_agent=msg.observed_agent + suffix)
     return msg
 
 
@@ -114,14 +117,15 @@ def make_streams(rec: Path, n: int, speed: float, duration_s: float | None) -> l
         a, c = base[i % len(base)], i // len(base)
         off = np.array([c * KM, 0.0, 0.0])
         mask = None if c == 0 else np.random.default_rng(c).integers(0, 256, 32, dtype=np.uint8)
-        aid = a["agent_id"] if c == 0 else f"{a['agent_id']}c{c}"
+        suffix = "" if c == 0 else f"c{c}"
+        aid = a["agent_id"] + suffix
         frames: list[tuple[float, bytes, bool]] = []
         held: list[Message] = []
         session = 0
         for msg in decoded[a["agent_id"]]:
             if isinstance(msg, Keyframe | MapPoints | PoseUpdates) and not frames and not held:
                 session = msg.session
-            held.append(copy_message(msg, off, mask))
+            held.append(copy_message(msg, off, mask, suffix))
             if isinstance(msg, Keyframe):
                 t = (msg.timestamp - t0) / speed
                 if duration_s is not None and t > duration_s:

@@ -1,0 +1,66 @@
+"""bench/team_streams.py: a copy of the team is a separate team (shifted, re-textured, seeing its own
+team's carriers), and the original stays as recorded."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from hivemap.protocol import Keyframe, Rendezvous
+
+BENCH = Path(__file__).resolve().parents[2] / "bench"
+
+
+def _streams():  # type: ignore[no-untyped-def]
+    sys.path.insert(0, str(BENCH))
+    try:
+        spec = importlib.util.spec_from_file_location("team_streams_bench", BENCH / "team_streams.py")
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod  # its dataclasses look their module up
+        spec.loader.exec_module(mod)
+        return mod
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+def _rendezvous(observed: str) -> Rendezvous:
+    T = np.eye(4)
+    T[:3, 3] = (0.5, -0.2, 3.0)
+    return Rendezvous(
+        timestamp=12.5, observed_agent=observed, marker_ids=np.array([3, 4], dtype=np.int64), ref_kf_id=7,
+        ref_from_cam=np.eye(4), cam_from_observed=T, covariance=np.eye(6) * 1e-4, reproj_rms_px=0.3,
+    )  # fmt: skip
+
+
+def test_a_copys_rendezvous_names_its_own_teams_agent_and_keeps_the_relative_pose() -> None:
+    ts = _streams()
+    msg = _rendezvous("ugv")
+    mask = np.random.default_rng(1).integers(0, 256, 32, dtype=np.uint8)
+    copy = ts.copy_message(msg, np.array([ts.KM, 0.0, 0.0]), mask, "c1")
+    assert copy.observed_agent == "ugvc1"
+    assert np.array_equal(copy.cam_from_observed, msg.cam_from_observed)
+    assert np.array_equal(copy.ref_from_cam, msg.ref_from_cam) and copy.ref_kf_id == 7
+    assert ts.copy_message(msg, np.zeros(3), None).observed_agent == "ugv"
+
+
+def test_a_copys_keyframe_is_shifted_and_re_textured() -> None:
+    ts = _streams()
+    rng = np.random.default_rng(0)
+    T = np.eye(4)
+    T[:3, 3] = (1.0, 2.0, 3.0)
+    kf = Keyframe(
+        kf_id=5, timestamp=1.0, world_from_cam=T, keypoints=np.zeros((2, 2), dtype=np.float32),
+        octaves=np.zeros(2, dtype=np.uint8), descriptors=rng.integers(0, 256, (2, 32), dtype=np.uint8),
+        point_ids=np.array([-1, -1], dtype=np.int64),
+    )  # fmt: skip
+    mask = rng.integers(0, 256, 32, dtype=np.uint8)
+    copy = ts.copy_message(kf, np.array([ts.KM, 0.0, 0.0]), mask, "c1")
+    assert np.allclose(copy.world_from_cam[:3, 3], (1001.0, 2.0, 3.0))
+    assert np.array_equal(copy.descriptors ^ mask, kf.descriptors)
+    # distances within the copy are the original's
+    d = np.unpackbits(copy.descriptors[0] ^ copy.descriptors[1]).sum()
+    assert d == np.unpackbits(kf.descriptors[0] ^ kf.descriptors[1]).sum()
