@@ -135,7 +135,8 @@ def make_streams(rec: Path, n: int, speed: float, duration_s: float | None) -> l
                     frames.append((t, encode(h, len(frames) + 1), isinstance(h, Keyframe)))
                 held = []
         t_end = frames[-1][0] if frames else 0.0
-        frames += [(t_end, encode(h, len(frames) + 1), False) for h in held]
+        for h in held:  # what followed the last keyframe, each at a seq of its own
+            frames.append((t_end, encode(h, len(frames) + 1), False))
         lever = a["cam_from_antenna"]
         lever_a = None if lever is None else np.asarray(lever, dtype=np.float64)
         hello = Hello(aid, a["kind"], a["camera"], f"team-{aid}", 0, session, lever_a, uuid.uuid4().hex)

@@ -4,12 +4,14 @@ team's carriers), and the original stays as recorded."""
 from __future__ import annotations
 
 import importlib.util
+import json
+import sqlite3
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from hivemap.protocol import Keyframe, Rendezvous
+from hivemap.protocol import Keyframe, PoseUpdates, Rendezvous, decode, encode
 
 BENCH = Path(__file__).resolve().parents[2] / "bench"
 
@@ -64,3 +66,29 @@ def test_a_copys_keyframe_is_shifted_and_re_textured() -> None:
     # distances within the copy are the original's
     d = np.unpackbits(copy.descriptors[0] ^ copy.descriptors[1]).sum()
     assert d == np.unpackbits(kf.descriptors[0] ^ kf.descriptors[1]).sum()
+
+
+def test_every_message_of_a_stream_has_its_own_seq(tmp_path: Path) -> None:
+    """Messages after an agent's last keyframe (pose updates of its last local BA) each get a seq."""
+    ts = _streams()
+    rng = np.random.default_rng(0)
+    kf = Keyframe(
+        kf_id=1, timestamp=5.0, world_from_cam=np.eye(4), keypoints=np.zeros((1, 2), dtype=np.float32),
+        octaves=np.zeros(1, dtype=np.uint8), descriptors=rng.integers(0, 256, (1, 32), dtype=np.uint8),
+        point_ids=np.array([-1], dtype=np.int64),
+    )  # fmt: skip
+    upd = PoseUpdates(
+        kf_ids=np.array([1], dtype=np.int64), world_from_cam=np.eye(4)[None],
+        point_ids=np.zeros(0, dtype=np.int64), xyz=np.zeros((0, 3)),
+    )  # fmt: skip
+    db = sqlite3.connect(tmp_path / "uav1.sqlite")
+    db.execute("CREATE TABLE outbox (seq INTEGER PRIMARY KEY, frame BLOB NOT NULL, acked INTEGER)")
+    for i, m in enumerate([kf, upd, upd, upd], start=1):
+        db.execute("INSERT INTO outbox VALUES (?, ?, 1)", (i, encode(m, i)))
+    db.commit()
+    db.close()
+    meta = {"agents": [{"agent_id": "uav1", "kind": "uav", "camera": {}, "cam_from_antenna": None}],
+            "start_poses": {"uav1": np.eye(4).tolist()}}  # fmt: skip
+    (tmp_path / "team.json").write_text(json.dumps(meta))
+    (stream,) = ts.make_streams(tmp_path, 1, 1.0, None)
+    assert [decode(f)[0] for _, f, _ in stream.frames] == [1, 2, 3, 4]
