@@ -78,25 +78,25 @@ async def replay_agent(url: str, s: Stream, t_start: float, window: int = 512) -
         if isinstance(welcome, ErrorMsg):
             raise RuntimeError(f"{s.agent_id}: server refused: {welcome.message}")
 
+        def answered(seq: int) -> None:  # an ack, or a refusal: the message is done with either way
+            st.last_ack = max(st.last_ack, seq)
+            inflight.release()
+            if seq >= last:
+                done.set()
+
         async def reader() -> None:
             async for frame in ws:
                 assert isinstance(frame, bytes)
                 _, msg = decode(frame)
                 if isinstance(msg, Ack):
                     st.acked += 1
-                    st.last_ack = max(st.last_ack, msg.seq)
-                    inflight.release()
-                    if msg.seq >= last:
-                        done.set()
+                    answered(msg.seq)
                 elif isinstance(msg, Correction):
                     st.corrections += 1
-                elif isinstance(msg, ErrorMsg):  # a refused message is answered, not acked
+                elif isinstance(msg, ErrorMsg):
                     st.errors.append(f"{msg.code}: {msg.message}")
                     if msg.seq is not None:
-                        st.last_ack = max(st.last_ack, msg.seq)
-                        inflight.release()
-                        if msg.seq >= last:
-                            done.set()
+                        answered(msg.seq)
 
         task = asyncio.create_task(reader())
         for t, frame, is_kf in s.frames:

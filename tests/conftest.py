@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 from typer.testing import CliRunner
@@ -33,3 +36,20 @@ def render_tiny_uav(tmp_path_factory: pytest.TempPathFactory) -> Callable[[float
 def tiny_uav(render_tiny_uav: Callable[[float], Path]) -> Path:
     """The tiny scenario's uav1, 6 s: take-off and the first metres of flight."""
     return render_tiny_uav(6.0)
+
+
+@pytest.fixture(scope="session")
+def bench_module() -> Callable[[str], ModuleType]:
+    """``bench/<name>.py`` imported by path (bench/ is not a package); registered in ``sys.modules`` under
+    ``bench_<name>``, which its dataclasses need while it executes."""
+
+    def load(name: str) -> ModuleType:
+        path = Path(__file__).resolve().parents[1] / "bench" / f"{name}.py"
+        spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod
+        spec.loader.exec_module(mod)
+        return mod
+
+    return load

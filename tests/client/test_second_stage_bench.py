@@ -2,32 +2,26 @@
 
 from __future__ import annotations
 
-import importlib.util
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
 
 from hivemap.eval.trajectory import read_tum
 
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "second_stage.py"
-
-
-def _bench():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("second_stage_bench", BENCH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
 
 def test_a_recorded_stage_replays_to_the_runs_keyframes(
-    tiny_agent: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tiny_agent: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    bench_module: Callable[[str], ModuleType],
 ) -> None:
     import pickle
 
-    bench = _bench()
+    bench = bench_module("second_stage")
     rec_path, run = tmp_path / "uav1.pkl", tmp_path / "run"
     monkeypatch.setattr(sys, "argv", ["second_stage.py", "record", "--dataset", str(tiny_agent), "--out",
                                       str(rec_path), "--run-out", str(run), "--no-progress"])  # fmt: skip

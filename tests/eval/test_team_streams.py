@@ -3,30 +3,15 @@ team's carriers), and the original stays as recorded."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sqlite3
-import sys
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
 from hivemap.protocol import Keyframe, PoseUpdates, Rendezvous, decode, encode
-
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
-
-def _streams():  # type: ignore[no-untyped-def]
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location("team_streams_bench", BENCH / "team_streams.py")
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = mod  # its dataclasses look their module up
-        spec.loader.exec_module(mod)
-        return mod
-    finally:
-        sys.path.remove(str(BENCH))
 
 
 def _rendezvous(observed: str) -> Rendezvous:
@@ -38,8 +23,10 @@ def _rendezvous(observed: str) -> Rendezvous:
     )  # fmt: skip
 
 
-def test_a_copys_rendezvous_names_its_own_teams_agent_and_keeps_the_relative_pose() -> None:
-    ts = _streams()
+def test_a_copys_rendezvous_names_its_own_teams_agent_and_keeps_the_relative_pose(
+    bench_module: Callable[[str], ModuleType],
+) -> None:
+    ts = bench_module("team_streams")
     msg = _rendezvous("ugv")
     mask = np.random.default_rng(1).integers(0, 256, 32, dtype=np.uint8)
     copy = ts.copy_message(msg, np.array([ts.KM, 0.0, 0.0]), mask, "c1")
@@ -49,8 +36,8 @@ def test_a_copys_rendezvous_names_its_own_teams_agent_and_keeps_the_relative_pos
     assert ts.copy_message(msg, np.zeros(3), None).observed_agent == "ugv"
 
 
-def test_a_copys_keyframe_is_shifted_and_re_textured() -> None:
-    ts = _streams()
+def test_a_copys_keyframe_is_shifted_and_re_textured(bench_module: Callable[[str], ModuleType]) -> None:
+    ts = bench_module("team_streams")
     rng = np.random.default_rng(0)
     T = np.eye(4)
     T[:3, 3] = (1.0, 2.0, 3.0)
@@ -68,9 +55,11 @@ def test_a_copys_keyframe_is_shifted_and_re_textured() -> None:
     assert d == np.unpackbits(kf.descriptors[0] ^ kf.descriptors[1]).sum()
 
 
-def test_every_message_of_a_stream_has_its_own_seq(tmp_path: Path) -> None:
+def test_every_message_of_a_stream_has_its_own_seq(
+    tmp_path: Path, bench_module: Callable[[str], ModuleType]
+) -> None:
     """Messages after an agent's last keyframe (pose updates of its last local BA) each get a seq."""
-    ts = _streams()
+    ts = bench_module("team_streams")
     rng = np.random.default_rng(0)
     kf = Keyframe(
         kf_id=1, timestamp=5.0, world_from_cam=np.eye(4), keypoints=np.zeros((1, 2), dtype=np.float32),
