@@ -12,7 +12,9 @@ Two ways to write, one set of tables, one way to read:
 Lossless: arrays are stored as raw bytes with their dtype and shape (``pack_array``), floats that are not
 in arrays (timestamps) as 8 raw bytes, so everything reloads bit-identical; covisibility is re-derived
 from the keyframes' point references (the model's source of truth) and the spanning tree is restored
-from the stored parents.
+from the stored parents. Positions written after a point's insertion are kept in blocks of consecutive
+point ids (:mod:`hivemap.maps.store_xyz`), so rewriting every point after an optimisation writes a page per
+block rather than a page per point.
 
 Transactions: each write method runs in its own transaction and commits, unless a transaction is
 already open on ``conn`` or ``autocommit`` is False; then the caller commits (``conn.commit()``), so
@@ -42,6 +44,7 @@ from hivemap.maps.stack import MapStack
 from hivemap.maps.store_load import read_map
 from hivemap.maps.store_rows import MapRows, _kf_row, _pt_row, map_rows, pack_array, unpack_array
 from hivemap.maps.store_schema import _KF_UPSERT, _PT_UPSERT, _SCHEMA, _TABLES
+from hivemap.maps.store_xyz import put_positions
 
 logger = logging.getLogger(__name__)
 
@@ -51,8 +54,8 @@ __all__ = [
 ]  # fmt: skip
 
 # 2: map_keyframes.up_cam; 3: u_right, stereo_baseline; 4: odom_sigma; 5: map_rendezvous; 6: track_sigma;
-# 7: vio_from_cam
-SCHEMA_VERSION = 7
+# 7: vio_from_cam; 8: map_point_xyz
+SCHEMA_VERSION = 8
 
 
 class StoreError(RuntimeError):
@@ -111,6 +114,7 @@ class MapStore:
                     # 4 -> 5: the table map_rendezvous, created below with the others
                     ("track_sigma", "BLOB"),  # 5 -> 6: and how well the agent tracked
                     ("vio_from_cam", "BLOB"),  # 6 -> 7: and the agent's own pose of it
+                    # 7 -> 8: the table map_point_xyz (positions by block), created below
                 )
                 with self._tx():
                     for col, kind in added:
@@ -238,6 +242,7 @@ class MapStore:
         with self._tx():
             self._ensure_map(map_id, {p.agent_id for p in pts})
             self.conn.executemany(_PT_UPSERT, [_pt_row(map_id, p, self._next_seq("map_points")) for p in pts])
+            put_positions(self.conn, map_id, pts)  # a slot left from an earlier write must not hide xyz
 
     def update_poses(
         self,
@@ -247,8 +252,8 @@ class MapStore:
         vio: bool = False,
     ) -> None:
         """Write only the current ``world_from_cam`` of ``keyframes`` (with ``vio`` their ``vio_from_cam``
-        too: an agent's pose update changes it, a back-end correction does not) and ``xyz`` of ``points``
-        (rows already stored; unknown ones are ignored)."""
+        too: an agent's pose update changes it, a back-end correction does not; rows not stored are
+        ignored) and ``xyz`` of ``points`` (into their position blocks, :mod:`hivemap.maps.store_xyz`)."""
         map_id = int(map_id)
         with self._tx():
             sets = "world_from_cam = ?, vio_from_cam = ?" if vio else "world_from_cam = ?"
@@ -261,13 +266,7 @@ class MapStore:
                 f"UPDATE map_keyframes SET {sets} WHERE map_id = ? AND agent = ? AND id = ?",
                 [row(kf) for kf in keyframes],
             )
-            self.conn.executemany(
-                "UPDATE map_points SET xyz = ? WHERE map_id = ? AND agent = ? AND id = ?",
-                [
-                    (np.ascontiguousarray(p.xyz, dtype="<f8").tobytes(), map_id, p.agent_id, p.id)
-                    for p in points
-                ],
-            )
+            put_positions(self.conn, map_id, points)
 
     def put_fusion(
         self,

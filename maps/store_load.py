@@ -13,6 +13,7 @@ from hivemap.maps.camera import PinholeCamera
 from hivemap.maps.model import Keyframe, KfKey, Map, MapPoint
 from hivemap.maps.store_rows import unpack_array
 from hivemap.maps.store_schema import _KF_COLS
+from hivemap.maps.store_xyz import position, read_positions
 
 logger = logging.getLogger(__name__)
 
@@ -27,6 +28,7 @@ def read_map(conn: sqlite3.Connection, map_id: int) -> Map:
     ):
         m.point_redirects[(f_a, int(f_i))] = (t_a, int(t_i))
     t0 = time.perf_counter()
+    blocks = read_positions(c, mid)
     rows = c.execute(
         "SELECT agent, id, xyz, descriptor FROM map_points WHERE map_id = ? ORDER BY seq", (mid,)
     )
@@ -37,7 +39,7 @@ def read_map(conn: sqlite3.Connection, map_id: int) -> Map:
             MapPoint(
                 agent,
                 pid,
-                np.frombuffer(xyz, dtype="<f8").astype(np.float64),
+                position(blocks, agent, int(pid), xyz),
                 np.frombuffer(desc, dtype=np.uint8),
             )
         )

@@ -9,6 +9,7 @@ _TABLES = (
     "map_loops",
     "map_redirects",
     "map_merges",
+    "map_point_xyz",
 )
 
 _SCHEMA = """
@@ -53,6 +54,13 @@ CREATE TABLE IF NOT EXISTS map_points (
     xyz BLOB NOT NULL,                    -- 3 float64 little-endian
     descriptor BLOB NOT NULL,             -- 32 bytes
     PRIMARY KEY (map_id, agent, id)
+);
+CREATE TABLE IF NOT EXISTS map_point_xyz (    -- positions written after a point's insertion (store_xyz)
+    map_id INTEGER NOT NULL,
+    agent TEXT NOT NULL,
+    block INTEGER NOT NULL,               -- point id // BLOCK
+    data BLOB NOT NULL,                   -- BLOCK bytes "slot set", then BLOCK x 3 float64 little-endian
+    PRIMARY KEY (map_id, agent, block)
 );
 CREATE TABLE IF NOT EXISTS map_loops (
     map_id INTEGER NOT NULL,
