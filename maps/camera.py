@@ -63,6 +63,32 @@ class PinholeCamera:
         uv = np.stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy], axis=1)
         return uv, valid
 
+    def project_jacobian(self, pts_in_cam: F64) -> NDArray[np.float64]:
+        """d pixel / d point of :meth:`project` at (N, 3) camera-frame points -> (N, 2, 3); zero where
+        ``project`` reports the point invalid (its pixel then does not depend on the point)."""
+        pts = np.asarray(pts_in_cam, dtype=np.float64).reshape(-1, 3)
+        z = pts[:, 2]
+        valid = z > 1e-9
+        iz = np.where(valid, 1.0 / np.where(valid, z, 1.0), 0.0)
+        x, y = pts[:, 0] * iz, pts[:, 1] * iz
+        dn = np.zeros((len(pts), 2, 3))  # d normalized / d point
+        dn[:, 0, 0] = dn[:, 1, 1] = iz
+        dn[:, 0, 2], dn[:, 1, 2] = -x * iz, -y * iz
+        if self.has_distortion:
+            k1, k2, p1, p2 = self.dist
+            r2 = x * x + y * y
+            radial = 1.0 + k1 * r2 + k2 * r2 * r2
+            dr = 2.0 * (k1 + 2.0 * k2 * r2)  # d radial / d x = dr * x
+            dd = np.empty((len(pts), 2, 2))  # d distorted / d normalized
+            dd[:, 0, 0] = radial + dr * x * x + 2 * p1 * y + 6 * p2 * x
+            dd[:, 0, 1] = dr * x * y + 2 * p1 * x + 2 * p2 * y
+            dd[:, 1, 0] = dr * x * y + 2 * p1 * x + 2 * p2 * y
+            dd[:, 1, 1] = radial + dr * y * y + 6 * p1 * y + 2 * p2 * x
+            dn = dd @ dn
+        dn[:, 0, :] *= self.fx
+        dn[:, 1, :] *= self.fy
+        return dn
+
     def in_image(self, uv: F64, margin: float = 0.0) -> NDArray[np.bool_]:
         """Mask of pixels (N, 2) inside the image (with an optional margin)."""
         return (

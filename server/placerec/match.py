@@ -129,6 +129,51 @@ def _residuals(
     return ra, rb, obs.has_b
 
 
+def _so3_left_jacobian(w: F64) -> F64:
+    """J with ``exp(w + d) = exp(J d) exp(w)`` to first order."""
+    th = float(np.linalg.norm(w))
+    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-6:
+        return np.eye(3) + W / 2.0 + W @ W / 6.0
+    return np.eye(3) + (1.0 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * (W @ W)
+
+
+def _jacobians(
+    sim: Sim3, d_rot: F64, fix_scale: bool, obs: _Obs, q_camera: Any, q_cam_from_world: F64
+) -> tuple[F64, F64, F64]:
+    """d residual / d parameters of :func:`_residuals` (N, 2, P) for directions A and B, and
+    d ``S Xq`` / d parameters (N, 3, P); parameters: the rotation's (``d_rot``'s columns: the rotation
+    of ``exp(d_rot @ r) R``), ``t``, then ``log s`` unless ``fix_scale``."""
+    R, t, s = sim.R, sim.t, sim.s
+    n, n_rot = len(obs.xc), d_rot.shape[1]
+    n_par = n_rot + 3 + (0 if fix_scale else 1)
+    # A: Xa = R^T (Xc - t) / s
+    w = obs.xc - t
+    xa = (w @ R) / s
+    dxa = np.empty((n, 3, n_par))
+    for k in range(n_rot):
+        dxa[:, :, k] = (np.cross(w, d_rot[:, k]) @ R) / s
+    dxa[:, :, n_rot : n_rot + 3] = -R.T / s
+    if not fix_scale:
+        dxa[:, :, -1] = -xa
+    Rq = q_cam_from_world[:3, :3]
+    ja = q_camera.project_jacobian(xa @ Rq.T + q_cam_from_world[:3, 3]) @ Rq @ dxa / obs.sig_q[:, None, None]
+    # B: Y = s R Xq + t (the 3D term's too)
+    rx = np.where(np.isfinite(obs.xq), obs.xq, 0.0) @ R.T
+    dy = np.empty((n, 3, n_par))
+    for k in range(n_rot):
+        dy[:, :, k] = s * np.cross(d_rot[:, k], rx)
+    dy[:, :, n_rot : n_rot + 3] = np.eye(3)
+    if not fix_scale:
+        dy[:, :, -1] = s * rx
+    jb = np.zeros((n, 2, n_par))
+    y = s * rx + t
+    for idx, cam, cfw in obs.groups_b:
+        Rc = cfw[:3, :3]
+        jb[idx] = cam.project_jacobian(y[idx] @ Rc.T + cfw[:3, 3]) @ Rc @ dy[idx] / obs.sig_b[idx, None, None]
+    return ja, jb, dy
+
+
 def refine_sim3(
     sim0: Sim3,
     obs: _Obs,
@@ -170,12 +215,22 @@ def refine_sim3(
             parts.append(((sim.apply(xq3) - xc3) / s3).ravel())
         return np.concatenate(parts)
 
-    # translation steps are scaled to the scene (x_scale) so the numeric Jacobian is well conditioned
+    def jac(x: F64) -> F64:
+        # the rotation's columns: a left perturbation of exp(x) (its left Jacobian), or the yaw axis
+        d_rot = _so3_left_jacobian(x[:3]) if axis is None else axis[:, None]
+        ja, jb, dy = _jacobians(make(x), d_rot, fix_scale, obs, q_camera, q_cam_from_world)
+        parts = [ja.reshape(-1, n_par), jb.reshape(-1, n_par)]
+        if use3:
+            parts.append((dy[i3] / s3[:, :, None]).reshape(-1, n_par))
+        return np.concatenate(parts)
+
+    # translation steps are scaled to the scene (x_scale), as the rotation's and the scale's are
     depth = float(np.median(np.linalg.norm(obs.xc - np.median(obs.xc, axis=0), axis=1))) + 1e-9
     x_scale = np.array([0.01] * n_rot + [0.01 * depth] * 3 + ([0.01] if not fix_scale else []))
     res = least_squares(
-        fun, np.zeros(n_par), loss="huber", f_scale=huber, x_scale=x_scale, max_nfev=max_nfev, method="trf"
-    )
+        fun, np.zeros(n_par), jac=jac, loss="huber", f_scale=huber, x_scale=x_scale, max_nfev=max_nfev,
+        method="trf",
+    )  # fmt: skip
     return make(res.x)
 
 
