@@ -148,6 +148,7 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
             "ship": app.state.bench_ship,
             "sent": app.state.bench_sent,
             "query_lags": be.query_lags,
+            "lag_timeline": app.state.bench_timeline,
             "dropped": be.dropped_queries,
             "skipped": be.skipped_queries,
             "queued": len(be.queue),
@@ -160,6 +161,20 @@ def serve(port: int, data_dir: Path, config: Path, profile: Path | None = None) 
             "loops": len(be.loops),
             "maps": len(app.state.hive.stack.maps),
         }
+
+    # when each query finished and how late (seconds since the server started, lag, agent): where lag builds
+    from hivemap.server.backend.backlog import QueryQueue
+
+    timeline: list[tuple[float, float, str]] = []
+    queue_done, t_start = QueryQueue.done, time.monotonic()
+
+    def timed_done(self: Any, key: Any) -> float:
+        lag = queue_done(self, key)
+        timeline.append((time.monotonic() - t_start, lag, str(key[0])))
+        return lag
+
+    QueryQueue.done = timed_done  # type: ignore[method-assign]
+    app.state.bench_timeline = timeline
 
     # CPU time of each query's look-up and job in the place-recognition thread, plus its verification's
     # (measured in whichever process ran it: the back-end's figures); with ``profile``, cProfile of the
@@ -413,7 +428,9 @@ def run_one(rec: Path, n: int, cores: int, speed: float, duration_s: float | Non
     res.update(quality(rec, events))
     res.update(team)
     res["kept_up"] = bool(res["dropped"] == 0 and res["unfinished"] == 0 and res["lag_p95"] <= LAG_OK_S)
-    if keep is not None:  # the server's store and log, to look at the map it made
+    if keep is not None:  # the server's store, log, events and lag timeline, to look at what it did
+        (work / "events.json").write_text(json.dumps(events))
+        (work / "lag_timeline.json").write_text(json.dumps(fig.get("lag_timeline", [])))
         shutil.copytree(work, keep / f"n{n}", dirs_exist_ok=True)
     shutil.rmtree(work, ignore_errors=True)
     return res
