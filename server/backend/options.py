@@ -236,6 +236,9 @@ class UncertaintyOptions:
     min_interval_s: float = 1.0
     # ... and no sooner after the last than its CPU time / this share of a core
     max_duty: float = 0.2
+    # ... or this share while place recognition has a backlog (more than ``scheduler.backlog`` queries
+    # waiting): background work then leaves the core to the queries
+    max_duty_behind: float = 0.03
     # maps with more keyframes get none (the cost of one solve: docs/decisions.md)
     max_keyframes: int = 20000
 

@@ -8,7 +8,9 @@ at the map's poses now; never on the event loop. Two kinds:
 
 * every keyframe of a map, after new keyframes or an optimisation: at most once per
   ``min_interval_s`` per map, and no sooner after the last than its CPU time / ``max_duty``, so a large
-  map costs a bounded share of a core; where the verification jobs run (:meth:`~.executor.Verifier.call`);
+  map costs a bounded share of a core (``max_duty_behind`` while place recognition has a backlog: the
+  queries are real time, these are not); where the verification jobs run
+  (:meth:`~.executor.Verifier.call`);
 * the latest keyframe of each agent of a map, just before its corrections go out
   (:meth:`Uncertainty.latest_now`), so a correction carries the covariance of the poses it sends; these
   follow the optimisations, merges and undos, which are one at a time per map; in the optimisation thread
@@ -114,6 +116,7 @@ class Uncertainty:
         self._tasks: dict[int, asyncio.Task[None]] = {}
         self._again: set[int] = set()
         self._next_at: dict[int, float] = {}  # map -> monotonic time the next full solve may start
+        self._next_behind: dict[int, float] = {}  # the same while place recognition is behind
         self._failed: set[int] = set()  # maps whose last solve failed (logged once)
 
     # -- results ------------------------------------------------------------------------------------
@@ -142,9 +145,14 @@ class Uncertainty:
     async def _run(self, map_id: int) -> None:
         while True:
             self._again.discard(map_id)
-            wait = self._next_at.get(map_id, 0.0) - time.monotonic()
-            if wait > 0:
-                await asyncio.sleep(wait)
+            while True:  # checked again each second: a backlog may start or clear meanwhile
+                at = self._next_at.get(map_id, 0.0)
+                if self._behind():
+                    at = max(at, self._next_behind.get(map_id, 0.0))
+                wait = at - time.monotonic()
+                if wait <= 0:
+                    break
+                await asyncio.sleep(min(wait, 1.0))
             t0 = time.monotonic()
             try:
                 res = await self._solve(map_id, full=True)
@@ -154,8 +162,13 @@ class Uncertainty:
             cpu = res.cpu_s if res is not None else 0.0
             o = self.options
             self._next_at[map_id] = t0 + max(o.min_interval_s, cpu / max(o.max_duty, 1e-3))
+            self._next_behind[map_id] = t0 + max(o.min_interval_s, cpu / max(o.max_duty_behind, 1e-3))
             if map_id not in self._again or map_id not in self.bk.server.stack.maps:
                 return
+
+    def _behind(self) -> bool:
+        """Place recognition has a backlog (its queue is thinned then: :mod:`~.backlog`)."""
+        return len(self.bk.queue) > self.bk.options.scheduler.backlog
 
     async def latest_now(self, map_id: int) -> None:
         """The map's agents' latest keyframes' covariances now (before corrections go out)."""
