@@ -253,7 +253,8 @@ class MapStore:
     ) -> None:
         """Write only the current ``world_from_cam`` of ``keyframes`` (with ``vio`` their ``vio_from_cam``
         too: an agent's pose update changes it, a back-end correction does not; rows not stored are
-        ignored) and ``xyz`` of ``points`` (into their position blocks, :mod:`hivemap.maps.store_xyz`)."""
+        ignored) and ``xyz`` of ``points`` (into their position blocks, :mod:`hivemap.maps.store_xyz`; the
+        slot of a point without a row is not read, and is set again if the point is put)."""
         map_id = int(map_id)
         with self._tx():
             sets = "world_from_cam = ?, vio_from_cam = ?" if vio else "world_from_cam = ?"
