@@ -28,7 +28,9 @@ def clean_env() -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
 
 
-def wait_health(url: str, proc: subprocess.Popen[bytes], timeout: float = 60.0) -> None:
+def wait_health(url: str, proc: subprocess.Popen[bytes], timeout: float = 300.0) -> None:
+    """Wait until the server at ``url`` answers healthy. A server that exits fails at once; one that is
+    alive gets ``timeout`` seconds, as its imports and store load can take minutes on a loaded machine."""
     import httpx
 
     deadline = time.monotonic() + timeout
@@ -43,7 +45,7 @@ def wait_health(url: str, proc: subprocess.Popen[bytes], timeout: float = 60.0) 
         except httpx.HTTPError:
             pass
         time.sleep(0.2)
-    raise RuntimeError("server did not become healthy in time")
+    raise RuntimeError(f"server at {url} did not become healthy within {timeout:.0f} s")
 
 
 def stop(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
