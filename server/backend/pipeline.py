@@ -90,9 +90,9 @@ class Pipeline(GnssSteps):
         self._consistency = accept.Consistency()
         self._override = accept.PriorOverride()  # merges against the start prior, by independent places
         self.evidence = EvidenceBook()  # the maps' loop and merge edges, judged again at each pose graph
-        self._opt_again: dict[int, list[NewEdge]] = {}
-        # per map, when the first of the waiting edges was detected: their corrections' latency counts from it
-        self._opt_again_t: dict[int, float] = {}
+        # per map, the edges waiting for the running optimisation and when the first of them was detected
+        # (their corrections' latency counts from it)
+        self._opt_again: dict[int, tuple[list[NewEdge], float]] = {}
         self._resolve_again: set[int] = set()  # maps whose next optimisation solves the pose graph anyway
         # figures
         self.queries = 0
@@ -222,8 +222,8 @@ class Pipeline(GnssSteps):
         """Optimise map ``map_id`` with the new loop or merge ``edges`` (after the running optimisation, if
         one runs). ``resolve``: solve the pose graph even without new edges (an agent's odometry changed)."""
         if map_id in self._opt_running:
-            self._opt_again.setdefault(map_id, []).extend(edges)
-            self._opt_again_t[map_id] = min(self._opt_again_t.get(map_id, t_det), t_det)
+            waiting, t_first = self._opt_again.get(map_id, ([], t_det))
+            self._opt_again[map_id] = (waiting + list(edges), min(t_first, t_det))
             if resolve:
                 self._resolve_again.add(map_id)
             return
@@ -251,12 +251,11 @@ class Pipeline(GnssSteps):
                 self._refresh_loose()  # the verdict may have confirmed or undone a session guess
                 pre = None
                 again = self._opt_again.pop(map_id, None)
-                t_again = self._opt_again_t.pop(map_id, None)
                 resolve = map_id in self._resolve_again
                 self._resolve_again.discard(map_id)
                 if again is None or map_id not in self.server.stack.maps:
                     break
-                edges, fuse, t_det = again, [], t_again if t_again is not None else time.monotonic()
+                (edges, t_det), fuse = again, []
         except asyncio.CancelledError:
             raise
         except Exception:

@@ -115,8 +115,7 @@ class Uncertainty:
         self.runs: list[dict[str, float]] = []  # per solve: n_keyframes, n_wanted, cpu_s, wall_s
         self._tasks: dict[int, asyncio.Task[None]] = {}
         self._again: set[int] = set()
-        self._next_at: dict[int, float] = {}  # map -> monotonic time the next full solve may start
-        self._next_behind: dict[int, float] = {}  # the same while place recognition is behind
+        self._last: dict[int, tuple[float, float]] = {}  # map -> its last full solve's start, CPU seconds
         self._failed: set[int] = set()  # maps whose last solve failed (logged once)
 
     # -- results ------------------------------------------------------------------------------------
@@ -146,10 +145,7 @@ class Uncertainty:
         while True:
             self._again.discard(map_id)
             while True:  # checked again each second: a backlog may start or clear meanwhile
-                at = self._next_at.get(map_id, 0.0)
-                if self._behind():
-                    at = max(at, self._next_behind.get(map_id, 0.0))
-                wait = at - time.monotonic()
+                wait = self._next_at(map_id) - time.monotonic()
                 if wait <= 0:
                     break
                 await asyncio.sleep(min(wait, 1.0))
@@ -159,12 +155,18 @@ class Uncertainty:
             except Exception:  # a bug here must not end the map's covariances silently
                 logger.exception("covariances of map %d failed", map_id)
                 res = None
-            cpu = res.cpu_s if res is not None else 0.0
-            o = self.options
-            self._next_at[map_id] = t0 + max(o.min_interval_s, cpu / max(o.max_duty, 1e-3))
-            self._next_behind[map_id] = t0 + max(o.min_interval_s, cpu / max(o.max_duty_behind, 1e-3))
+            self._last[map_id] = (t0, res.cpu_s if res is not None else 0.0)
             if map_id not in self._again or map_id not in self.bk.server.stack.maps:
                 return
+
+    def _next_at(self, map_id: int) -> float:
+        """When the map's next full solve may start: its last one's CPU time at the duty that holds now."""
+        last = self._last.get(map_id)
+        if last is None:
+            return 0.0
+        o = self.options
+        duty = o.max_duty_behind if self._behind() else o.max_duty
+        return last[0] + max(o.min_interval_s, last[1] / max(duty, 1e-3))
 
     def _behind(self) -> bool:
         """Place recognition has a backlog (its queue is thinned then: :mod:`~.backlog`)."""

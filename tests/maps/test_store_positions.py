@@ -11,21 +11,15 @@ import numpy as np
 from hivemap.maps import MapPoint, MapStack, map_differences
 from hivemap.maps.store import SCHEMA_VERSION, MapStore
 from hivemap.maps.store_xyz import BLOCK
-from hivemap.maps.testing import random_keyframes_and_points
+from hivemap.maps.testing import random_map
 
 
 def _map_in_store(tmp_path: Path, seed: int, n_kf: int, n_pts: int) -> tuple[MapStack, MapStore]:
-    rng = np.random.default_rng(seed)
-    kfs, pts = random_keyframes_and_points(rng, "uav1", n_kf, n_pts, obs_per_keyframe=120)
     stack = MapStack()
-    m = stack.new_map()
-    for p in pts:
-        m.add_point(p)
-    for kf in kfs:
-        m.add_keyframe(kf)
+    m = stack.add_map(random_map(np.random.default_rng(seed), 0, "uav1", n_kf, n_pts, obs_per_keyframe=120))
     store = MapStore(tmp_path / "pos.sqlite")
-    store.put_points(m.id, pts)
-    for kf in kfs:
+    store.put_points(m.id, m.points.values())
+    for kf in m.keyframes.values():
         store.put_keyframe(m.id, kf)
     store.sync_graph(m)
     return stack, store
