@@ -58,6 +58,14 @@ def _warm() -> int:
     return os.getpid()
 
 
+def warm_solver() -> int:
+    """Run once in a solver's process at the back-end's start: the solvers' imports (gtsam, the whole
+    back-end package) take seconds of CPU, which the first merge's solve paid at take-off."""
+    import hivemap.server.backend.optimise  # noqa: F401
+
+    return os.getpid()
+
+
 def _exit_with_parent(parent: int, period_s: float) -> None:
     """Worker initializer: end this worker once the server that spawned it is gone. A killed server
     (SIGKILL, out of memory) cannot shut its pools down, and its spawned workers would otherwise wait
@@ -86,14 +94,20 @@ def spawn_pool(period_s: float = 1.0) -> concurrent.futures.ProcessPoolExecutor:
 
 class SolverProcess:
     """One solver's process (a gtsam or pycolmap solve holds the GIL for its whole length, which would
-    stop the event loop): a :func:`spawn_pool` started by the first job and replaced after its process
-    died; :meth:`stop` ends a job still running, since 3.11 has no ``terminate_workers`` and a running
-    job would hold the server's exit until it ends."""
+    stop the event loop): a :func:`spawn_pool` started by :meth:`start` (or else by the first job) and
+    replaced after its process died; :meth:`stop` ends a job still running, since 3.11 has no
+    ``terminate_workers`` and a running job would hold the server's exit until it ends."""
 
     def __init__(self, name: str) -> None:
         self.name = name
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
         self._running = 0  # jobs submitted and not ended (the pose graph and the covariances share one)
+
+    def start(self) -> None:
+        """Spawn the process now and have it import the solvers, ahead of the first job."""
+        if self._pool is None:
+            self._pool = spawn_pool()
+            self._pool.submit(warm_solver)
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         if self._pool is None:

@@ -82,6 +82,12 @@ class Backend(Pipeline):
         )
         server.events.add("info", f"back-end verification: {so.executor} executor, "
                           f"{self._verifier.workers} worker(s)")  # fmt: skip
+        # the first merge comes at take-off, when its correction matters most: its solve must not wait
+        # for a process to start
+        if so.executor != "thread":
+            self._pg_proc.start()
+        if self.options.optimise.global_ba:
+            self._ba_proc.start()
         await self._load_evidence(server)
         self._refresh_loose()
         await self._rendezvous_after_restart()
