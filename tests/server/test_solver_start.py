@@ -14,6 +14,7 @@ from test_backend import Server  # noqa: E402
 
 from hivemap.server.backend.options import preset  # noqa: E402
 
+
 def test_the_pose_graph_process_is_started_with_the_back_end(tmp_path: Path) -> None:
     srv = Server(tmp_path / "data", opts=preset("default"))
     try:
