@@ -7,13 +7,17 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
-from typing import Any
+from itertools import compress, repeat
+from operator import attrgetter
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import Sim3, rotation_angle_deg
+from hivemap.maps.elements import MapPoint
+from hivemap.maps.geometry import Sim3, nearest_rotations
 from hivemap.protocol import Correction, encode
 from hivemap.server.backend.fit import frame_correction
 from hivemap.server.backend.options import CorrectionOptions
@@ -28,17 +32,26 @@ MAX_ABS_LOG_SCALE = 1.0
 # Keyframes are ranked for a correction by move (m) + this x turn (deg).
 TURN_WEIGHT_M_PER_DEG = 0.05
 
+_OBSERVATIONS = attrgetter("observations")
+_XYZ = attrgetter("xyz")
+_SET_XYZ = MapPoint.xyz.__set__  # the slot's setter, called from ``map`` without a Python loop
+
 
 def local_poses(server: Any, m: Any) -> dict[KfKey, F64]:
     """Each keyframe's pose in its agent's local (VIO) frame, as the agent sees it now."""
+    by_agent: dict[str, list[KfKey]] = {}
+    for k in m.keyframes:
+        by_agent.setdefault(k[0], []).append(k)
     out: dict[KfKey, F64] = {}
-    inv: dict[str, Sim3] = {}
-    for k, kf in m.keyframes.items():
-        g = inv.get(k[0])
-        if g is None:
-            am = server._agent_map_by_folded(k[0])
-            g = inv[k[0]] = (am.global_from_vio if am is not None else Sim3.identity()).inverse()
-        out[k] = g.transform_pose(kf.world_from_cam)
+    for folded, keys in by_agent.items():
+        am = server._agent_map_by_folded(folded)
+        g = (am.global_from_vio if am is not None else Sim3.identity()).inverse()
+        W = np.array([m.keyframes[k].world_from_cam for k in keys], dtype=np.float64)
+        n = len(keys)
+        T = _transform_poses(
+            np.broadcast_to(g.R, (n, 3, 3)), np.broadcast_to(g.t, (n, 3)), np.full(n, g.s), W
+        )
+        out.update(zip(keys, T, strict=True))
     return out
 
 
@@ -77,23 +90,11 @@ def apply_corrections(
             full[x] = c
         return c
 
-    for k, kf in m.keyframes.items():
-        c = correction_of(k)
-        kf.world_from_cam = c.transform_pose(kf.world_from_cam)
-    # points follow their first observer's correction, one stacked apply per keyframe (point by point
-    # it held the event loop for almost half a second on a factory map)
-    by_kf: dict[KfKey, list[Any]] = {}
-    for pk, mp in m.points.items():
-        x = new_xyz.get(pk)
-        if x is not None:
-            mp.xyz = np.array(x, dtype=np.float64)
-            continue
-        obs = next(iter(mp.observations), None)
-        if obs is not None and obs in full:
-            by_kf.setdefault(obs, []).append(mp)
-    for k, mps in by_kf.items():
-        for mp, x in zip(mps, full[k].apply(np.stack([mp.xyz for mp in mps])), strict=True):
-            mp.xyz = x
+    keys = list(m.keyframes)
+    for k in keys:
+        correction_of(k)
+    _move_keyframes(m, keys, [full[k] for k in keys])
+    _move_points(m, full, new_xyz)
     for folded in list(m.agents):
         am = server._agent_map_by_folded(folded)
         recent = sorted((k for k in full if k[0] == folded and k in m.keyframes), key=lambda k: k[1])
@@ -110,21 +111,77 @@ def apply_corrections(
         server.set_agent_transform(folded, c @ am.global_from_vio)
 
 
+def _arrays(sims: list[Sim3]) -> tuple[F64, F64, F64]:
+    """(R (n, 3, 3), t (n, 3), s (n,)) of a list of similarities."""
+    R = np.array([c.R for c in sims], dtype=np.float64).reshape(-1, 3, 3)
+    t = np.array([c.t for c in sims], dtype=np.float64).reshape(-1, 3)
+    return R, t, np.array([c.s for c in sims], dtype=np.float64)
+
+
+def _transform_poses(R: F64, t: F64, s: F64, W: F64) -> F64:
+    """``Sim3(R[i], t[i], s[i]).transform_pose(W[i])`` for a stack of rigid poses W (n, 4, 4)."""
+    out = np.zeros_like(W)
+    out[:, :3, :3] = nearest_rotations(R @ W[:, :3, :3])
+    out[:, :3, 3] = s[:, None] * np.einsum("nij,nj->ni", R, W[:, :3, 3]) + t
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _move_keyframes(m: Any, keys: list[KfKey], sims: list[Sim3]) -> None:
+    """``Sim3.transform_pose`` of every keyframe of ``keys`` by its similarity, batched."""
+    if not keys:
+        return
+    W = np.array([m.keyframes[k].world_from_cam for k in keys], dtype=np.float64)
+    for k, T in zip(keys, _transform_poses(*_arrays(sims), W), strict=True):
+        m.keyframes[k].world_from_cam = T
+
+
+def _move_points(m: Any, full: dict[KfKey, Sim3], new_xyz: dict[Any, F64]) -> None:
+    """Points to ``new_xyz``, the others by their first observer's correction in ``full`` (those without
+    a corrected observer stay), batched: one pass over the points, where a Python loop per point held the
+    event loop for a quarter of a second on a factory map."""
+    mps = list(m.points.values())
+    if new_xyz:
+        for mp in mps:
+            x = new_xyz.get(mp.key)
+            if x is not None:
+                mp.xyz = np.array(x, dtype=np.float64)
+        mps = [mp for mp in mps if mp.key not in new_xyz]
+    if not mps or not full:
+        return
+    index = {k: i for i, k in enumerate(full)}
+    R, t, s = _arrays(list(full.values()))
+    firsts = map(next, map(iter, map(_OBSERVATIONS, mps)), repeat(None))
+    slot = cast(Callable[[Any, int], int], index.get)
+    idx = np.fromiter(map(slot, firsts, repeat(-1)), dtype=np.int64, count=len(mps))
+    moved = idx >= 0
+    if not moved.all():
+        mps = list(compress(mps, moved.tolist()))
+        idx = idx[moved]
+    if not mps:
+        return
+    X = np.concatenate(list(map(_XYZ, mps))).reshape(-1, 3)
+    X = s[idx, None] * np.einsum("nij,nj->ni", R[idx], X) + t[idx]
+    deque(map(_SET_XYZ, mps, X), maxlen=0)
+
+
 def chosen_keyframes(
     m: Any, folded: str, before: dict[KfKey, F64], after: dict[KfKey, F64], o: CorrectionOptions, enu: bool
 ) -> list[KfKey]:
     """The keyframes of agent ``folded`` that a correction carries: the moved ones (largest first), and,
     whenever there are any or the map is in ENU, a whole snapshot of the server's estimate for the agent:
     every ``stride``-th keyframe (the agent replaces this session's co-location priors with it)."""
+    keys = [k for k in after if k[0] == folded and k in before]
     moves = []
-    for k, T1 in after.items():
-        T0 = before.get(k)
-        if k[0] != folded or T0 is None:
-            continue
-        dt = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
-        dr = rotation_angle_deg(T1[:3, :3] @ T0[:3, :3].T)
-        if dt >= o.min_move_m or dr >= o.min_rot_deg:
-            moves.append((dt + TURN_WEIGHT_M_PER_DEG * dr, k))
+    if keys:
+        T1 = np.array([after[k] for k in keys], dtype=np.float64)
+        T0 = np.array([before[k] for k in keys], dtype=np.float64)
+        dt = np.linalg.norm(T1[:, :3, 3] - T0[:, :3, 3], axis=1)
+        # rotation angle of T1 T0^T: trace(A B^T) is the sum of the elementwise product
+        c = (np.einsum("nij,nij->n", T1[:, :3, :3], T0[:, :3, :3]) - 1.0) / 2.0
+        dr = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+        for i in np.flatnonzero((dt >= o.min_move_m) | (dr >= o.min_rot_deg)).tolist():
+            moves.append((float(dt[i]) + TURN_WEIGHT_M_PER_DEG * float(dr[i]), keys[i]))
     moves.sort(reverse=True)
     chosen = sorted(k for _, k in moves[: o.max_kfs])
     if chosen or enu:
