@@ -20,6 +20,7 @@ from operator import attrgetter
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.maps.elements import positions
 from hivemap.maps.model import MapPoint
 
 BLOCK = 128  # points per row: 128 x 24 bytes + a 128-byte mask fit one 4 kB page
@@ -28,7 +29,6 @@ _XYZ_BYTES = BLOCK * 3 * 8
 
 BULK_READ_BLOCKS = 64  # a write of more blocks reads all of the map's blocks in one query
 Block = tuple[NDArray[np.uint8], NDArray[np.float64]]  # (slot set?, positions)
-_XYZ = attrgetter("xyz")
 _ID = attrgetter("id")
 _AGENT = attrgetter("agent_id")
 
@@ -57,7 +57,7 @@ def put_positions(conn: sqlite3.Connection, map_id: int, points: Iterable[MapPoi
     agents = list(map(_AGENT, pts))
     codes = {a: i for i, a in enumerate(dict.fromkeys(agents))}
     agent_of = np.fromiter(map(codes.__getitem__, agents), dtype=np.int64, count=len(pts))
-    xyz_all = np.concatenate(list(map(_XYZ, pts))).astype(np.float64, copy=False).reshape(len(pts), 3)
+    xyz_all = positions(pts)
     ids_all = np.fromiter(map(_ID, pts), dtype=np.int64, count=len(pts))
     groups = []
     for agent, code in codes.items():

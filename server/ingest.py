@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from itertools import compress, repeat
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -14,6 +15,7 @@ from numpy.typing import NDArray
 
 from hivemap.maps import MapStack
 from hivemap.maps.camera import PinholeCamera
+from hivemap.maps.elements import first_observers, positions, set_positions
 from hivemap.protocol import Keyframe, MapPoints, Message, PoseUpdates, Rendezvous
 from hivemap.server.agents import AgentMap, AgentState, PendingKeyframe, Rejected
 from hivemap.server.convert import fold_agent_id, keyframe_from_msg, points_from_msg
@@ -321,48 +323,78 @@ def _place_listed(m: Any, am: Any, point_ids: Any, sent: F64) -> list[Any]:
     that keyframe, it keeps the keyframe's share of a loop closure, which the agent's transform alone
     would drop; a point whose first observer the server has no VIO pose of goes through the transform."""
     g = am.global_from_vio
-    found: list[tuple[int, Any]] = []
-    by_observer: dict[Any, list[int]] = {}
-    plain: list[int] = []
-    for i, p in enumerate(point_ids):
-        mp = m.points.get((am.folded, p))
-        if mp is None:
-            continue
-        obs = next(iter(mp.observations), None)
-        own = obs is not None and obs[0] == am.folded and obs in m.keyframes
-        if own and m.keyframes[obs].vio_from_cam is not None:
-            by_observer.setdefault(obs, []).append(len(found))
-        else:
-            plain.append(len(found))
-        found.append((i, mp))
-    rows = np.array([i for i, _ in found], dtype=np.int64)
-    xyz = np.empty((len(found), 3))
-    if plain:
-        xyz[plain] = g.apply(sent[rows[plain]])
-    for obs, at in by_observer.items():
-        V, W = m.keyframes[obs].vio_from_cam, m.keyframes[obs].world_from_cam
-        in_cam = (sent[rows[at]] - V[:3, 3]) @ V[:3, :3] * g.s  # V^-1 applied, scaled like the map
-        xyz[at] = in_cam @ W[:3, :3].T + W[:3, 3]
-    for (_, mp), x in zip(found, xyz, strict=True):
-        mp.xyz = x.copy()
-    return [mp for _, mp in found]
+    found = [
+        (i, mp) for i, mp in enumerate(map(m.points.get, zip(repeat(am.folded), point_ids))) if mp is not None
+    ]
+    if not found:
+        return []
+    rows = np.fromiter((i for i, _ in found), dtype=np.int64, count=len(found))
+    pts = [mp for _, mp in found]
+    # the first observer's index among the observers with a VIO pose (-1: through the transform)
+    observers: dict[KfKey | None, int] = {}
+    poses: list[tuple[F64, F64]] = []
+
+    def observer(obs: KfKey | None) -> int:
+        at = observers.get(obs)
+        if at is None:
+            kf = m.keyframes.get(obs) if obs is not None and obs[0] == am.folded else None
+            at = -1
+            if kf is not None and kf.vio_from_cam is not None:
+                at = len(poses)
+                poses.append((kf.vio_from_cam, kf.world_from_cam))
+            observers[obs] = at
+        return at
+
+    at = np.fromiter(map(observer, first_observers(pts)), dtype=np.int64, count=len(pts))
+    X = sent[rows]
+    xyz = np.empty((len(pts), 3))
+    plain = at < 0
+    if plain.any():
+        xyz[plain] = g.apply(X[plain])
+    if not plain.all():
+        own = ~plain
+        V = np.array([v for v, _ in poses], dtype=np.float64)[at[own]]
+        W = np.array([w for _, w in poses], dtype=np.float64)[at[own]]
+        # V^-1 applied, scaled like the map, then W
+        in_cam = np.einsum("nji,nj->ni", V[:, :3, :3], X[own] - V[:, :3, 3]) * g.s
+        xyz[own] = np.einsum("nij,nj->ni", W[:, :3, :3], in_cam) + W[:, :3, 3]
+    set_positions(pts, xyz)
+    return pts
 
 
 def _points_follow(m: Any, moves: list[tuple[Any, F64]], listed: set[int], folded: str) -> list[Any]:
     """``PoseUpdates.points_follow``: each moved keyframe's points that it observed first (as the back-end's
-    corrections move them) and the update does not list, moved rigidly with it."""
-    out = []
-    for kf, D in moves:
-        pts = []
-        for _, pk in kf.referenced_points():
-            if pk[0] == folded and pk[1] in listed:
-                continue
-            mp = m.points.get(pk)
-            if mp is not None and next(iter(mp.observations), None) == kf.key:
-                pts.append(mp)
-        if pts:
-            xyz = np.stack([mp.xyz for mp in pts]) @ D[:3, :3].T + D[:3, 3]
-            for mp, x in zip(pts, xyz, strict=True):
-                mp.xyz = x
-            out += pts
-    return out
+    corrections move them) and the update does not list, moved rigidly with it (batched over the moves)."""
+    # a keyframe listed twice moves its points by both steps, the later on top
+    merged: dict[Any, tuple[Any, F64]] = {}
+    for kf, d in moves:
+        prev = merged.get(kf.key)
+        merged[kf.key] = (kf, d if prev is None else d @ prev[1])
+    moves = list(merged.values())
+    keys: list[tuple[str, int]] = []
+    owner: list[int] = []
+    for j, (kf, _) in enumerate(moves):
+        at = np.flatnonzero(kf.point_ids >= 0)
+        ids = kf.point_ids[at].tolist()
+        if kf.point_agents:  # keypoints that reference another agent's point
+            agents = [kf.point_agents.get(i, kf.agent_id) for i in at.tolist()]
+            keys += zip(agents, ids, strict=True)
+        else:
+            keys += zip(repeat(kf.agent_id), ids)
+        owner += repeat(j, len(ids))
+    mps = list(map(m.points.get, keys))
+    anchor = [kf.key for kf, _ in moves]
+    firsts = first_observers([mp for mp in mps if mp is not None])
+    at = iter(firsts)
+    follow = [
+        mp is not None and next(at) == anchor[j] and not (k[0] == folded and k[1] in listed)
+        for mp, j, k in zip(mps, owner, keys, strict=True)
+    ]
+    pts = list(compress(mps, follow))
+    if not pts:
+        return []
+    at_move = np.fromiter(compress(owner, follow), dtype=np.int64, count=len(pts))
+    D = np.array([d for _, d in moves], dtype=np.float64)[at_move]
+    X = positions(pts)
+    set_positions(pts, np.einsum("nij,nj->ni", D[:, :3, :3], X) + D[:, :3, 3])
+    return pts

@@ -7,16 +7,14 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import deque
 from collections.abc import Callable
 from itertools import compress, repeat
-from operator import attrgetter
 from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.elements import MapPoint
+from hivemap.maps.elements import first_observers, positions, set_positions
 from hivemap.maps.geometry import Sim3, nearest_rotations
 from hivemap.protocol import Correction, encode
 from hivemap.server.backend.fit import frame_correction
@@ -31,10 +29,6 @@ F64 = NDArray[np.float64]
 MAX_ABS_LOG_SCALE = 1.0
 # Keyframes are ranked for a correction by move (m) + this x turn (deg).
 TURN_WEIGHT_M_PER_DEG = 0.05
-
-_OBSERVATIONS = attrgetter("observations")
-_XYZ = attrgetter("xyz")
-_SET_XYZ = MapPoint.xyz.__set__  # the slot's setter, called from ``map`` without a Python loop
 
 
 def local_poses(server: Any, m: Any) -> dict[KfKey, F64]:
@@ -151,18 +145,16 @@ def _move_points(m: Any, full: dict[KfKey, Sim3], new_xyz: dict[Any, F64]) -> No
         return
     index = {k: i for i, k in enumerate(full)}
     R, t, s = _arrays(list(full.values()))
-    firsts = map(next, map(iter, map(_OBSERVATIONS, mps)), repeat(None))
     slot = cast(Callable[[Any, int], int], index.get)
-    idx = np.fromiter(map(slot, firsts, repeat(-1)), dtype=np.int64, count=len(mps))
+    idx = np.fromiter(map(slot, first_observers(mps), repeat(-1)), dtype=np.int64, count=len(mps))
     moved = idx >= 0
     if not moved.all():
         mps = list(compress(mps, moved.tolist()))
         idx = idx[moved]
     if not mps:
         return
-    X = np.concatenate(list(map(_XYZ, mps))).reshape(-1, 3)
-    X = s[idx, None] * np.einsum("nij,nj->ni", R[idx], X) + t[idx]
-    deque(map(_SET_XYZ, mps, X), maxlen=0)
+    X = positions(mps)
+    set_positions(mps, s[idx, None] * np.einsum("nij,nj->ni", R[idx], X) + t[idx])
 
 
 def chosen_keyframes(
