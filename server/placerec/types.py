@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -118,8 +118,10 @@ class CandidateReport:
     query_xyz: F64 | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
+        # field by field: ``asdict`` deep-copied the point lists (hundreds of pairs per candidate) only to
+        # drop them, on the event loop, for every candidate of every query
         skip = ("target_from_source", "query_points", "candidate_points", "query_xyz")
-        d = {k: v for k, v in asdict(self).items() if k not in skip}
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
         d["query_key"] = list(self.query_key)
         d["candidate_key"] = list(self.candidate_key)
         if self.target_from_source is not None:
