@@ -27,7 +27,6 @@ BLOCK = 128  # points per row: 128 x 24 bytes + a 128-byte mask fit one 4 kB pag
 _SHIFT = BLOCK.bit_length() - 1
 _XYZ_BYTES = BLOCK * 3 * 8
 
-BULK_READ_BLOCKS = 64  # a write of more blocks reads all of the map's blocks in one query
 Block = tuple[NDArray[np.uint8], NDArray[np.float64]]  # (slot set?, positions)
 _ID = attrgetter("id")
 _AGENT = attrgetter("agent_id")
@@ -59,27 +58,20 @@ def put_positions(conn: sqlite3.Connection, map_id: int, points: Iterable[MapPoi
     agent_of = np.fromiter(map(codes.__getitem__, agents), dtype=np.int64, count=len(pts))
     xyz_all = positions(pts)
     ids_all = np.fromiter(map(_ID, pts), dtype=np.int64, count=len(pts))
-    groups = []
+    rows = []
     for agent, code in codes.items():
         idx = np.flatnonzero(agent_of == code)
         ids = ids_all[idx]
         order = np.argsort(ids >> _SHIFT, kind="stable")  # a later duplicate of a point wins, as one by one
         idx, ids = idx[order], ids[order]
         blocks, starts = np.unique(ids >> _SHIFT, return_index=True)
-        groups.append((agent, idx, ids, blocks.tolist(), [*starts.tolist(), len(ids)]))
-    # a whole map's write (after an optimisation) touches every block: one read of them all, not one each
-    stored = read_positions(conn, map_id) if sum(len(g[3]) for g in groups) > BULK_READ_BLOCKS else None
-    rows = []
-    for agent, idx, ids, blocks, bounds in groups:
-        for block, lo, hi in zip(blocks, bounds[:-1], bounds[1:], strict=True):
-            if stored is not None:
-                mask, xyz = stored.get((agent, block)) or _empty()
-            else:
-                row = conn.execute(
-                    "SELECT data FROM map_point_xyz WHERE map_id = ? AND agent = ? AND block = ?",
-                    (map_id, agent, block),
-                ).fetchone()
-                mask, xyz = _decode(row[0]) if row is not None else _empty()
+        # the agent's blocks in the range this write touches, in one query (an optimisation's write
+        # touches all of them, and a query per block was most of its time)
+        sql = "SELECT block, data FROM map_point_xyz WHERE map_id = ? AND agent = ? AND block BETWEEN ? AND ?"
+        stored = dict(conn.execute(sql, (map_id, agent, int(blocks[0]), int(blocks[-1]))).fetchall())
+        for block, lo, hi in zip(blocks.tolist(), starts, [*starts[1:], len(ids)], strict=True):
+            data = stored.get(block)
+            mask, xyz = _decode(data) if data is not None else _empty()
             slots = ids[lo:hi] & (BLOCK - 1)
             xyz[slots] = xyz_all[idx[lo:hi]]
             mask[slots] = 1

@@ -7,9 +7,8 @@ import sqlite3
 from pathlib import Path
 
 import numpy as np
-import pytest
 
-from hivemap.maps import MapPoint, MapStack, map_differences, store_xyz
+from hivemap.maps import MapPoint, MapStack, map_differences
 from hivemap.maps.store import SCHEMA_VERSION, MapStore
 from hivemap.maps.store_xyz import BLOCK
 from hivemap.maps.testing import random_map
@@ -26,20 +25,11 @@ def _map_in_store(tmp_path: Path, seed: int, n_kf: int, n_pts: int) -> tuple[Map
     return stack, store
 
 
-@pytest.fixture(params=["block by block", "all blocks at once"])
-def read_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
-    """Both ways a write reads the blocks it updates (a large write reads the map's blocks in one query)."""
-    monkeypatch.setattr(store_xyz, "BULK_READ_BLOCKS", 10**9 if request.param == "block by block" else 0)
-    return str(request.param)
-
-
 def _blocks(store: MapStore) -> int:
     return int(store.conn.execute("SELECT COUNT(*) FROM map_point_xyz").fetchone()[0])
 
 
-def test_every_point_moved_reloads_exactly_and_writes_one_row_per_block(
-    tmp_path: Path, read_path: str
-) -> None:
+def test_every_point_moved_reloads_exactly_and_writes_one_row_per_block(tmp_path: Path) -> None:
     """An optimisation's write of every point: the rows written are blocks, not points, and the reloaded
     positions are bit-identical, special floats included."""
     stack, store = _map_in_store(tmp_path, 1, 30, 3000)
@@ -65,7 +55,7 @@ def test_every_point_moved_reloads_exactly_and_writes_one_row_per_block(
     assert np.array_equal(np.signbit(loaded.points[odd.key].xyz), np.signbit(odd.xyz))
 
 
-def test_a_point_removed_and_put_again_reloads_at_its_new_position(tmp_path: Path, read_path: str) -> None:
+def test_a_point_removed_and_put_again_reloads_at_its_new_position(tmp_path: Path) -> None:
     """A slot left by a moved point that was then removed never hides the position of the point put again
     under its key; a point never moved reloads from its row."""
     stack, store = _map_in_store(tmp_path, 3, 12, 800)
