@@ -65,7 +65,7 @@ _XYZ = attrgetter("xyz")
 def positions(points: Sequence[MapPoint]) -> F64:
     """The points' ``xyz`` as one (n, 3) array. The helpers below run their loop over the points in C:
     the server moves every point of a map after each optimisation, and a Python loop per point held its
-    event loop for a quarter of a second on a factory map."""
+    event loop on large maps."""
     if not points:
         return np.zeros((0, 3))
     return np.concatenate(list(map(_XYZ, points))).astype(np.float64, copy=False).reshape(len(points), 3)

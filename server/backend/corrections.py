@@ -132,8 +132,7 @@ def _move_keyframes(m: Any, keys: list[KfKey], sims: list[Sim3]) -> None:
 
 def _move_points(m: Any, full: dict[KfKey, Sim3], new_xyz: dict[Any, F64]) -> None:
     """Points to ``new_xyz``, the others by their first observer's correction in ``full`` (those without
-    a corrected observer stay), batched: one pass over the points, where a Python loop per point held the
-    event loop for a quarter of a second on a factory map."""
+    a corrected observer stay), batched: a Python loop per point held the event loop on large maps."""
     mps = list(m.points.values())
     if new_xyz:
         for mp in mps:

@@ -282,9 +282,8 @@ def odometry_sigmas_many(d: F64, same: NDArray[np.bool_], o: OptimiseOptions) ->
 
 
 def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey, Sim3], float]:
-    """Each keyframe's correction from the solved poses (``sims[i] @ snap.poses[i]^-1``, batched: a map of
-    a thousand keyframes took a tenth of a second of the event loop one Sim3 at a time), and the largest
-    move (m)."""
+    """Each keyframe's correction from the solved poses (``sims[i] @ snap.poses[i]^-1``, batched: one
+    Sim3 at a time held the event loop on large maps), and the largest move (m)."""
     n = len(snap.keys)
     if n == 0:
         return {}, 0.0
