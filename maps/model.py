@@ -28,6 +28,7 @@ Not thread-safe: callers serialise access (e.g. one asyncio task or a lock).
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from collections.abc import Iterable
 from typing import Any
 
@@ -205,6 +206,7 @@ class Map:
         self._children[key] = set()
         self.agents.add(kf.agent_id)
         kf.parent = None
+        shared: Counter[KfKey] = Counter()  # keyframe -> points it shares with this one
         for idx, pk in list(kf.referenced_points()):
             pk2 = self.resolve_point(pk)
             if pk2 != pk:
@@ -219,9 +221,18 @@ class Map:
             elif key in mp.observations:
                 kf.set_point_key(idx, None)
             else:
-                self._link(kf, idx, mp)
-        # orphan trees that this keyframe's points just attached to it hang below it: no parent candidates
+                # linked at once, its covisibility counted below: one update per co-observer, not one per
+                # observation (a keyframe's few hundred points have thousands of observations)
+                shared.update(mp.observations.keys())
+                mp.observations[key] = idx
+                kf.set_point_key(idx, mp.key)
         cov = self._covis[key]
+        for other, n in shared.items():
+            cov[other] = n
+            self._covis[other][key] = n
+            if other in self._orphans:
+                self._attach_orphan(other, key)
+        # orphan trees that this keyframe's points just attached to it hang below it: no parent candidates
         if self._children[key]:
             cov = {k: w for k, w in cov.items() if self._root_of(k) != key}
         if cov:
