@@ -9,6 +9,7 @@ import sqlite3
 import uuid
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,8 +39,17 @@ def record(scenario_dir: Path, run_dir: Path, out: Path) -> None:
         lever = None
         if "gnss0" in T_BS and "cam0" in T_BS:
             lever = (np.linalg.inv(np.asarray(T_BS["cam0"])) @ np.asarray(T_BS["gnss0"]))[:3, 3].tolist()
+        # the hello's stereo baseline: without it the server drops the keyframes' stereo observations
+        # (no weld, no stereo BA), and the replay would measure a lighter server than the agents meet
+        baseline = None if getattr(ds, "rig", None) is None else float(ds.rig.baseline)
         agents.append(
-            {"agent_id": a.id, "kind": a.kind, "camera": ds.camera.to_dict(), "cam_from_antenna": lever}
+            {
+                "agent_id": a.id,
+                "kind": a.kind,
+                "camera": ds.camera.to_dict(),
+                "cam_from_antenna": lever,
+                "stereo_baseline": baseline,
+            }
         )
     # the true start configuration: cam0's pose at each agent's first frame (as the experiment runner's)
     starts = {}
@@ -107,11 +117,29 @@ class Stream:
     start_pose: list[list[float]]
 
 
+def _stereo_baseline(rec: Path, meta: dict[str, Any], agent: dict[str, Any]) -> float | None:
+    """The agent's stereo baseline as recorded, or, for a recording made before it was kept, from the
+    recorded scenario's calibration."""
+    if "stereo_baseline" in agent:
+        return None if agent["stereo_baseline"] is None else float(agent["stereo_baseline"])
+    scen = Path(meta.get("scenario_dir", "")) / agent["agent_id"]
+    if not meta.get("scenario_dir") or not scen.is_dir():
+        raise SystemExit(
+            f"error: {rec / 'team.json'} has no stereo baseline for {agent['agent_id']} and its scenario "
+            f"({scen}) is gone: record the team again"
+        )
+    from hivemap.client.dataset import load_dataset
+
+    rig = getattr(load_dataset(scen), "rig", None)
+    return None if rig is None else float(rig.baseline)
+
+
 def make_streams(rec: Path, n: int, speed: float, duration_s: float | None) -> list[Stream]:
     meta = json.loads((rec / "team.json").read_text())
     base = meta["agents"]
     decoded = {a["agent_id"]: [decode(f)[1] for f in _frames(rec / f"{a['agent_id']}.sqlite")] for a in base}
     t0 = min(m.timestamp for msgs in decoded.values() for m in msgs if isinstance(m, Keyframe))
+    baselines = {a["agent_id"]: _stereo_baseline(rec, meta, a) for a in base}
     streams = []
     for i in range(n):
         a, c = base[i % len(base)], i // len(base)
@@ -139,7 +167,8 @@ def make_streams(rec: Path, n: int, speed: float, duration_s: float | None) -> l
             frames.append((t_end, encode(h, len(frames) + 1), False))
         lever = a["cam_from_antenna"]
         lever_a = None if lever is None else np.asarray(lever, dtype=np.float64)
-        hello = Hello(aid, a["kind"], a["camera"], f"team-{aid}", 0, session, lever_a, uuid.uuid4().hex)
+        hello = Hello(aid, a["kind"], a["camera"], f"team-{aid}", 0, session, lever_a, uuid.uuid4().hex,
+                      stereo_baseline=baselines[a["agent_id"]])  # fmt: skip
         start = np.asarray(meta["start_poses"][a["agent_id"]], dtype=np.float64)
         streams.append(Stream(aid, hello, frames, _shift(start, off).tolist()))
     return streams

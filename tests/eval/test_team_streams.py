@@ -10,6 +10,7 @@ from pathlib import Path
 from types import ModuleType
 
 import numpy as np
+import pytest
 
 from hivemap.protocol import Keyframe, PoseUpdates, Rendezvous, decode, encode
 
@@ -76,8 +77,19 @@ def test_every_message_of_a_stream_has_its_own_seq(
         db.execute("INSERT INTO outbox VALUES (?, ?, 1)", (i, encode(m, i)))
     db.commit()
     db.close()
-    meta = {"agents": [{"agent_id": "uav1", "kind": "uav", "camera": {}, "cam_from_antenna": None}],
+    meta = {"agents": [{"agent_id": "uav1", "kind": "uav", "camera": {}, "cam_from_antenna": None,
+                        "stereo_baseline": 0.11}],
             "start_poses": {"uav1": np.eye(4).tolist()}}  # fmt: skip
     (tmp_path / "team.json").write_text(json.dumps(meta))
     (stream,) = ts.make_streams(tmp_path, 1, 1.0, None)
     assert [decode(f)[0] for _, f, _ in stream.frames] == [1, 2, 3, 4]
+    # the hello says the stereo baseline, so the server keeps the keyframes' stereo observations
+    assert stream.hello.stereo_baseline == 0.11
+
+    # a recording from before the baseline was kept, whose scenario is gone: a clear error, no replay
+    # without stereo
+    del meta["agents"][0]["stereo_baseline"]
+    meta["scenario_dir"] = str(tmp_path / "gone")
+    (tmp_path / "team.json").write_text(json.dumps(meta))
+    with pytest.raises(SystemExit, match="no stereo baseline for uav1"):
+        ts.make_streams(tmp_path, 1, 1.0, None)
