@@ -384,10 +384,10 @@ def _points_follow(m: Any, moves: list[tuple[Any, F64]], listed: set[int], folde
         owner += repeat(j, len(ids))
     mps = list(map(m.points.get, keys))
     anchor = [kf.key for kf, _ in moves]
-    firsts = first_observers([mp for mp in mps if mp is not None])
-    at = iter(firsts)
+    # the first observers of the points found, consumed in step with ``mps`` (None: no point)
+    first_of = iter(first_observers([mp for mp in mps if mp is not None]))
     follow = [
-        mp is not None and next(at) == anchor[j] and not (k[0] == folded and k[1] in listed)
+        mp is not None and next(first_of) == anchor[j] and not (k[0] == folded and k[1] in listed)
         for mp, j, k in zip(mps, owner, keys, strict=True)
     ]
     pts = list(compress(mps, follow))
