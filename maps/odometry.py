@@ -12,8 +12,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import rotation_angle_deg
-
 KfKey = tuple[str, int]
 F64 = NDArray[np.float64]
 
@@ -33,21 +31,24 @@ class Chains:
         self.cum: dict[str, F64] = {}
         for agent, ks in by_agent.items():
             ks.sort(key=lambda k: (m.keyframes[k].timestamp, k[1]))
-            cum = np.zeros((len(ks), 7))
+            # each step from the previous keyframe, all of an agent's at once (a map's optimisation builds
+            # the chains twice, and one step at a time held the event loop)
+            P = np.array([poses[k] if poses is not None else m.keyframes[k].world_from_cam for k in ks])
+            steps = np.zeros((len(ks), 7))
+            if len(ks) > 1:
+                a, b = P[:-1], P[1:]
+                steps[1:, 0] = np.linalg.norm(b[:, :3, 3] - a[:, :3, 3], axis=1)
+                cos = (np.trace(a[:, :3, :3].transpose(0, 2, 1) @ b[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0
+                steps[1:, 1] = np.arccos(np.clip(cos, -1.0, 1.0))
             for i in range(1, len(ks)):
                 kf = m.keyframes[ks[i]]
-                a = poses[ks[i - 1]] if poses is not None else m.keyframes[ks[i - 1]].world_from_cam
-                b = poses[ks[i]] if poses is not None else kf.world_from_cam
-                step = np.zeros(7)
-                step[0] = float(np.linalg.norm(b[:3, 3] - a[:3, 3]))
-                step[1] = np.radians(rotation_angle_deg(a[:3, :3].T @ b[:3, :3]))
                 if kf.odom_sigma is not None:
-                    step[2:4] = np.asarray(kf.odom_sigma, dtype=np.float64) ** 2
+                    steps[i, 2:4] = np.asarray(kf.odom_sigma, dtype=np.float64) ** 2
                 if kf.track_sigma is not None:
-                    step[4:6] = np.asarray(kf.track_sigma, dtype=np.float64) ** 2
+                    steps[i, 4:6] = np.asarray(kf.track_sigma, dtype=np.float64) ** 2
                 else:
-                    step[6] = 1.0
-                cum[i] = cum[i - 1] + step
+                    steps[i, 6] = 1.0
+            cum = np.cumsum(steps, axis=0)
             for i, k in enumerate(ks):
                 self.pos[k] = (agent, i)
             self.cum[agent] = cum

@@ -93,3 +93,25 @@ def test_chains_order_each_agent_by_time() -> None:
     m, snap, _, _ = _map(own=True)
     chains = Chains(m, snap.keys, dict(zip(snap.keys, snap.poses, strict=True)))
     assert chains.order["b"] == [("b", k) for k in range(N)]
+
+
+def test_chains_sum_each_agents_steps_in_path_rotation_and_sigmas() -> None:
+    """The cumulative path (m), rotation (rad) and variances between two keyframes are the sums of the
+    steps between them, each step from the keyframes' poses one by one."""
+    from hivemap.maps.geometry import rotation_angle_deg
+    from hivemap.maps.testing import random_map
+
+    m = random_map(np.random.default_rng(4), 1, "uav1", 25, 400)
+    ks = sorted(m.keyframes, key=lambda k: (m.keyframes[k].timestamp, k[1]))
+    c = Chains(m)
+    path = rot = weak_m2 = 0.0
+    for i in range(1, len(ks)):
+        a, b = m.keyframes[ks[i - 1]].world_from_cam, m.keyframes[ks[i]].world_from_cam
+        path += float(np.linalg.norm(b[:3, 3] - a[:3, 3]))
+        rot += np.radians(rotation_angle_deg(a[:3, :3].T @ b[:3, :3]))
+        sig = m.keyframes[ks[i]].odom_sigma
+        weak_m2 += 0.0 if sig is None else float(sig[0]) ** 2
+    d = c.between(ks[0], ks[-1])
+    assert d is not None
+    np.testing.assert_allclose(d[:3], [path, rot, np.sqrt(weak_m2)], rtol=1e-12)
+    assert rot > 1.0 and weak_m2 > 0.0  # the random poses turn, and some keyframes tracked weakly
