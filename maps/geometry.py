@@ -10,6 +10,7 @@ Conventions (project-wide):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -205,6 +206,29 @@ class Sim3:
     def from_pycolmap(sim: Any) -> Sim3:
         M = np.asarray(sim.matrix())
         return Sim3.from_matrix(np.vstack([M[:3, :4], [0, 0, 0, 1]]))
+
+
+def rotation_angles(A: F64, B: F64) -> F64:
+    """Angle (rad) of each ``A[i]^T @ B[i]`` for stacks of rotations (n, 3, 3): :func:`rotation_angle_deg`
+    batched (in radians)."""
+    c = (np.trace(np.transpose(A, (0, 2, 1)) @ B, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.asarray(np.arccos(np.clip(c, -1.0, 1.0)), dtype=np.float64)
+
+
+def sim3_arrays(sims: Sequence[Sim3]) -> tuple[F64, F64, F64]:
+    """(R (n, 3, 3), t (n, 3), s (n,)) of a list of similarities, for the batched helpers."""
+    R = np.array([c.R for c in sims], dtype=np.float64).reshape(-1, 3, 3)
+    t = np.array([c.t for c in sims], dtype=np.float64).reshape(-1, 3)
+    return R, t, np.array([c.s for c in sims], dtype=np.float64)
+
+
+def transform_poses(R: F64, t: F64, s: F64, W: F64) -> F64:
+    """``Sim3(R[i], t[i], s[i]).transform_pose(W[i])`` for a stack of rigid poses ``W`` (n, 4, 4)."""
+    out = np.zeros_like(W)
+    out[:, :3, :3] = nearest_rotations(R @ W[:, :3, :3])
+    out[:, :3, 3] = s[:, None] * np.einsum("nij,nj->ni", R, W[:, :3, 3]) + t
+    out[:, 3, 3] = 1.0
+    return out
 
 
 def rotation_between(a: F64, b: F64) -> F64:

@@ -12,6 +12,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.maps.geometry import rotation_angles
+
 KfKey = tuple[str, int]
 F64 = NDArray[np.float64]
 
@@ -38,8 +40,7 @@ class Chains:
             if len(ks) > 1:
                 a, b = P[:-1], P[1:]
                 steps[1:, 0] = np.linalg.norm(b[:, :3, 3] - a[:, :3, 3], axis=1)
-                cos = (np.trace(a[:, :3, :3].transpose(0, 2, 1) @ b[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0
-                steps[1:, 1] = np.arccos(np.clip(cos, -1.0, 1.0))
+                steps[1:, 1] = rotation_angles(a[:, :3, :3], b[:, :3, :3])
             for i in range(1, len(ks)):
                 kf = m.keyframes[ks[i]]
                 if kf.odom_sigma is not None:

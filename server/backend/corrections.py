@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hivemap.maps.elements import first_observers, positions, set_positions
-from hivemap.maps.geometry import Sim3, nearest_rotations
+from hivemap.maps.geometry import Sim3, rotation_angles, sim3_arrays, transform_poses
 from hivemap.protocol import Correction, encode
 from hivemap.server.backend.fit import frame_correction
 from hivemap.server.backend.options import CorrectionOptions
@@ -42,9 +42,7 @@ def local_poses(server: Any, m: Any) -> dict[KfKey, F64]:
         g = (am.global_from_vio if am is not None else Sim3.identity()).inverse()
         W = np.array([m.keyframes[k].world_from_cam for k in keys], dtype=np.float64)
         n = len(keys)
-        T = _transform_poses(
-            np.broadcast_to(g.R, (n, 3, 3)), np.broadcast_to(g.t, (n, 3)), np.full(n, g.s), W
-        )
+        T = transform_poses(np.broadcast_to(g.R, (n, 3, 3)), np.broadcast_to(g.t, (n, 3)), np.full(n, g.s), W)
         out.update(zip(keys, T, strict=True))
     return out
 
@@ -105,28 +103,12 @@ def apply_corrections(
         server.set_agent_transform(folded, c @ am.global_from_vio)
 
 
-def _arrays(sims: list[Sim3]) -> tuple[F64, F64, F64]:
-    """(R (n, 3, 3), t (n, 3), s (n,)) of a list of similarities."""
-    R = np.array([c.R for c in sims], dtype=np.float64).reshape(-1, 3, 3)
-    t = np.array([c.t for c in sims], dtype=np.float64).reshape(-1, 3)
-    return R, t, np.array([c.s for c in sims], dtype=np.float64)
-
-
-def _transform_poses(R: F64, t: F64, s: F64, W: F64) -> F64:
-    """``Sim3(R[i], t[i], s[i]).transform_pose(W[i])`` for a stack of rigid poses W (n, 4, 4)."""
-    out = np.zeros_like(W)
-    out[:, :3, :3] = nearest_rotations(R @ W[:, :3, :3])
-    out[:, :3, 3] = s[:, None] * np.einsum("nij,nj->ni", R, W[:, :3, 3]) + t
-    out[:, 3, 3] = 1.0
-    return out
-
-
 def _move_keyframes(m: Any, keys: list[KfKey], sims: list[Sim3]) -> None:
     """``Sim3.transform_pose`` of every keyframe of ``keys`` by its similarity, batched."""
     if not keys:
         return
     W = np.array([m.keyframes[k].world_from_cam for k in keys], dtype=np.float64)
-    for k, T in zip(keys, _transform_poses(*_arrays(sims), W), strict=True):
+    for k, T in zip(keys, transform_poses(*sim3_arrays(sims), W), strict=True):
         m.keyframes[k].world_from_cam = T
 
 
@@ -143,7 +125,7 @@ def _move_points(m: Any, full: dict[KfKey, Sim3], new_xyz: dict[Any, F64]) -> No
     if not mps or not full:
         return
     index = {k: i for i, k in enumerate(full)}
-    R, t, s = _arrays(list(full.values()))
+    R, t, s = sim3_arrays(list(full.values()))
     slot = cast(Callable[[Any, int], int], index.get)
     idx = np.fromiter(map(slot, first_observers(mps), repeat(-1)), dtype=np.int64, count=len(mps))
     moved = idx >= 0
@@ -168,9 +150,7 @@ def chosen_keyframes(
         T1 = np.array([after[k] for k in keys], dtype=np.float64)
         T0 = np.array([before[k] for k in keys], dtype=np.float64)
         dt = np.linalg.norm(T1[:, :3, 3] - T0[:, :3, 3], axis=1)
-        # rotation angle of T1 T0^T: trace(A B^T) is the sum of the elementwise product
-        c = (np.einsum("nij,nij->n", T1[:, :3, :3], T0[:, :3, :3]) - 1.0) / 2.0
-        dr = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+        dr = np.degrees(rotation_angles(T0[:, :3, :3], T1[:, :3, :3]))  # the turn of T1 T0^T
         for i in np.flatnonzero((dt >= o.min_move_m) | (dr >= o.min_rot_deg)).tolist():
             moves.append((float(dt[i]) + TURN_WEIGHT_M_PER_DEG * float(dr[i]), keys[i]))
     moves.sort(reverse=True)

@@ -54,15 +54,8 @@ class Verifier(Protocol):
 
 
 def _warm() -> int:
-    """Run once in each worker at start, so that the first query does not pay for the imports."""
-    return os.getpid()
-
-
-def warm_solver() -> int:
-    """Run once in a solver's process at the back-end's start: the solvers' imports (gtsam, the whole
-    back-end package) take seconds of CPU, which the first merge's solve paid at take-off."""
-    import hivemap.server.backend.optimise  # noqa: F401
-
+    """Run once in each process at start: a pool spawns its process at the first job, and the process
+    imports the back-end (the initializer's module) then, so the first query or solve does not wait."""
     return os.getpid()
 
 
@@ -104,14 +97,14 @@ class SolverProcess:
         self._running = 0  # jobs submitted and not ended (the pose graph and the covariances share one)
 
     def start(self) -> None:
-        """Spawn the process now and have it import the solvers, ahead of the first job."""
+        """Spawn the process now (with its imports), ahead of the first job."""
         if self._pool is None:
             self._pool = spawn_pool()
-            self._pool.submit(warm_solver)
+            self._pool.submit(_warm)
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
-        if self._pool is None:
-            self._pool = spawn_pool()
+        self.start()
+        assert self._pool is not None
         self._running += 1
         try:
             return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)

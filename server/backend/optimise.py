@@ -13,7 +13,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import Sim3, nearest_rotations, relative_poses
+from hivemap.maps.geometry import Sim3, nearest_rotations, relative_poses, sim3_arrays
 from hivemap.maps.odometry import Chains
 from hivemap.server.backend.options import OptimiseOptions
 from hivemap.server.optim import PoseGraphOptions, PoseGraphResult
@@ -288,9 +288,7 @@ def pose_graph_corrections(snap: Snapshot, sims: list[Sim3]) -> tuple[dict[KfKey
     if n == 0:
         return {}, 0.0
     P = np.asarray(snap.poses, dtype=np.float64).reshape(n, 4, 4)
-    Rs = np.array([x.R for x in sims], dtype=np.float64)
-    ts = np.array([x.t for x in sims], dtype=np.float64)
-    ss = np.array([x.s for x in sims], dtype=np.float64)
+    Rs, ts, ss = sim3_arrays(sims)
     RsRpt = Rs @ nearest_rotations(P[:, :3, :3]).transpose(0, 2, 1)
     R = nearest_rotations(RsRpt)
     t = ts - ss[:, None] * np.einsum("nij,nj->ni", RsRpt, P[:, :3, 3])
