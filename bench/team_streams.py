@@ -128,10 +128,14 @@ def _stereo_baseline(rec: Path, meta: dict[str, Any], agent: dict[str, Any]) -> 
             f"error: {rec / 'team.json'} has no stereo baseline for {agent['agent_id']} and its scenario "
             f"({scen}) is gone: record the team again"
         )
-    from hivemap.client.dataset import load_dataset
+    # the calibration only (the whole dataset would read every IMU sample and frame list)
+    from hivemap.client.bag_calib import load_calibration
+    from hivemap.maps.camera import StereoRig
 
-    rig = getattr(load_dataset(scen), "rig", None)
-    return None if rig is None else float(rig.baseline)
+    c = load_calibration([scen])
+    if "cam1" not in c.cameras:
+        return None
+    return float(StereoRig(c.cameras["cam0"], c.cameras["cam1"], c.T_BS["cam0"], c.T_BS["cam1"]).baseline)
 
 
 def make_streams(rec: Path, n: int, speed: float, duration_s: float | None) -> list[Stream]:
