@@ -14,11 +14,7 @@ loops, so a few noisy fixes bent a map whose loops had closed it.)
 Roll/pitch: GNSS positions barely observe a keyframe's tilt, so on a gravity-aligned map an attitude
 factor holds each keyframe's up direction: the one the agent's IMU measured (``up_in_body``, sent with
 the keyframe) where there is one, else the map's own, which carries the front-end's visual tilt drift
-and would put the far ends of a merged map off in height (``docs/decisions.md``). An agent's up
-directions all carry its filter's gravity error, so they are held relative to a tilt estimated per agent
-(``GnssStageOptions.sigma_gravity_bias``): agents whose IMUs disagree about gravity by tenths of a degree
-then share one tilt that the fixes and their priors set, instead of each pulling its own keyframes to
-its own and bending the map at the loops between them.
+and would put the far ends of a merged map off in height (``docs/decisions.md``).
 """
 
 from __future__ import annotations
@@ -26,12 +22,11 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hivemap.maps.geometry import se3, se3_inverse, so3_exp
+from hivemap.maps.geometry import se3, se3_inverse
 
 log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
@@ -46,11 +41,6 @@ class GnssStageOptions:
     # keyframe's roll/pitch with an attitude factor, as GNSS barely observes tilt.
     gravity_aligned: bool = True
     sigma_attitude: float = 0.005  # rad
-    # An agent's IMU up directions share one error, its filter's gravity estimate: a tilt per agent,
-    # estimated with this prior (rad) when keyframes are grouped by agent. Held as independent per-keyframe
-    # measurements, hundreds of keyframes pinned each agent to its own tilt and loops between agents bent
-    # the map between them. 0: the independent model.
-    sigma_gravity_bias: float = 0.005
     outlier_sigma: float = 10.0
     max_iterations: int = 50
     # How stiff the odometry is (its edges' sigmas times a scale) is chosen by cross-validation: the
@@ -105,7 +95,6 @@ def fuse_gnss(
     options: GnssStageOptions = GnssStageOptions(),
     up_in_body: F64 | None = None,
     stiffness_scale: float | None = None,
-    agent_of: NDArray[np.int64] | None = None,
 ) -> GnssStageResult:
     """Move a map into ENU and bend it onto the GNSS fixes.
 
@@ -118,8 +107,6 @@ def fuse_gnss(
     the map in ENU (fewer than ``min_fixes``, or spread less than ``min_spread_m``).
     stiffness_scale: the odometry sigmas' scale to use; None: chosen by cross-validation among
     ``options.stiffness_scales`` (a caller can keep the choice until more fixes arrive).
-    agent_of: (N,) each keyframe's agent (any integer label): its IMU up directions are held relative to
-    that agent's estimated gravity tilt (``options.sigma_gravity_bias``); None: each is held on its own.
     """
     import gtsam
 
@@ -153,19 +140,12 @@ def fuse_gnss(
             fixed.add(gtsam.BetweenFactorPose3(e.a, e.b, rel, gtsam.noiseModel.Gaussian.Covariance(e.cov)))
     # Keyframes of no edge and without fixes would be unconstrained: anchor all loosely.
     loose = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0] * 3 + [100.0] * 3))
-    tilt_of = _agent_tilts(agent_of, n, options) if up_in_body is not None else {}
-    for key in tilt_of.values():
-        values.insert(key, gtsam.Pose3())
-        fixed.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(), _tilt_prior(options.sigma_gravity_bias)))
     for k in range(n):
         fixed.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(init[k]), loose))
         if options.gravity_aligned:
             down_in_body = init[k, :3, :3].T @ np.array([0.0, 0.0, -1.0])
             if up_in_body is not None and np.all(np.isfinite(up_in_body[k])):
                 down_in_body = -np.asarray(up_in_body[k], dtype=np.float64)
-                if agent_of is not None and int(agent_of[k]) in tilt_of:
-                    fixed.add(_tilted_attitude(tilt_of[int(agent_of[k])], k, init[k], up_in_body[k], options))
-                    continue
             fixed.add(
                 gtsam.AttitudeFactorPose3(
                     k,
@@ -229,52 +209,6 @@ def fuse_gnss(
     # attitude factors and compounded).
     R2, t2 = _rigid_fit(poses[:, :3, 3], out[:, :3, 3], options.gravity_aligned) if n >= 3 else (R, t)
     return GnssStageResult(se3(R2, t2), out, used, residuals, scale, scores)
-
-
-def _agent_tilts(agent_of: NDArray[np.int64] | None, n: int, options: GnssStageOptions) -> dict[int, int]:
-    """Agent label -> the key of its gravity-tilt variable (after the ``n`` keyframes' keys); empty when
-    the tilts are not estimated."""
-    if agent_of is None or options.sigma_gravity_bias <= 0 or not options.gravity_aligned:
-        return {}
-    return {int(g): n + i for i, g in enumerate(sorted({int(a) for a in agent_of}))}
-
-
-def _tilt_prior(sigma: float) -> Any:
-    """An agent's gravity frame in ENU: tilted by at most ``sigma`` (rad) about x and y; its heading and
-    position are a gauge (its attitude factors leave them free), held at zero."""
-    import gtsam
-
-    return gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma, sigma, 1e-6, 1e-6, 1e-6, 1e-6]))
-
-
-def _tilted_attitude(tilt_key: int, k: int, pose: F64, up: F64, options: GnssStageOptions) -> Any:
-    """Keyframe ``k``'s IMU up direction ``up`` (body frame) relative to its agent's gravity frame: a
-    Between from that frame to the keyframe that holds only the two tilt angles (``sigma_attitude``) and
-    leaves heading and position free (``pose``: the keyframe's initial ENU pose, whose heading and
-    position the measurement copies)."""
-    import gtsam
-
-    u_imu = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    u_map = pose[:3, :3].T @ np.array([0.0, 0.0, 1.0])
-    # the keyframe's own attitude turned in its body frame so that its up is the IMU's
-    measured = se3(pose[:3, :3] @ _rotation_between(u_imu, u_map), pose[:3, 3])
-    free = 1e2
-    cov = np.zeros((6, 6))
-    tilt = np.eye(3) - np.outer(u_imu, u_imu)
-    cov[:3, :3] = options.sigma_attitude**2 * tilt + free**2 * np.outer(u_imu, u_imu)
-    cov[3:, 3:] = free**2 * np.eye(3)
-    noise = gtsam.noiseModel.Gaussian.Covariance(cov)
-    return gtsam.BetweenFactorPose3(tilt_key, k, gtsam.Pose3(measured), noise)
-
-
-def _rotation_between(a: F64, b: F64) -> F64:
-    """The smallest rotation ``Q`` with ``Q a = b`` (unit vectors)."""
-    v = np.cross(a, b)
-    c = float(np.dot(a, b))
-    s = float(np.linalg.norm(v))
-    if s < 1e-12:
-        return np.eye(3)
-    return so3_exp(v / s * np.arctan2(s, c))
 
 
 def _cross_validate(

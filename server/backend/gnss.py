@@ -89,19 +89,7 @@ def fuse(inp: StageInput, edges: list[PoseGraphEdge], **kwargs: Any) -> GnssStag
     optimisation thread; ``kwargs`` go to ``fuse_gnss``)."""
     from hivemap.server.gnss_stage import fuse_gnss
 
-    return fuse_gnss(
-        inp.world_from_ant,
-        on_antennas(edges, inp.cam_from_ant),
-        inp.fixes,
-        agent_of=agent_labels(inp.keys),
-        **kwargs,
-    )
-
-
-def agent_labels(keys: list[KfKey]) -> NDArray[np.int64]:
-    """Each keyframe's agent as an integer label (the stage estimates one gravity tilt per agent)."""
-    names = {a: i for i, a in enumerate(sorted({k[0] for k in keys}))}
-    return np.array([names[k[0]] for k in keys], dtype=np.int64)
+    return fuse_gnss(inp.world_from_ant, on_antennas(edges, inp.cam_from_ant), inp.fixes, **kwargs)
 
 
 def antenna_fixes(
