@@ -184,8 +184,9 @@ class TeamAdvisory:
     """Server -> agent (protocol v4, only to agents whose hello set ``team_advisories``): the agent's
     exploration goals and collision advisory in the frame of its map ``map_id`` (the global frame of its
     corrections). ``goals`` f64 (G,3): its won frontier goals in visiting order (G may be 0);
-    ``desired_velocity`` f64 (3,) towards the first one; ``safe_velocity`` f64 (3,): the ORCA velocity
-    nearest it that stays clear of the map's other agents; ``radius_m``: the agent's radius as inflated by
+    ``desired_velocity`` f64 (3,): the velocity the server expects it to fly (its current one while it
+    moves, else towards the first goal); ``safe_velocity`` f64 (3,): the ORCA velocity nearest it that
+    stays clear of the map's other agents; ``radius_m``: the agent's radius as inflated by
     its uncertainty. Advisory only and not stored: a newer one replaces it; ``computed_at`` is the
     server's unix time."""
 

@@ -272,7 +272,9 @@ class FrontierList(BaseModel):
 
 
 class Advisory(BaseModel):
-    desired_velocity: list[float] = Field(description="towards the first goal at the kind's cruise speed")
+    desired_velocity: list[float] = Field(
+        description="what the agent flies now (moving), else towards the first goal at cruise speed"
+    )
     safe_velocity: list[float] = Field(description="ORCA: collision-free over the time horizon (horizontal)")
     radius_m: float
     inflated_radius_m: float = Field(description="radius + k_sigma * (sigma_pos + t_v * sigma_vel)")

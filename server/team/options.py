@@ -78,6 +78,8 @@ class OrcaOptions:
     radius_ugv_m: float = 0.8
     max_speed_uav: float = 2.0  # m/s; also the cruise speed of the desired velocity towards a goal
     max_speed_ugv: float = 1.0
+    # an agent faster than this keeps its current velocity as ORCA's preferred one (orca.preferred_velocity)
+    moving_mps: float = 0.2
     # inflation: radius + k_sigma * (sqrt(max eigenvalue of the horizontal position covariance)
     #                               + velocity_horizon_s * sqrt(max eigenvalue of the velocity's))
     k_sigma: float = 2.0

@@ -55,6 +55,25 @@ class Advisory:
     neighbours: tuple[str, ...]
 
 
+def preferred_velocity(velocity: F64, position: F64, goal: F64 | None, speed: float, o: OrcaOptions) -> F64:
+    """The velocity ORCA keeps an agent nearest to (3,): what it will fly without an advisory. A moving
+    agent (faster than ``o.moving_mps``) keeps its current velocity: agents follow roads and their own
+    controllers, which the server does not know, so the straight line to the goal may be clear while the
+    path they fly is not. A standing one: the straight line to ``goal`` at ``speed``, slowing to arrive
+    within one advisory period (zero without a goal)."""
+    v = np.asarray(velocity, dtype=np.float64)
+    horizontal = float(np.linalg.norm(v[:2]))
+    if horizontal > o.moving_mps:
+        out = v.copy()
+        out[:2] *= min(1.0, speed / horizontal)
+        return out
+    if goal is None:
+        return np.zeros(3)
+    to_goal = np.asarray(goal, dtype=np.float64) - np.asarray(position, dtype=np.float64)
+    dist = float(np.linalg.norm(to_goal))
+    return to_goal / dist * min(speed, dist / o.time_step_s) if dist > 0 else np.zeros(3)
+
+
 def _sigma_max(cov: F64 | None, axes: slice) -> float:
     if cov is None:
         return 0.0

@@ -25,7 +25,7 @@ from hivemap.server.team.auction import d_optimal_gain, ssi_auction
 from hivemap.server.team.commit import Commitments
 from hivemap.server.team.frontiers import FrontierResult, extract
 from hivemap.server.team.options import TeamOptions
-from hivemap.server.team.orca import AgentMotion, advisories, inflated_radius
+from hivemap.server.team.orca import AgentMotion, advisories, inflated_radius, preferred_velocity
 
 logger = logging.getLogger(__name__)
 
@@ -265,12 +265,7 @@ class TeamService:
         for a, at, (P, V, _) in zip(team, goal_at, covs, strict=True):
             ugv = a.kind == "ugv"
             speed = o.orca.max_speed_ugv if ugv else o.orca.max_speed_uav
-            desired = np.zeros(3)
-            if at:
-                to_goal = at[0] - a.position
-                dist = float(np.linalg.norm(to_goal))
-                if dist > 0:  # at cruise speed, slowing to arrive within one advisory period
-                    desired = to_goal / dist * min(speed, dist / o.orca.time_step_s)
+            desired = preferred_velocity(a.velocity, a.position, at[0] if at else None, speed, o.orca)
             radius = o.orca.radius_ugv_m if ugv else o.orca.radius_uav_m
             motions.append(
                 AgentMotion(a.agent_id, a.position, a.velocity, desired, radius, speed, P, V, a.timestamp)

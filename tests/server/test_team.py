@@ -14,7 +14,7 @@ from hivemap.server.team.follow import reference
 from hivemap.server.team.frontiers import extract, voxel_downsample
 from hivemap.server.team.options import ConfigError, FrontierOptions, OrcaOptions, TeamOptions, from_table
 from hivemap.server.team.options import to_table as team_to_table
-from hivemap.server.team.orca import AgentMotion, advisories, inflated_radius
+from hivemap.server.team.orca import AgentMotion, advisories, inflated_radius, preferred_velocity
 
 # ---------------------------------------------------------------- auction
 
@@ -149,6 +149,54 @@ def test_orca_lone_agent_keeps_desired_velocity_exactly() -> None:
     adv = advisories([a, far, above], OPT)
     assert adv[0].neighbours == ()
     assert np.array_equal(adv[0].safe_velocity, desired)
+
+
+def test_orca_guards_the_path_the_agents_fly_not_the_line_to_their_goals() -> None:
+    """Two agents on roads that cross: a flies +x from (0, 0), b +y from (4, -4), both at 1 m/s, so they
+    meet at (4, 0) after 4 s; their goals lie off the roads, a's straight up at (0, 10), b's to the right
+    at (14, -4), and those straight lines never come within 5.6 m. With the lines to the goals as the
+    preferred velocities ORCA finds them clear and leaves them as they are: the agents' controllers,
+    which obey only a changed velocity, fly their roads into each other. With the velocities they fly
+    as the preferred ones, ORCA changes them, and the advised velocities keep the pair apart by their
+    inflated radii over the horizon."""
+    a = _agent("a", (0.0, 0.0), (1.0, 0.0))
+    b = _agent("b", (4.0, -4.0), (0.0, 1.0))
+    goals = {"a": np.array([0.0, 10.0, 1.5]), "b": np.array([14.0, -4.0, 1.5])}
+    assert _min_distance(a.position[:2], a.velocity[:2], b.position[:2], b.velocity[:2], 5.0) < 1e-9
+
+    def with_desired(m: AgentMotion, d: np.ndarray) -> AgentMotion:
+        return AgentMotion(m.agent_id, m.position, m.velocity, d, m.radius, m.max_speed)
+
+    line = [with_desired(m, (goals[m.agent_id] - m.position) / np.linalg.norm(goals[m.agent_id] - m.position))
+            for m in (a, b)]  # fmt: skip
+    assert _min_distance(a.position[:2], line[0].desired[:2], b.position[:2], line[1].desired[:2], 5.0) > 5.6
+    for adv, m in zip(advisories(line, OPT), line, strict=True):
+        assert np.allclose(adv.safe_velocity, m.desired, atol=1e-6)  # the hazard: nothing changes
+
+    flown = [with_desired(m, preferred_velocity(m.velocity, m.position, goals[m.agent_id], 2.0, OPT))
+             for m in (a, b)]  # fmt: skip
+    assert np.array_equal(flown[0].desired, a.velocity) and np.array_equal(flown[1].desired, b.velocity)
+    adv = advisories(flown, OPT)
+    changed = [np.linalg.norm(v.safe_velocity[:2] - m.desired[:2]) for v, m in zip(adv, flown, strict=True)]
+    assert max(changed) > 0.1
+    r_sum = adv[0].radius + adv[1].radius
+    va, vb = adv[0].safe_velocity[:2], adv[1].safe_velocity[:2]
+    assert _min_distance(a.position[:2], va, b.position[:2], vb, OPT.time_horizon_s) >= r_sum - 1e-3
+
+
+def test_preferred_velocity_of_a_standing_agent_is_the_line_to_its_goal() -> None:
+    """Below ``moving_mps`` the agent is standing: the straight line to its goal at cruise speed,
+    slowed to arrive within one advisory period (0.1 s here), zero without a goal; a moving agent's
+    velocity above the top speed is cut to it."""
+    p = np.array([1.0, 1.0, 2.0])
+    still = np.array([0.05, 0.0, 0.0])
+    v = preferred_velocity(still, p, np.array([4.0, 5.0, 2.0]), 2.0, OPT)
+    assert np.allclose(v, [1.2, 1.6, 0.0])  # 5 m away: 2 m/s along (0.6, 0.8)
+    v = preferred_velocity(still, p, np.array([1.06, 1.08, 2.0]), 2.0, OPT)
+    assert np.allclose(v, [0.6, 0.8, 0.0])  # 0.1 m away: 1 m/s arrives in 0.1 s
+    assert np.array_equal(preferred_velocity(still, p, None, 2.0, OPT), np.zeros(3))
+    v = preferred_velocity(np.array([3.0, 4.0, 0.5]), p, None, 2.0, OPT)
+    assert np.allclose(v, [1.2, 1.6, 0.5])
 
 
 def test_inflated_radius_by_hand() -> None:

@@ -24,8 +24,10 @@ from hivemap.server.backend_synth import UGV_FROM_WORLD, agent_stream, make_worl
 from hivemap.server.team.options import OrcaOptions, TeamOptions
 
 # no tracking margin: the hand computation below is RVO2's branch for agents apart by their inflated radii,
-# and the margin would make the UAV and the UGV, 4 m apart, overlap
-ORCA = OrcaOptions(tracking_margin_m=0.0)
+# and the margin would make the UAV and the UGV, 4 m apart, overlap; the straight line to the goal as the
+# preferred velocity (every agent counts as standing): the synthetic agents fly parallel, so their own
+# velocities would ask ORCA for no change, and this test is about the inflation's effect on one
+ORCA = OrcaOptions(tracking_margin_m=0.0, moving_mps=float("inf"))
 SCALES = (1.0, 5.0)  # the pose graph's edge sigmas, times the defaults (5: the radii do not overlap yet)
 
 

@@ -17,6 +17,7 @@ from hivemap.server import schemas
 from hivemap.server.loadgen import hello as make_hello
 from hivemap.server.team.frontiers import extract
 from hivemap.server.team.options import FrontierOptions, TeamOptions
+from hivemap.server.team.orca import preferred_velocity
 from hivemap.server.team.service import TeamService, _AgentSnap
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -102,11 +103,14 @@ def test_frontiers_and_assignments_over_rest(server: ServerProcess) -> None:
             assert a.kind == kind and 1 <= len(a.goals) <= 3
             assert all(kind in fr[g].reachable for g in a.goals)
             np.testing.assert_allclose(a.position, (uav_path if kind == "uav" else ugv_path)[-1])
-            # alone in its map: the advisory is the desired velocity, towards the first goal
+            # alone in its map: the advisory is the desired velocity, what the agent flies now (moving)
             assert a.advisory.neighbours == [] and a.advisory.safe_velocity == a.advisory.desired_velocity
-            to_goal = np.array(a.goal_positions[0]) - np.array(a.position)
-            v = np.array(a.advisory.desired_velocity)
-            assert np.linalg.norm(np.cross(v, to_goal)) < 1e-9 * np.linalg.norm(to_goal) and v @ to_goal > 0
+            orca = TeamOptions().orca
+            speed = orca.max_speed_uav if kind == "uav" else orca.max_speed_ugv
+            want = preferred_velocity(np.array(a.velocity), np.array(a.position),
+                                      np.array(a.goal_positions[0]), speed, orca)  # fmt: skip
+            assert np.linalg.norm(np.array(a.velocity)[:2]) > orca.moving_mps  # moving: its own velocity
+            np.testing.assert_allclose(a.advisory.desired_velocity, want, atol=1e-12)
             assert a.advisory.covariance == "default"
             assert a.advisory.inflated_radius_m == pytest.approx(a.advisory.radius_m + 2.0 * (0.1 + 0.05))
             assert [r.frontier_id for r in m.rounds if r.agent_id == agent_id] == sorted(
