@@ -130,12 +130,9 @@ def _stereo_baseline(rec: Path, meta: dict[str, Any], agent: dict[str, Any]) -> 
         )
     # the calibration only (the whole dataset would read every IMU sample and frame list)
     from hivemap.client.bag_calib import load_calibration
-    from hivemap.maps.camera import StereoRig
 
-    c = load_calibration([scen])
-    if "cam1" not in c.cameras:
-        return None
-    return float(StereoRig(c.cameras["cam0"], c.cameras["cam1"], c.T_BS["cam0"], c.T_BS["cam1"]).baseline)
+    rig = load_calibration([scen]).stereo_rig()
+    return None if rig is None else float(rig.baseline)
 
 
 def make_streams(rec: Path, n: int, speed: float, duration_s: float | None) -> list[Stream]:

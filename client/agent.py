@@ -159,9 +159,9 @@ class Agent:
         from hivemap.client.bag_calib import load_calibration
 
         calib = load_calibration([Path(p) for p in paths])
-        if "cam1" not in calib.cameras:
+        rig = calib.stereo_rig()
+        if rig is None:
             raise ValueError("the built-in front-end needs a stereo calibration (cam0 and cam1)")
-        rig = StereoRig(calib.cameras["cam0"], calib.cameras["cam1"], calib.T_BS["cam0"], calib.T_BS["cam1"])
         kwargs.setdefault("agent_id", calib.agent_id or "agent")
         kwargs.setdefault("kind", calib.kind or "uav")
         return cls(rig, imu_noise=calib.imu_noise, T_BS=calib.T_BS, **kwargs)

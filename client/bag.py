@@ -32,7 +32,6 @@ from hivemap.client.dataset import AgentDataset, GnssSeries
 from hivemap.client.dataset_files import (
     DatasetError,
 )
-from hivemap.maps.camera import StereoRig
 
 if TYPE_CHECKING:
     from rosbags.highlevel import AnyReader
@@ -321,7 +320,7 @@ def load_bag(source: BagSource) -> AgentDataset:
             log.warning("%s: %d cam0 frames without a cam1 partner dropped", path, len(t0) - len(common))
         t0 = common
         cameras["cam1"] = calib.cameras["cam1"]
-        rig = StereoRig(cameras["cam0"], cameras["cam1"], calib.T_BS["cam0"], calib.T_BS["cam1"])
+        rig = calib.stereo_rig()
     imu_ns, imu_v = _sorted_unique(imu_t, imu_rows, topics.imu)
     if len(imu_ns) == 0:
         raise DatasetError(f"topic {topics.imu!r} has no messages", path)

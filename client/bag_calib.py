@@ -20,7 +20,7 @@ from hivemap.client.dataset_files import (
     matrix_from_yaml,
     read_yaml,
 )
-from hivemap.maps.camera import PinholeCamera
+from hivemap.maps.camera import PinholeCamera, StereoRig
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +38,12 @@ class Calibration:
     gnss_origin: tuple[float, float, float] | None = None
     agent_id: str | None = None
     kind: str | None = None
+
+    def stereo_rig(self) -> StereoRig | None:
+        """The cam0-cam1 rig of this calibration, None without a cam1."""
+        if "cam1" not in self.cameras:
+            return None
+        return StereoRig(self.cameras["cam0"], self.cameras["cam1"], self.T_BS["cam0"], self.T_BS["cam1"])
 
 
 def load_calibration(paths: Sequence[Path]) -> Calibration:
