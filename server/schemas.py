@@ -277,9 +277,17 @@ class Advisory(BaseModel):
     )
     safe_velocity: list[float] = Field(description="ORCA: collision-free over the time horizon (horizontal)")
     radius_m: float
-    inflated_radius_m: float = Field(description="radius + k_sigma * (sigma_pos + t_v * sigma_vel)")
+    inflated_radius_m: float = Field(
+        description="radius + k_sigma * (sigma_pos + t_v * sigma_vel); sigma_pos: half the largest relative "
+        "sigma to the map's other agents (an unknown pair, or none: the agent's own)"
+    )
     neighbours: list[str]
     covariance: str = Field(description="'graph' (the server's marginals) or 'default' (configured sigmas)")
+    relative_position_cov: dict[str, list[list[float]] | None] = Field(
+        default_factory=dict,
+        description="per other agent of the map: 3x3 covariance of this agent's position minus that one's "
+        "(their joint marginal), map frame, m^2; null: not solved yet",
+    )
 
 
 class AgentAssignment(BaseModel):

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from hivemap.server import schemas
-from hivemap.server.backend.uncertainty import PoseCovariance
+from hivemap.server.backend.uncertainty import PoseCovariance, RelativeCovariance
 from hivemap.server.core import HiveServer
 from hivemap.server.marginals import CONVENTION, position_covariance
 
@@ -34,6 +34,17 @@ def latest_pose_covariance(server: Any, folded: str) -> PoseCovariance | None:
     if cov is None or m is None or cov.key not in m.keyframes:
         return None
     return cov
+
+
+def latest_relative_covariance(server: Any, a: str, b: str) -> RelativeCovariance | None:
+    """The back-end's covariance of ``p_a - p_b`` for agent sessions ``a`` and ``b`` (folded), as of its
+    last solve, if one map holds both keyframes it was of (on the event loop)."""
+    unc = getattr(getattr(server, "backend", None), "uncertainty", None)
+    rel: RelativeCovariance | None = unc.between(a, b) if unc is not None else None
+    m = server.stack.maps.get(rel.map_id) if rel is not None else None
+    if rel is None or m is None or any(k not in m.keyframes for k in rel.keys):
+        return None
+    return rel
 
 
 def agent_uncertainty(server: HiveServer, folded: str) -> schemas.PoseUncertainty | None:

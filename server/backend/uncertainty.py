@@ -60,6 +60,19 @@ class PoseCovariance:
 
 
 @dataclass(frozen=True)
+class RelativeCovariance:
+    """The (3, 3) map-frame covariance of ``p_a - p_b``, the camera centres of two agents' latest
+    keyframes ``keys`` (a, b) in map ``map_id``, from their joint marginal at unix time ``computed_at``:
+    what the pose graph knows of where one agent is from the other (the drift both share from the map's
+    anchor cancels), which an agent's own marginal does not say."""
+
+    map_id: int
+    keys: tuple[KfKey, KfKey]
+    covariance: F64
+    computed_at: float
+
+
+@dataclass(frozen=True)
 class MapCovariances:
     """Every keyframe's covariance of one map at ``computed_at`` (``keys`` and ``covariances`` parallel)."""
 
@@ -112,6 +125,7 @@ class Uncertainty:
         self.options = options
         self.maps: dict[int, MapCovariances] = {}
         self.agents: dict[str, PoseCovariance] = {}  # folded agent id -> its latest keyframe's
+        self.relative: dict[tuple[str, str], RelativeCovariance] = {}  # (folded a, folded b), a < b
         self.runs: list[dict[str, float]] = []  # per solve: n_keyframes, n_wanted, cpu_s, wall_s
         self._tasks: dict[int, asyncio.Task[None]] = {}
         self._again: set[int] = set()
@@ -121,6 +135,15 @@ class Uncertainty:
     # -- results ------------------------------------------------------------------------------------
     def of_agent(self, folded: str) -> PoseCovariance | None:
         return self.agents.get(folded)
+
+    def between(self, a: str, b: str) -> RelativeCovariance | None:
+        """The latest solve's covariance of ``p_a - p_b`` for agent sessions ``a`` and ``b`` (folded)."""
+        if a == b:
+            return None
+        got = self.relative.get((a, b) if a < b else (b, a))
+        if got is None or a < b:
+            return got
+        return RelativeCovariance(got.map_id, (got.keys[1], got.keys[0]), got.covariance, got.computed_at)
 
     def of_map(self, map_id: int) -> MapCovariances | None:
         res = self.maps.get(map_id)
@@ -202,7 +225,10 @@ class Uncertainty:
         # per agent: (latest, previous) as graph indices, and their time apart
         pairs = {a: ((index[k], index[p]), kfs[k].timestamp - kfs[p].timestamp)
                  for a, (k, p) in two.items() if p is not None}  # fmt: skip
+        # and between every two agents' latest keyframes, for the team's collision advisories
+        across = [(a, b) for a in sorted(latest) for b in sorted(latest) if a < b]
         asked = [pair for pair, _ in pairs.values()]
+        asked += [(index[latest[a]], index[latest[b]]) for a, b in across]
         wanted = None if full else sorted(index[k] for k in latest.values())
         t0 = time.monotonic()
         try:
@@ -233,6 +259,10 @@ class Uncertainty:
             if k in covs:
                 vel = velocity_covariance(res, *pairs[folded]) if folded in pairs else None
                 self.agents[folded] = PoseCovariance(map_id, k, covs[k], now, len(snap.keys), vel)
+        for a, b in across:
+            rel = res.relative.get((index[latest[a]], index[latest[b]]))
+            if rel is not None:
+                self.relative[(a, b)] = RelativeCovariance(map_id, (latest[a], latest[b]), rel, now)
         if full:
             self.maps[map_id] = MapCovariances(map_id, list(snap.keys), res.covariances, now, res.cpu_s)
         return res

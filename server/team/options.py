@@ -80,8 +80,9 @@ class OrcaOptions:
     max_speed_ugv: float = 1.0
     # an agent faster than this keeps its current velocity as ORCA's preferred one (orca.preferred_velocity)
     moving_mps: float = 0.2
-    # inflation: radius + k_sigma * (sqrt(max eigenvalue of the horizontal position covariance)
-    #                               + velocity_horizon_s * sqrt(max eigenvalue of the velocity's))
+    # inflation: radius + k_sigma * (position sigma + velocity_horizon_s * sqrt(max eigenvalue of the
+    # velocity's horizontal covariance)); the position sigma is half the largest relative one to the
+    # map's other agents (orca.position_sigma)
     k_sigma: float = 2.0
     velocity_horizon_s: float = 1.0
     # without a covariance from the server's graph, these sigmas (per horizontal axis) are assumed

@@ -8,6 +8,12 @@ bindings, which install from a wheel: no hand-written ORCA. ORCA is planar: it a
 velocity; two agents are neighbours only when their vertical gap is within their inflated radii (a UAV
 flying over a UGV does not have to swerve), and the vertical velocity is passed through.
 
+What a pair has to stay clear of is the error of where one is *from the other*: the covariance of the
+difference of their positions (their joint marginal), not each one's marginal in the map frame, which
+grows with the distance from the map's anchor although loops hold the two together. ORCA takes one
+radius per agent, so each agent's radius is inflated by half the largest relative sigma to the others
+of its map (an unknown pair: the agent's own sigma); any pair's two radii then hold its relative sigma.
+
 Positions are of each agent's latest keyframe, and agents' keyframes are of different times (their
 keyframe spacing; simulated agents' clocks also drift apart). Each agent's problem is therefore solved with
 its neighbours' positions carried at their velocities to the time of its own position: the pair's geometry
@@ -33,7 +39,9 @@ F64 = NDArray[np.float64]
 @dataclass(frozen=True)
 class AgentMotion:
     """One agent as ORCA sees it: map-frame position, current and desired velocity (3,), its own
-    radius and top speed, and the covariances (3, 3) of its position and velocity (None: unknown)."""
+    radius and top speed, and the covariances (3, 3) of its position and velocity (None: unknown);
+    ``relative``: per other agent of its map, the covariance (3, 3) of this one's position minus that
+    one's (None: unknown)."""
 
     agent_id: str
     position: F64
@@ -44,6 +52,7 @@ class AgentMotion:
     position_cov: F64 | None = None
     velocity_cov: F64 | None = None
     timestamp: float | None = None  # s, the team's clock: when the agent was at ``position``
+    relative: tuple[tuple[str, F64 | None], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -81,13 +90,24 @@ def _sigma_max(cov: F64 | None, axes: slice) -> float:
     return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(c).max()))))
 
 
+def position_sigma(agent: AgentMotion, axes: slice) -> float:
+    """The position sigma the agent's radius is inflated by along ``axes`` (module docstring): half the
+    largest relative sigma to the other agents of its map, its own sigma for a pair of unknown relative
+    covariance, and its own sigma with no other agents."""
+    own = _sigma_max(agent.position_cov, axes)
+    if not agent.relative:
+        return own
+    return max(own if c is None else 0.5 * _sigma_max(c, axes) for _, c in agent.relative)
+
+
 def inflated_radius(agent: AgentMotion, options: OrcaOptions) -> float:
-    """``radius + k (sigma_p + t_v sigma_v)``: ``sigma_p``, ``sigma_v`` the square roots of the largest
-    eigenvalues of the horizontal 2x2 blocks of the position and velocity covariances (``k`` =
-    ``options.k_sigma``; ``t_v`` = ``options.velocity_horizon_s``, how long a velocity error acts before
-    the next estimate corrects it)."""
+    """``radius + k (sigma_p + t_v sigma_v)``: ``sigma_p`` the horizontal :func:`position_sigma`,
+    ``sigma_v`` the square root of the largest eigenvalue of the velocity covariance's horizontal 2x2
+    block (``k`` = ``options.k_sigma``; ``t_v`` = ``options.velocity_horizon_s``, how long a velocity
+    error acts before the next estimate corrects it; the velocity is differenced within one agent's
+    chain, so its covariance is already free of the anchor's drift)."""
     xy = slice(0, 2)
-    sp = _sigma_max(agent.position_cov, xy)
+    sp = position_sigma(agent, xy)
     sv = _sigma_max(agent.velocity_cov, xy)
     return agent.radius + options.k_sigma * (sp + options.velocity_horizon_s * sv)
 
@@ -95,9 +115,8 @@ def inflated_radius(agent: AgentMotion, options: OrcaOptions) -> float:
 def _vertical_margin(agent: AgentMotion, options: OrcaOptions) -> float:
     """Half the height of the agent's cylinder: its inflated radius (two agents count as near when their
     vertical gap is within the sum of their inflated radii, as the explore evaluation counts them) plus
-    its vertical position uncertainty."""
-    sz = _sigma_max(agent.position_cov, slice(2, 3))
-    return inflated_radius(agent, options) + options.k_sigma * sz
+    its vertical :func:`position_sigma`."""
+    return inflated_radius(agent, options) + options.k_sigma * position_sigma(agent, slice(2, 3))
 
 
 def _position_at(agent: AgentMotion, t: float | None, options: OrcaOptions) -> F64:

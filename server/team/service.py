@@ -33,6 +33,9 @@ F64 = NDArray[np.float64]
 # agent id -> (position covariance (3, 3) or None, velocity covariance (3, 3) or None) in its map's frame;
 # None: unknown (the options' default sigmas are used). The server's are :func:`graph_covariances`.
 Covariances = Callable[[str], tuple[F64 | None, F64 | None] | None]
+# (agent id a, agent id b) -> the (3, 3) covariance of a's position minus b's in their map's frame, None:
+# unknown. The server's are :func:`graph_relative_covariances`.
+RelativeCovariances = Callable[[str, str], F64 | None]
 
 
 class TeamOff(RuntimeError):
@@ -58,10 +61,17 @@ class _AgentSnap:
 
 
 class TeamService:
-    def __init__(self, server: Any, options: TeamOptions, covariances: Covariances | None = None) -> None:
+    def __init__(
+        self,
+        server: Any,
+        options: TeamOptions,
+        covariances: Covariances | None = None,
+        relative: RelativeCovariances | None = None,
+    ) -> None:
         self.server = server
         self.options = options
         self.covariances = covariances
+        self.relative = relative
         self._frontiers: dict[int, _Cached] = {}
         self._team = _Cached()
         self.commits = Commitments()  # the goal each agent holds between auctions
@@ -174,7 +184,8 @@ class TeamService:
                     _, fr = await self.frontiers(map_id)
                     team = [a for a in agents if a.map_id == map_id]
                     covs = [self._covariance(a.agent_id) for a in team]
-                    maps.append(await asyncio.to_thread(self._assign, map_id, fr, team, covs))
+                    rel = self._relative(team)
+                    maps.append(await asyncio.to_thread(self._assign, map_id, fr, team, covs, rel))
                 c.value = schemas.TeamAssignments(computed_at=time.time(), maps=maps)
                 c.at = time.monotonic()
             value: schemas.TeamAssignments = c.value
@@ -191,6 +202,15 @@ class TeamService:
         if V is None:
             V = np.diag([o.default_velocity_sigma_mps**2] * 2 + [0.0])
         return np.asarray(P, dtype=np.float64), np.asarray(V, dtype=np.float64), source
+
+    def _relative(self, team: list[_AgentSnap]) -> list[tuple[tuple[str, F64 | None], ...]]:
+        """Per agent of one map's team, each other agent's id and the covariance of their positions'
+        difference (None: unknown)."""
+
+        def get(a: str, b: str) -> F64 | None:
+            return self.relative(a, b) if self.relative is not None else None
+
+        return [tuple((b.agent_id, get(a.agent_id, b.agent_id)) for b in team if b is not a) for a in team]
 
     @staticmethod
     def _t(a: _AgentSnap) -> float:
@@ -224,7 +244,12 @@ class TeamService:
         return first
 
     def _assign(
-        self, map_id: int, fr: FrontierResult, team: list[_AgentSnap], covs: list[tuple[F64, F64, str]]
+        self,
+        map_id: int,
+        fr: FrontierResult,
+        team: list[_AgentSnap],
+        covs: list[tuple[F64, F64, str]],
+        relative: list[tuple[tuple[str, F64 | None], ...]] | None = None,
     ) -> schemas.MapAssignments:
         """The auction of the map's frontiers among ``team`` and the ORCA advisories (in a thread)."""
         o = self.options
@@ -262,13 +287,14 @@ class TeamService:
             for a, tour, held in zip(team, res.tours, first, strict=True)
         ]
         motions = []
-        for a, at, (P, V, _) in zip(team, goal_at, covs, strict=True):
+        rel = relative if relative is not None else [()] * len(team)
+        for a, at, (P, V, _), r in zip(team, goal_at, covs, rel, strict=True):
             ugv = a.kind == "ugv"
             speed = o.orca.max_speed_ugv if ugv else o.orca.max_speed_uav
             desired = preferred_velocity(a.velocity, a.position, at[0] if at else None, speed, o.orca)
             radius = o.orca.radius_ugv_m if ugv else o.orca.radius_uav_m
             motions.append(
-                AgentMotion(a.agent_id, a.position, a.velocity, desired, radius, speed, P, V, a.timestamp)
+                AgentMotion(a.agent_id, a.position, a.velocity, desired, radius, speed, P, V, a.timestamp, r)
             )
         advs = advisories(motions, o.orca)
         ids = [f.id for f in fr.frontiers]
@@ -286,6 +312,8 @@ class TeamService:
                         desired_velocity=adv.desired.tolist(), safe_velocity=adv.safe_velocity.tolist(),
                         radius_m=m.radius, inflated_radius_m=inflated_radius(m, o.orca),
                         neighbours=list(adv.neighbours), covariance=source,
+                        relative_position_cov={b: None if c is None else np.asarray(c).tolist()
+                                               for b, c in m.relative},
                     ),
                 )
             )  # fmt: skip
@@ -342,11 +370,39 @@ def graph_covariances(server: Any) -> Covariances:
     return of_agent
 
 
+def graph_relative_covariances(server: Any) -> RelativeCovariances:
+    """The :data:`RelativeCovariances` hook from the server's pose graph: the covariance of the difference
+    of two agents' current sessions' latest keyframes' camera centres (:func:`~hivemap.server.
+    views_uncertainty.latest_relative_covariance`), when one map holds both; none before the back-end
+    has solved for that pair."""
+    from hivemap.server.views_uncertainty import latest_relative_covariance
+
+    def folded(agent_id: str) -> str | None:
+        agent = server.agents.get(agent_id)
+        am = agent.maps.get(agent.session) if agent is not None else None
+        return None if am is None else str(am.folded)
+
+    def between(a: str, b: str) -> F64 | None:
+        fa, fb = folded(a), folded(b)
+        if fa is None or fb is None:
+            return None
+        rel = latest_relative_covariance(server, fa, fb)
+        m = server.stack.map_of_agent(fa)
+        if rel is None or m is None or rel.map_id != m.id:
+            return None
+        return rel.covariance
+
+    return between
+
+
 def team_service(server: Any) -> TeamService:
     """The server's team service, made on first use from its settings' ``team`` options, its advisories'
-    radii inflated by the back-end's pose covariances (:func:`graph_covariances`)."""
+    radii inflated by the back-end's pose covariances (:func:`graph_covariances`,
+    :func:`graph_relative_covariances`)."""
     svc: TeamService | None = getattr(server, "team", None)
     if svc is None:
-        svc = server.team = TeamService(server, server.settings.team, covariances=graph_covariances(server))
+        svc = server.team = TeamService(
+            server, server.settings.team, graph_covariances(server), graph_relative_covariances(server)
+        )
         server.shutdown_hooks.append(svc.stop)
     return svc

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -209,6 +210,39 @@ def test_inflated_radius_by_hand() -> None:
     assert inflated_radius(a, OPT) == pytest.approx(0.5 + 2.0 * (math.sqrt(0.08) + 1.0 * 0.03))
     bigger = AgentMotion("a", base.position, base.velocity, base.desired, 0.5, 2.0, 4 * P, V)
     assert inflated_radius(bigger, OPT) == pytest.approx(0.5 + 2.0 * (2 * math.sqrt(0.08) + 0.03))
+
+
+def test_radius_is_inflated_by_the_relative_not_the_absolute_uncertainty() -> None:
+    """Two agents far from the map's anchor: each one's own position sigma is 2 m, but loops hold them
+    together, so the covariance of their difference has a largest horizontal sigma of 0.2 m: each radius
+    grows by k x 0.1 m, not k x 2 m. A third agent of the map whose relative covariance is unknown brings
+    the own sigma back; the vertical gate uses the relative vertical sigma likewise."""
+    P = np.diag([4.0, 4.0, 1.0])  # own sigma 2 m (horizontal), 1 m (vertical)
+    R = np.diag([0.04, 0.01, 0.0025])  # relative: 0.2 m horizontal, 0.05 m vertical
+
+    def uav(name: str, x: float, z: float, rel: tuple[tuple[str, np.ndarray | None], ...]) -> AgentMotion:
+        v = np.array([1.0, 0.0, 0.0]) if name == "a" else np.array([-1.0, 0.0, 0.0])
+        return AgentMotion(name, np.array([x, 0.3, z]), v, v, 0.5, 2.0, P, None, relative=rel)
+
+    a, b = uav("a", 0.0, 5.0, (("b", R),)), uav("b", 6.0, 5.0, (("a", R),))
+    assert inflated_radius(a, OPT) == pytest.approx(0.5 + 2.0 * 0.1)
+    assert inflated_radius(b, OPT) == pytest.approx(0.5 + 2.0 * 0.1)
+    # any pair's two radii hold its relative 2-sigma: 1.4 m >= 2 x 0.5 m + 2 x 0.2 m
+    assert inflated_radius(a, OPT) + inflated_radius(b, OPT) >= 1.0 + 2.0 * 0.2 - 1e-12
+    # head-on 6 m apart at 2 m/s closing, 0.3 m off the line: near and swerving either way, but the
+    # absolute radii (2 x 4.5 m) would make them neighbours 1.6 m higher as well; the relative ones do not
+    assert advisories([a, b], OPT)[0].neighbours == ("b",)
+    high = uav("b", 6.0, 6.6, (("a", R),))
+    assert advisories([a, high], OPT)[0].neighbours == ()
+    absolute = [replace(x, relative=()) for x in (a, high)]
+    assert inflated_radius(absolute[0], OPT) == pytest.approx(0.5 + 2.0 * 2.0)
+    assert advisories(absolute, OPT)[0].neighbours == ("b",)
+    # a third agent of unknown relative covariance: the own sigma is the bound for that pair
+    c = uav("a", 0.0, 5.0, (("b", R), ("c", None)))
+    assert inflated_radius(c, OPT) == pytest.approx(0.5 + 2.0 * 2.0)
+    # the largest relative sigma of the agent's pairs decides: 0.6 m to a far, loosely held one
+    d = uav("a", 0.0, 5.0, (("b", R), ("c", np.diag([0.36, 0.0, 0.0]))))
+    assert inflated_radius(d, OPT) == pytest.approx(0.5 + 2.0 * 0.3)
 
 
 # ---------------------------------------------------------------- frontiers
