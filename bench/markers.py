@@ -18,7 +18,7 @@ import itertools
 
 import numpy as np
 
-from hivemap.maps.geometry import se3, so3_exp
+from hivemap.maps.geometry import rotation_angle_deg, se3, so3_exp
 from hivemap.sim.carriers import DICTIONARY, CarrierScene, team_carriers, team_geometry
 from hivemap.sim.conditions import apply_conditions
 from hivemap.sim.dataset import cached_world, stereo_extrinsics
@@ -42,8 +42,7 @@ def _cases(kind: str) -> list[tuple[float, float, float, float]]:
 
 
 def _rot_err_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    return rotation_angle_deg(Ra.T @ Rb)
 
 
 def main() -> None:
