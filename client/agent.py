@@ -138,6 +138,8 @@ class Agent:
         self._first_session = 0  # the mission's session this process's front-end session 0 is
         self._last_correction = time.monotonic()
         self._corrected: dict[int, str] = {}  # per mission session its latest correction's frame
+        # per mission session its latest correction's (map id, frame, global_from_local)
+        self._frames: dict[int, tuple[int, str, F64]] = {}
         self._corrections_log = CorrectionSummary(log)  # DEBUG each, INFO every 10 s
         self.link_error: BaseException | None = None  # why the link ended (refused, unreachable), if it did
         self.link_stats: Any = None  # hivemap.client.link.LinkStats of the last connection
@@ -329,13 +331,17 @@ class Agent:
             if c.session < first:  # a session of the process that ran this mission before
                 log.debug("correction for session %d of an earlier process: not this front-end's", c.session)
                 continue
+            G = np.asarray(c.global_from_local, dtype=np.float64)
+            here = (int(c.map_id), str(c.global_frame))
+            # the first earlier session of this front-end in the same map (the server sends every session
+            # of a map its correction in turn, the first one first): the new one is tied to it
+            same = [s for s in sorted(self._frames) if first <= s < c.session and self._frames[s][:2] == here]
+            ref = same[0] if same else None
+            via = None if ref is None else (ref - first, self._frames[ref][2])
             n = self.core.apply_correction(
-                c.session - first,
-                c.kf_ids,
-                c.world_from_cam,
-                c.global_from_local,
-                enu=c.global_frame == "enu",
+                c.session - first, c.kf_ids, c.world_from_cam, G, enu=c.global_frame == "enu", via=via
             )
+            self._frames[int(c.session)] = (*here, G)
             self._corrected[int(c.session)] = str(c.global_frame)
             self._corrections_log.add(int(c.map_id), str(c.global_frame), n)
             out.append(CorrectionInfo(int(c.map_id), str(c.global_frame), int(c.session), n,

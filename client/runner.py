@@ -281,10 +281,18 @@ class OfflineAgent:
         global_from_kf_cam: F64,
         global_from_sent: F64,
         enu: bool = False,
+        via: tuple[int, F64] | None = None,
     ) -> int:
         """Co-location factors from a server correction (poses of the agent's keyframes in the global
         frame + ``global_from_local`` of the frame the keyframes were sent in: the odometry's frame,
         :meth:`StreamOdometry.local_from_stream`).
+
+        ``via``: (an earlier session of this front-end in the same server map, that session's latest
+        ``global_from_local``). The poses are then brought into the local frame through that session's
+        frame, not their own: the server's map says where this session lies from that one, which the
+        agent itself only guessed when it lost tracking (the new segment's frame came from IMU
+        propagation), so the segments are tied together in the local frame. The gate then judges the
+        poses' shape within the segment (after one fitted shift and yaw), not that shift.
 
         Each corrected pose is brought back into the sent frame, then into the local frame with
         the segment's current ``local_from_stream``, and added as a prior with ``options.colocation_sigma``.
@@ -296,11 +304,14 @@ class OfflineAgent:
 
         if len(kf_ids) == 0:
             return 0  # a new frame only (e.g. after a merge): the current priors stay valid
-        sent_from_global = Sim3.from_matrix(np.asarray(global_from_sent, dtype=np.float64)).inverse()
+        absolute = enu and self.gnss_used > 0
+        via_seg = None if via is None or absolute else self._segment_of_session(via[0])
+        frame_of = via[1] if via is not None and via_seg is not None else global_from_sent
+        sent_from_global = Sim3.from_matrix(np.asarray(frame_of, dtype=np.float64)).inverse()
         cam_from_body = np.linalg.inv(self.frontend.body_from_cam)
         rot, trans = self.options.colocation_sigma
         cov = np.diag([rot**2] * 3 + [trans**2] * 3)
-        priors: dict[int, tuple[F64, F64]] = {}
+        candidates: dict[int, F64] = {}
         local_from_sent: dict[int, F64] = {}
         for kid, T_gc in zip(
             np.asarray(kf_ids), np.asarray(global_from_kf_cam).reshape(-1, 4, 4), strict=True
@@ -308,20 +319,23 @@ class OfflineAgent:
             node = self._node_of.get((int(session), int(kid)))
             if node is None:
                 continue
-            if enu and self.gnss_used > 0:
+            if absolute:
                 prior = T_gc @ cam_from_body
             else:
-                # the keyframe was sent at its streamed pose (:mod:`hivemap.client.odometry`)
-                seg = self.stage.keyframe_segment(node)
+                # the keyframe was sent at its streamed pose (:mod:`hivemap.client.odometry`), in its own
+                # segment's frame or, tied, in the earlier session's
+                seg = via_seg if via_seg is not None else self.stage.keyframe_segment(node)
                 if seg not in local_from_sent:
                     local_from_sent[seg] = self.odometry.local_from_stream(self.stage, seg)
                 prior = local_from_sent[seg] @ sent_from_global.transform_pose(T_gc @ cam_from_body)
-            gap = float(np.linalg.norm(prior[:3, 3] - self.stage.keyframe_pose(node)[:3, 3]))
+            candidates[node] = prior
+        priors: dict[int, tuple[F64, F64]] = {}
+        for node, gap in self._gaps(candidates, tied=via_seg is not None).items():
             if gap > self.options.colocation_gate_m:
                 # a server pose this far from ours is a server-side failure, not a correction
                 self.corrections_refused += 1
                 continue
-            priors[node] = (prior, cov)
+            priors[node] = (candidates[node], cov)
         # each correction is a whole snapshot of the server's estimate for one session: it replaces that
         # session's previous priors (and only those)
         scope = {n for (s, _), n in self._node_of.items() if s == int(session)}
@@ -329,6 +343,28 @@ class OfflineAgent:
         n = len(priors)
         self.corrections_applied += n
         return n
+
+    def _segment_of_session(self, session: int) -> int | None:
+        """The second-stage segment of front-end session ``session`` (None before its first keyframe)."""
+        node = next((n for (s, _), n in self._node_of.items() if s == int(session)), None)
+        return None if node is None else int(self.stage.keyframe_segment(node))
+
+    def _gaps(self, priors: dict[int, F64], tied: bool) -> dict[int, float]:
+        """Per keyframe node, how far its prior lies from the stage's estimate; ``tied``: after the one
+        shift and yaw (rigid without gravity) that best takes the estimates onto the priors."""
+        from hivemap.client.second_stage.factors import frame_fit
+
+        nodes = list(priors)
+        if not nodes:
+            return {}
+        dst = np.array([priors[n][:3, 3] for n in nodes])
+        src = np.array([self.stage.keyframe_pose(n)[:3, 3] for n in nodes])
+        if tied:
+            shift = np.eye(4)
+            shift[:3, 3] = (dst - src).mean(axis=0)
+            F = frame_fit(src, dst, self.stage.options.gravity_aligned, shift)
+            src = src @ F[:3, :3].T + F[:3, 3]
+        return dict(zip(nodes, np.linalg.norm(dst - src, axis=1).tolist(), strict=True))
 
     def up_in_cam(self, session: int, kf_id: int) -> F64 | None:
         """The keyframe's up direction (unit, against gravity) in its camera frame, from the second stage

@@ -278,8 +278,9 @@ class Advisory(BaseModel):
     safe_velocity: list[float] = Field(description="ORCA: collision-free over the time horizon (horizontal)")
     radius_m: float
     inflated_radius_m: float = Field(
-        description="radius + k_sigma * (sigma_pos + t_v * sigma_vel); sigma_pos: half the largest relative "
-        "sigma to the map's other agents (an unknown pair, or none: the agent's own)"
+        description="radius + k_sigma * (sigma_pos + t_v * sigma_vel); sigma_pos: the largest of the agent's "
+        "shares of its relative sigmas to the map's other agents, each pair's split in proportion to the two "
+        "agents' own sigmas (an unknown pair, or none: the agent's own)"
     )
     neighbours: list[str]
     covariance: str = Field(description="'graph' (the server's marginals) or 'default' (configured sigmas)")

@@ -81,8 +81,8 @@ class OrcaOptions:
     # an agent faster than this keeps its current velocity as ORCA's preferred one (orca.preferred_velocity)
     moving_mps: float = 0.2
     # inflation: radius + k_sigma * (position sigma + velocity_horizon_s * sqrt(max eigenvalue of the
-    # velocity's horizontal covariance)); the position sigma is half the largest relative one to the
-    # map's other agents (orca.position_sigma)
+    # velocity's horizontal covariance)); the position sigma is the agent's largest share of its relative
+    # sigmas to the map's other agents (orca.position_sigma)
     k_sigma: float = 2.0
     velocity_horizon_s: float = 1.0
     # without a covariance from the server's graph, these sigmas (per horizontal axis) are assumed

@@ -11,8 +11,11 @@ flying over a UGV does not have to swerve), and the vertical velocity is passed 
 What a pair has to stay clear of is the error of where one is *from the other*: the covariance of the
 difference of their positions (their joint marginal), not each one's marginal in the map frame, which
 grows with the distance from the map's anchor although loops hold the two together. ORCA takes one
-radius per agent, so each agent's radius is inflated by half the largest relative sigma to the others
-of its map (an unknown pair: the agent's own sigma); any pair's two radii then hold its relative sigma.
+radius per agent, so each pair's relative sigma is split between its two agents in proportion to their
+own sigmas, and each agent's radius is inflated by the largest of its shares (an unknown pair: its own
+sigma). Any pair's two radii then hold its relative sigma; since the relative sigma is at most the sum
+of the two own sigmas, no share exceeds the agent's own sigma, so an agent the graph has lost (a new
+session held only loosely) inflates its own radius, not its neighbours'.
 
 Positions are of each agent's latest keyframe, and agents' keyframes are of different times (their
 keyframe spacing; simulated agents' clocks also drift apart). Each agent's problem is therefore solved with
@@ -90,33 +93,45 @@ def _sigma_max(cov: F64 | None, axes: slice) -> float:
     return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(c).max()))))
 
 
-def position_sigma(agent: AgentMotion, axes: slice) -> float:
-    """The position sigma the agent's radius is inflated by along ``axes`` (module docstring): half the
-    largest relative sigma to the other agents of its map, its own sigma for a pair of unknown relative
-    covariance, and its own sigma with no other agents."""
+def position_sigma(agent: AgentMotion, axes: slice, others: Sequence[AgentMotion] = ()) -> float:
+    """The position sigma the agent's radius is inflated by along ``axes`` (module docstring): the largest
+    of its shares of the relative sigmas to the other agents of its map (``others``, those of its
+    ``relative`` entries; a pair with an absent other agent is split evenly), its own sigma for a pair of
+    unknown relative covariance, and its own sigma with no other agents."""
     own = _sigma_max(agent.position_cov, axes)
     if not agent.relative:
         return own
-    return max(own if c is None else 0.5 * _sigma_max(c, axes) for _, c in agent.relative)
+    theirs = {b.agent_id: _sigma_max(b.position_cov, axes) for b in others}
+    shares = []
+    for other, c in agent.relative:
+        if c is None:
+            shares.append(own)
+            continue
+        rel = _sigma_max(c, axes)
+        total = own + theirs.get(other, own)
+        shares.append(rel * (own / total) if total > 0.0 else 0.5 * rel)
+    return max(shares)
 
 
-def inflated_radius(agent: AgentMotion, options: OrcaOptions) -> float:
-    """``radius + k (sigma_p + t_v sigma_v)``: ``sigma_p`` the horizontal :func:`position_sigma`,
+def inflated_radius(agent: AgentMotion, options: OrcaOptions, others: Sequence[AgentMotion] = ()) -> float:
+    """``radius + k (sigma_p + t_v sigma_v)``: ``sigma_p`` the horizontal :func:`position_sigma` among
+    ``others``,
     ``sigma_v`` the square root of the largest eigenvalue of the velocity covariance's horizontal 2x2
     block (``k`` = ``options.k_sigma``; ``t_v`` = ``options.velocity_horizon_s``, how long a velocity
     error acts before the next estimate corrects it; the velocity is differenced within one agent's
     chain, so its covariance is already free of the anchor's drift)."""
     xy = slice(0, 2)
-    sp = position_sigma(agent, xy)
+    sp = position_sigma(agent, xy, others)
     sv = _sigma_max(agent.velocity_cov, xy)
     return agent.radius + options.k_sigma * (sp + options.velocity_horizon_s * sv)
 
 
-def _vertical_margin(agent: AgentMotion, options: OrcaOptions) -> float:
+def _vertical_margin(agent: AgentMotion, options: OrcaOptions, others: Sequence[AgentMotion]) -> float:
     """Half the height of the agent's cylinder: its inflated radius (two agents count as near when their
     vertical gap is within the sum of their inflated radii, as the explore evaluation counts them) plus
     its vertical :func:`position_sigma`."""
-    return inflated_radius(agent, options) + options.k_sigma * position_sigma(agent, slice(2, 3))
+    z = position_sigma(agent, slice(2, 3), others)
+    return inflated_radius(agent, options, others) + options.k_sigma * z
 
 
 def _position_at(agent: AgentMotion, t: float | None, options: OrcaOptions) -> F64:
@@ -138,8 +153,8 @@ def advisories(agents: Sequence[AgentMotion], options: OrcaOptions) -> list[Advi
     """One advisory per agent (same order). An agent without neighbours keeps its desired velocity
     (clamped to its top speed) exactly."""
     o = options
-    radii = [inflated_radius(a, o) for a in agents]
-    vmargin = [_vertical_margin(a, o) for a in agents]
+    radii = [inflated_radius(a, o, agents) for a in agents]
+    vmargin = [_vertical_margin(a, o, agents) for a in agents]
     out: list[Advisory] = []
     for i, a in enumerate(agents):
         desired = np.asarray(a.desired, dtype=np.float64)

@@ -310,7 +310,7 @@ class TeamService:
                     path_cost_m=cost,
                     advisory=schemas.Advisory(
                         desired_velocity=adv.desired.tolist(), safe_velocity=adv.safe_velocity.tolist(),
-                        radius_m=m.radius, inflated_radius_m=inflated_radius(m, o.orca),
+                        radius_m=m.radius, inflated_radius_m=inflated_radius(m, o.orca, motions),
                         neighbours=list(adv.neighbours), covariance=source,
                         relative_position_cov={b: None if c is None else np.asarray(c).tolist()
                                                for b, c in m.relative},

@@ -214,35 +214,46 @@ def test_inflated_radius_by_hand() -> None:
 
 def test_radius_is_inflated_by_the_relative_not_the_absolute_uncertainty() -> None:
     """Two agents far from the map's anchor: each one's own position sigma is 2 m, but loops hold them
-    together, so the covariance of their difference has a largest horizontal sigma of 0.2 m: each radius
-    grows by k x 0.1 m, not k x 2 m. A third agent of the map whose relative covariance is unknown brings
-    the own sigma back; the vertical gate uses the relative vertical sigma likewise."""
+    together, so the covariance of their difference has a largest horizontal sigma of 0.2 m, split by
+    their own sigmas (equal: 0.1 m each): each radius grows by k x 0.1 m, not k x 2 m. The vertical gate
+    uses the relative vertical sigma likewise. A pair with an unknown relative covariance brings the own
+    sigma back; a lost agent (own sigma 100 m, relative ~100 m) takes nearly all of its pair's share."""
     P = np.diag([4.0, 4.0, 1.0])  # own sigma 2 m (horizontal), 1 m (vertical)
     R = np.diag([0.04, 0.01, 0.0025])  # relative: 0.2 m horizontal, 0.05 m vertical
 
-    def uav(name: str, x: float, z: float, rel: tuple[tuple[str, np.ndarray | None], ...]) -> AgentMotion:
+    def uav(name: str, x: float, z: float, rel: tuple[tuple[str, np.ndarray | None], ...],
+            cov: np.ndarray = P) -> AgentMotion:  # fmt: skip
         v = np.array([1.0, 0.0, 0.0]) if name == "a" else np.array([-1.0, 0.0, 0.0])
-        return AgentMotion(name, np.array([x, 0.3, z]), v, v, 0.5, 2.0, P, None, relative=rel)
+        return AgentMotion(name, np.array([x, 0.3, z]), v, v, 0.5, 2.0, cov, None, relative=rel)
 
     a, b = uav("a", 0.0, 5.0, (("b", R),)), uav("b", 6.0, 5.0, (("a", R),))
-    assert inflated_radius(a, OPT) == pytest.approx(0.5 + 2.0 * 0.1)
-    assert inflated_radius(b, OPT) == pytest.approx(0.5 + 2.0 * 0.1)
-    # any pair's two radii hold its relative 2-sigma: 1.4 m >= 2 x 0.5 m + 2 x 0.2 m
-    assert inflated_radius(a, OPT) + inflated_radius(b, OPT) >= 1.0 + 2.0 * 0.2 - 1e-12
-    # head-on 6 m apart at 2 m/s closing, 0.3 m off the line: near and swerving either way, but the
-    # absolute radii (2 x 4.5 m) would make them neighbours 1.6 m higher as well; the relative ones do not
+    assert inflated_radius(a, OPT, [a, b]) == pytest.approx(0.5 + 2.0 * 0.1)
+    assert inflated_radius(b, OPT, [a, b]) == pytest.approx(0.5 + 2.0 * 0.1)
+    # head-on 6 m apart, 0.3 m off the line: neighbours at one height; 1.6 m higher they are not with the
+    # relative radii (0.75 m half-heights), but are with the absolute ones (5.5 m)
     assert advisories([a, b], OPT)[0].neighbours == ("b",)
     high = uav("b", 6.0, 6.6, (("a", R),))
     assert advisories([a, high], OPT)[0].neighbours == ()
     absolute = [replace(x, relative=()) for x in (a, high)]
-    assert inflated_radius(absolute[0], OPT) == pytest.approx(0.5 + 2.0 * 2.0)
+    assert inflated_radius(absolute[0], OPT, absolute) == pytest.approx(0.5 + 2.0 * 2.0)
     assert advisories(absolute, OPT)[0].neighbours == ("b",)
     # a third agent of unknown relative covariance: the own sigma is the bound for that pair
     c = uav("a", 0.0, 5.0, (("b", R), ("c", None)))
-    assert inflated_radius(c, OPT) == pytest.approx(0.5 + 2.0 * 2.0)
-    # the largest relative sigma of the agent's pairs decides: 0.6 m to a far, loosely held one
-    d = uav("a", 0.0, 5.0, (("b", R), ("c", np.diag([0.36, 0.0, 0.0]))))
-    assert inflated_radius(d, OPT) == pytest.approx(0.5 + 2.0 * 0.3)
+    assert inflated_radius(c, OPT, [c, b]) == pytest.approx(0.5 + 2.0 * 2.0)
+    # unequal own sigmas (2 m and 1 m): the 0.3 m relative sigma splits 0.2 / 0.1, any pair's sum holds it
+    R3 = np.diag([0.09, 0.0, 0.0])
+    d, e = uav("d", 0.0, 5.0, (("e", R3),)), uav("e", 6.0, 5.0, (("d", R3),), cov=P / 4.0)
+    assert inflated_radius(d, OPT, [d, e]) == pytest.approx(0.5 + 2.0 * 0.2)
+    assert inflated_radius(e, OPT, [d, e]) == pytest.approx(0.5 + 2.0 * 0.1)
+    # a lost agent: own 100 m, 100.02 m from the other; the other's share stays within its own 2 m
+    lost_cov = np.diag([1e4, 1e4, 1e4])
+    Rl = np.diag([100.02**2, 0.0, 0.0])
+    f, lost = uav("f", 0.0, 5.0, (("x", Rl),)), uav("x", 6.0, 5.0, (("f", Rl),), cov=lost_cov)
+    share_f = inflated_radius(f, OPT, [f, lost]) - 0.5
+    assert share_f == pytest.approx(2.0 * 100.02 * 2.0 / 102.0) and share_f <= 2.0 * 2.0
+    assert inflated_radius(f, OPT, [f, lost]) + inflated_radius(lost, OPT, [f, lost]) == pytest.approx(
+        1.0 + 2.0 * 100.02
+    )
 
 
 # ---------------------------------------------------------------- frontiers

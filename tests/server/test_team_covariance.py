@@ -74,10 +74,15 @@ def _sigma(C: np.ndarray, axes: slice = slice(0, 2)) -> float:
     return float(np.sqrt(np.linalg.eigvalsh(C[axes, axes]).max()))
 
 
-def _expected_radius(radius: float, R: np.ndarray, V: np.ndarray) -> float:
-    """radius + k (sqrt(lambda_max(R_xy)) / 2 + t_v sqrt(lambda_max(V_xy))), ``R`` the covariance of the
-    two agents' position difference (each takes half of it: the pair's two radii hold all of it)."""
-    return radius + ORCA.k_sigma * (0.5 * _sigma(R) + ORCA.velocity_horizon_s * _sigma(V))
+def own_sigma(run: dict[str, Any], agent_id: str) -> float:
+    return _sigma(np.array(run["unc"][agent_id]["position_cov"]))
+
+
+def _expected_radius(radius: float, R: np.ndarray, own: float, other: float, V: np.ndarray) -> float:
+    """radius + k (sigma_rel x own / (own + other) + t_v sqrt(lambda_max(V_xy))): ``R`` the covariance of
+    the two agents' position difference, split in proportion to their own sigmas (the pair's two radii
+    hold all of it)."""
+    return radius + ORCA.k_sigma * (_sigma(R) * own / (own + other) + ORCA.velocity_horizon_s * _sigma(V))
 
 
 def _orca_one_neighbour(
@@ -111,14 +116,16 @@ def _orca_one_neighbour(
 
 
 def test_inflated_radius_is_the_graph_covariance_by_hand(runs: dict[float, dict[str, Any]]) -> None:
-    """Each advisory's inflated radius is radius + 2 (sigma_rel / 2 + 1 s x sigma_v): sigma_rel from the
-    covariance of the two agents' position difference the advisory reports (the same for both, as it
-    must be), sigma_v from the velocity covariance /agents/{id} reports (relative tolerance 1e-9: the same
+    """Each advisory's inflated radius is radius + 2 (share + 1 s x sigma_v): the share of sigma_rel, from
+    the covariance of the two agents' position difference the advisory reports (the same for both, as it
+    must be), in proportion to the agents' own sigmas /agents/{id} reports; sigma_v from the velocity
+    covariance /agents/{id} reports (relative tolerance 1e-9: the same
     float64 numbers). That difference is bounded by the agents' own marginals (sigma_rel <= sigma_a +
     sigma_b). Five times the edge sigmas give ~25 times larger covariances, so a ~5 times larger
     inflation."""
     inflation: dict[float, dict[str, float]] = {}
     relative: dict[float, np.ndarray] = {}
+    other = {"uav1": "ugv1", "ugv1": "uav1"}
     for scale, run in runs.items():
         assert run["maps"] == [["uav1", "ugv1"]], (scale, run["maps"])
         inflation[scale] = {}
@@ -141,7 +148,10 @@ def test_inflated_radius_is_the_graph_covariance_by_hand(runs: dict[float, dict[
             assert np.linalg.eigvalsh(V).min() > -1e-12
             np.testing.assert_allclose(a["position"], unc["position"], atol=1e-12)  # the same keyframe
             assert adv["covariance"] == "graph"
-            want = _expected_radius(adv["radius_m"], R, V)
+            mine, theirs = (
+                _sigma(np.array(run["unc"][x]["position_cov"])) for x in (agent_id, other[agent_id])
+            )
+            want = _expected_radius(adv["radius_m"], R, mine, theirs, V)
             assert adv["inflated_radius_m"] == pytest.approx(want, rel=1e-9), (scale, agent_id)
             inflation[scale][agent_id] = adv["inflated_radius_m"] - adv["radius_m"]
     small, large = (inflation[s] for s in SCALES)
