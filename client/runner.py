@@ -346,8 +346,7 @@ class OfflineAgent:
 
     def _segment_of_session(self, session: int) -> int | None:
         """The second-stage segment of front-end session ``session`` (None before its first keyframe)."""
-        node = next((n for (s, _), n in self._node_of.items() if s == int(session)), None)
-        return None if node is None else int(self.stage.keyframe_segment(node))
+        return self._sess_segment.get(int(session))
 
     def _gaps(self, priors: dict[int, F64], tied: bool) -> dict[int, float]:
         """Per keyframe node, how far its prior lies from the stage's estimate; ``tied``: after the one
