@@ -49,8 +49,9 @@ def _agent() -> tuple[Agent, np.ndarray]:
     return agent, body_from_cam
 
 
-def _correction(session: int, map_id: int, body_from_cam: np.ndarray, moved: dict[int, np.ndarray] | None = None
-                ) -> Correction:  # fmt: skip
+def _correction(
+    session: int, map_id: int, body_from_cam: np.ndarray, moved: dict[int, np.ndarray] | None = None
+) -> Correction:
     """The server's correction of ``session``: its keyframes at the truth (``moved``: some elsewhere),
     the session's frame as the server placed it."""
     ids = np.arange(N, dtype=np.int64)
