@@ -137,8 +137,7 @@ class Agent:
         self._stream: AgentStream | None = None
         self._first_session = 0  # the mission's session this process's front-end session 0 is
         self._last_correction = time.monotonic()
-        self._corrected: dict[int, str] = {}  # per mission session its latest correction's frame
-        # per mission session its latest correction's (map id, frame, global_from_local)
+        # per mission session its latest correction's (map id, frame "map"/"enu", global_from_local)
         self._frames: dict[int, tuple[int, str, F64]] = {}
         self._corrections_log = CorrectionSummary(log)  # DEBUG each, INFO every 10 s
         self.link_error: BaseException | None = None  # why the link ended (refused, unreachable), if it did
@@ -342,7 +341,6 @@ class Agent:
                 c.session - first, c.kf_ids, c.world_from_cam, G, enu=c.global_frame == "enu", via=via
             )
             self._frames[int(c.session)] = (*here, G)
-            self._corrected[int(c.session)] = str(c.global_frame)
             self._corrections_log.add(int(c.map_id), str(c.global_frame), n)
             out.append(CorrectionInfo(int(c.map_id), str(c.global_frame), int(c.session), n,
                                       np.asarray(c.global_from_local, dtype=np.float64)))  # fmt: skip
@@ -352,23 +350,24 @@ class Agent:
         """Each mission session of this process that the server corrected, with the frame ("map" or
         "enu") of its latest correction."""
         with self._lock:
-            return dict(self._corrected)
+            return {s: frame for s, (_, frame, _) in self._frames.items()}
 
     def snapshot_frame(self, session: int) -> str:
         """The frame :meth:`apply_snapshot` wants ``session``'s poses in: "global" when its corrections
         are absolute ENU poses for this agent (it fused a GNSS fix), else "local" (the frame it sent
         them in)."""
         with self._lock:
-            return "global" if self._corrected.get(session) == "enu" and self.core.gnss_used > 0 else "local"
+            enu = session in self._frames and self._frames[session][1] == "enu"
+            return "global" if enu and self.core.gnss_used > 0 else "local"
 
     def apply_snapshot(self, session: int, kf_ids: NDArray[np.int64], world_from_cam: F64) -> int:
         """The server's estimate of every keyframe of ``session``, in :meth:`snapshot_frame`, as one
         correction's co-location priors (they replace the session's earlier ones); the agent's frame
         transform is left as it is. Returns the keyframes fused."""
         with self._lock:
-            frame = self._corrected.get(session)
-            if frame is None or session < self._first_session:
+            if session not in self._frames or session < self._first_session:
                 return 0
+            frame = self._frames[session][1]
             return self.core.apply_correction(session - self._first_session, kf_ids, world_from_cam,
                                               np.eye(4), enu=frame == "enu")  # fmt: skip
 

@@ -115,23 +115,23 @@ def position_sigma(agent: AgentMotion, axes: slice, others: Sequence[AgentMotion
 
 def inflated_radius(agent: AgentMotion, options: OrcaOptions, others: Sequence[AgentMotion] = ()) -> float:
     """``radius + k (sigma_p + t_v sigma_v)``: ``sigma_p`` the horizontal :func:`position_sigma` among
-    ``others``,
-    ``sigma_v`` the square root of the largest eigenvalue of the velocity covariance's horizontal 2x2
-    block (``k`` = ``options.k_sigma``; ``t_v`` = ``options.velocity_horizon_s``, how long a velocity
-    error acts before the next estimate corrects it; the velocity is differenced within one agent's
-    chain, so its covariance is already free of the anchor's drift)."""
+    ``others``, ``sigma_v`` the square root of the largest eigenvalue of the velocity covariance's
+    horizontal 2x2 block (``k`` = ``options.k_sigma``; ``t_v`` = ``options.velocity_horizon_s``, how
+    long a velocity error acts before the next estimate corrects it; the velocity is differenced within
+    one agent's chain, so its covariance is already free of the anchor's drift)."""
     xy = slice(0, 2)
     sp = position_sigma(agent, xy, others)
     sv = _sigma_max(agent.velocity_cov, xy)
     return agent.radius + options.k_sigma * (sp + options.velocity_horizon_s * sv)
 
 
-def _vertical_margin(agent: AgentMotion, options: OrcaOptions, others: Sequence[AgentMotion]) -> float:
-    """Half the height of the agent's cylinder: its inflated radius (two agents count as near when their
+def _vertical_margin(
+    agent: AgentMotion, radius: float, options: OrcaOptions, others: Sequence[AgentMotion]
+) -> float:
+    """Half the height of the agent's cylinder: its inflated ``radius`` (two agents count as near when their
     vertical gap is within the sum of their inflated radii, as the explore evaluation counts them) plus
     its vertical :func:`position_sigma`."""
-    z = position_sigma(agent, slice(2, 3), others)
-    return inflated_radius(agent, options, others) + options.k_sigma * z
+    return radius + options.k_sigma * position_sigma(agent, slice(2, 3), others)
 
 
 def _position_at(agent: AgentMotion, t: float | None, options: OrcaOptions) -> F64:
@@ -154,7 +154,7 @@ def advisories(agents: Sequence[AgentMotion], options: OrcaOptions) -> list[Advi
     (clamped to its top speed) exactly."""
     o = options
     radii = [inflated_radius(a, o, agents) for a in agents]
-    vmargin = [_vertical_margin(a, o, agents) for a in agents]
+    vmargin = [_vertical_margin(a, r, o, agents) for a, r in zip(agents, radii, strict=True)]
     out: list[Advisory] = []
     for i, a in enumerate(agents):
         desired = np.asarray(a.desired, dtype=np.float64)

@@ -25,7 +25,7 @@ from hivemap.server.team.auction import d_optimal_gain, ssi_auction
 from hivemap.server.team.commit import Commitments
 from hivemap.server.team.frontiers import FrontierResult, extract
 from hivemap.server.team.options import TeamOptions
-from hivemap.server.team.orca import AgentMotion, advisories, inflated_radius, preferred_velocity
+from hivemap.server.team.orca import AgentMotion, advisories, preferred_velocity
 
 logger = logging.getLogger(__name__)
 
@@ -310,7 +310,7 @@ class TeamService:
                     path_cost_m=cost,
                     advisory=schemas.Advisory(
                         desired_velocity=adv.desired.tolist(), safe_velocity=adv.safe_velocity.tolist(),
-                        radius_m=m.radius, inflated_radius_m=inflated_radius(m, o.orca, motions),
+                        radius_m=m.radius, inflated_radius_m=adv.radius,
                         neighbours=list(adv.neighbours), covariance=source,
                         relative_position_cov={b: None if c is None else np.asarray(c).tolist()
                                                for b, c in m.relative},
@@ -342,6 +342,13 @@ def frontier_list(
     )  # fmt: skip
 
 
+def _session_map(server: Any, agent_id: str) -> Any:
+    """The agent's current session's :class:`~hivemap.server.agents.AgentMap` (None: unknown agent or no
+    session yet)."""
+    agent = server.agents.get(agent_id)
+    return agent.maps.get(agent.session) if agent is not None else None
+
+
 def graph_covariances(server: Any) -> Covariances:
     """The :data:`Covariances` hook from the server's pose graph: an agent's position covariance is the
     (3, 3) camera-centre block of the back-end's marginal of its current session's latest keyframe, the
@@ -357,8 +364,7 @@ def graph_covariances(server: Any) -> Covariances:
     from hivemap.server.views_uncertainty import latest_pose_covariance
 
     def of_agent(agent_id: str) -> tuple[F64 | None, F64 | None] | None:
-        agent = server.agents.get(agent_id)
-        am = agent.maps.get(agent.session) if agent is not None else None
+        am = _session_map(server, agent_id)
         if am is None:
             return None
         m = server.stack.map_of_agent(am.folded)
@@ -377,17 +383,12 @@ def graph_relative_covariances(server: Any) -> RelativeCovariances:
     has solved for that pair."""
     from hivemap.server.views_uncertainty import latest_relative_covariance
 
-    def folded(agent_id: str) -> str | None:
-        agent = server.agents.get(agent_id)
-        am = agent.maps.get(agent.session) if agent is not None else None
-        return None if am is None else str(am.folded)
-
     def between(a: str, b: str) -> F64 | None:
-        fa, fb = folded(a), folded(b)
-        if fa is None or fb is None:
+        ma, mb = _session_map(server, a), _session_map(server, b)
+        if ma is None or mb is None:
             return None
-        rel = latest_relative_covariance(server, fa, fb)
-        m = server.stack.map_of_agent(fa)
+        rel = latest_relative_covariance(server, ma.folded, mb.folded)
+        m = server.stack.map_of_agent(ma.folded)
         if rel is None or m is None or rel.map_id != m.id:
             return None
         return rel.covariance
