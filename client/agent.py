@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -152,6 +153,8 @@ class Agent:
                 self.rendezvous = RendezvousSource(rig.left, carriers, agent_id, mk)
         self._rendezvous_callbacks: list[Callable[[Rendezvous], None]] = []
         self._advisory_callbacks: list[Callable[[Any], None]] = []
+        # (frame time, intended velocity in that frame's cam0): keyframes are emitted a few frames late
+        self._intents: deque[tuple[float, F64]] = deque(maxlen=64)
 
     # -- construction ---------------------------------------------------------------------------------
     @classmethod
@@ -292,6 +295,25 @@ class Agent:
         if self._stream is not None:
             raise RuntimeError("on_team_advisory() before connect(): the hello asks for advisories")
         self._advisory_callbacks.append(callback)
+
+    def set_intent(self, t: float, velocity_cam: Sequence[float] | F64) -> None:
+        """What the agent's planner will fly from the frame at time ``t`` (the mean velocity over the next
+        seconds along its path, m/s, in that frame's cam0 frame). A keyframe of that frame carries it to the
+        server (``hivemap.protocol.Keyframe.intent_velocity``), whose collision advisories then predict
+        this agent along it. Call before feeding the frame."""
+        v = np.asarray(velocity_cam, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"intended velocity must be finite, got {v.tolist()}")
+        with self._lock:
+            self._intents.append((float(t), v.copy()))
+
+    def intent_at(self, t: float) -> F64 | None:
+        """The intended velocity set for the frame at time ``t`` (within 1 ms), or None."""
+        with self._lock:
+            for ti, v in reversed(self._intents):
+                if abs(ti - t) <= 1e-3:
+                    return v
+        return None
 
     def _advisory(self, msg: Any) -> None:
         for cb in list(self._advisory_callbacks):

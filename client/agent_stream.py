@@ -103,6 +103,7 @@ class AgentStream:
                     ev.u_right,
                     None if ev.odom_sigma is None else np.asarray(ev.odom_sigma, np.float64),
                     None if ev.track_sigma is None else np.asarray(ev.track_sigma, np.float64),
+                    self.agent.intent_at(ev.timestamp),
                 )
             )  # fmt: skip
             self._resend()

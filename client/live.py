@@ -139,6 +139,7 @@ def run_live(
                 ls.stopped_by = "duration"
                 break
             fr = sim.step()
+            live.set_intent(fr.stamp, sim.intent_cam(fr.world_from_body))
             live.feed_imu_batch(fr.imu)
             for tf, enu, cov in fr.fixes:
                 if _gnss_allows(options.gnss, tf, last_fix):
@@ -165,6 +166,7 @@ def run_live(
                     "t": round(fr.t, 3), "goals": np.round(adv.goals[:, :2], 2).tolist(),
                     "safe": np.round(adv.safe_velocity, 3).tolist(),
                     "desired": np.round(adv.desired_velocity, 3).tolist(), "radius": round(adv.radius_m, 3),
+                    "half_height": round(adv.half_height_m, 3),
                 })  # fmt: skip
             if idle_since is not None and fr.t - idle_since >= idle_stop_s:
                 ls.stopped_by = "explored"
@@ -206,7 +208,7 @@ def _to_world(msg: Any, world_from_map_T: F64, t: float) -> WorldAdvisory:
     goals_w = goals @ R.T + world_from_map_T[:3, 3]
     return WorldAdvisory(
         t, goals_w, R @ np.asarray(msg.desired_velocity, dtype=np.float64),
-        R @ np.asarray(msg.safe_velocity, dtype=np.float64), float(msg.radius_m),
+        R @ np.asarray(msg.safe_velocity, dtype=np.float64), float(msg.radius_m), float(msg.half_height_m),
     )  # fmt: skip
 
 

@@ -174,21 +174,25 @@ def coverage_of(world: Any, sc: Any, agents: list[tuple[str, str]], work: Path,
     return out
 
 
-def _radius_at(log_: list[dict[str, Any]], t: Any) -> Any:
-    """The inflated radius the latest advisory at each time ``t`` (s from the start) gave (the first one
-    before it arrived); None without advisories."""
+def _logged_at(log_: list[dict[str, Any]], t: Any, key: str) -> Any:
+    """The value ``key`` (``radius``, ``half_height``) the latest advisory at each time ``t`` (s from the
+    start) gave (the first one before it arrived); None without advisories. A log without half heights
+    (a server before protocol v7, whose cylinders were as high as their radii) gives the radius."""
     if not log_:
         return None
+    if key == "half_height" and not all("half_height" in a for a in log_):
+        key = "radius"
     lt = np.array([float(a["t"]) for a in log_])
-    r = np.array([float(a.get("radius", 0.0)) for a in log_])
+    r = np.array([float(a.get(key, 0.0)) for a in log_])
     return r[np.clip(np.searchsorted(lt, t, side="right") - 1, 0, len(r) - 1)]
 
 
 def pair_distances(agents: list[tuple[str, str]], work: Path) -> list[dict[str, Any]]:
-    """Per pair as the server's ORCA models agents (upright cylinders of their inflated radius): the
-    smallest horizontal clearance ``distance - (r_a + r_b)`` at times when their vertical gap is within
-    ``r_a + r_b`` too, radii those of the latest advisories then; and the minimum 3-D distance. Both leave
-    out the take-off: times when neither agent is yet ``START_ZONE_M`` (horizontally) from its start."""
+    """Per pair as the server's ORCA models agents (upright cylinders of their inflated radius and half
+    height): the smallest horizontal clearance ``distance - (r_a + r_b)`` at times when their vertical gap
+    is within ``h_a + h_b``, radii and half heights those of the latest advisories then; and the minimum
+    3-D distance. Both leave out the take-off: times when neither agent is yet ``START_ZONE_M``
+    (horizontally) from its start."""
     from hivemap.eval.trajectory import read_tum
 
     pos, logs = {}, {}
@@ -212,13 +216,14 @@ def pair_distances(agents: list[tuple[str, str]], work: Path) -> list[dict[str, 
                 np.linalg.norm(qb[:, :2] - pb[0, :2], axis=1) > START_ZONE_M
             )
             t = common / 1e3 - t0
-            ra, rb = _radius_at(logs[a], t), _radius_at(logs[b], t)
+            ra, rb = _logged_at(logs[a], t, "radius"), _logged_at(logs[b], t, "radius")
+            ha, hb = _logged_at(logs[a], t, "half_height"), _logged_at(logs[b], t, "half_height")
             row: dict[str, Any] = {"a": a, "b": b, "min_m": float(d3[away].min()) if away.any() else None,
                                    "min_all_m": float(d3.min()), "margin_m": None, "radii_m": None,
                                    "clear": None}  # fmt: skip
             if ra is not None and rb is not None:
                 need = ra + rb
-                near = away & (np.abs(qa[:, 2] - qb[:, 2]) < need)
+                near = away & (np.abs(qa[:, 2] - qb[:, 2]) < ha + hb)
                 row["clear"] = True
                 if near.any():
                     k = np.flatnonzero(near)[int(np.argmin((dh - need)[near]))]
@@ -256,7 +261,7 @@ def explore_section(out: Path, results: dict[tuple[str, str], dict[str, Any]], d
                   f"{'-' if tt is None else f'{tt:.1f}'} (target {d['coverage']['target']:.0%}) | {paths} | "
                   f"{ates} |")  # fmt: skip
     md += ["", "Pairs: the smallest horizontal clearance (distance - the two inflated radii of the latest "
-           "advisories) while their vertical gap is within those radii too, as the server's ORCA sees "
+           "advisories) while their vertical gap is within their two half heights, as the server's ORCA sees "
            "agents; and the minimum 3-D distance. Both after the take-off (one agent 3 m from its start).",
            "",
            "| world | mode | pair | min clearance [m] | radii sum then [m] | clear | min distance [m] "

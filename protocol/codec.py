@@ -141,6 +141,7 @@ _FIELDS_SINCE: dict[int, dict[str, set[str]]] = {
     4: {"hello": {"team_advisories"}, "correction": {"pose_covariance", "covariance_kf_id"}},
     5: {"keyframe": {"track_sigma"}},
     6: {"pose_updates": {"points_follow"}},
+    7: {"keyframe": {"intent_velocity"}, "team_advisory": {"half_height_m"}},
 }
 # message types a frame of an older version cannot carry
 _SINCE = {"rendezvous": 3, "team_advisory": 4}

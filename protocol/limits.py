@@ -14,8 +14,9 @@ from dataclasses import dataclass
 # than the peer's version is not sent to it at all, so older agents keep working.
 # 5: keyframes carry ``track_sigma``.
 # 6: pose updates carry ``points_follow`` (the keyframes' points not listed move with them).
-PROTOCOL_VERSION = 6
-SUPPORTED_VERSIONS = (1, 2, 3, 4, 5, 6)
+# 7: keyframes carry ``intent_velocity``, team advisories ``half_height_m``.
+PROTOCOL_VERSION = 7
+SUPPORTED_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
 
 
 @dataclass(frozen=True)
@@ -33,3 +34,4 @@ class Limits:
     max_baseline_m: float = 100.0
     max_markers: int = 256
     max_goals: int = 256  # goals of one team advisory
+    max_speed_mps: float = 100.0  # an intended velocity's norm

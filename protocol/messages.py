@@ -1,4 +1,4 @@
-"""Protocol v5 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
+"""Protocol v7 messages: one frozen dataclass per message type (DESIGN.md "Protocol v1").
 
 Arrays are numpy arrays with fixed dtypes; shapes are given per field. Poses are 4x4 float64
 ``world_from_cam`` in the sender's frame (the agent's VIO frame for agent -> server messages, the
@@ -92,6 +92,7 @@ class Keyframe:
     u_right: NDArray[np.float32] | None = None
     odom_sigma: NDArray[np.float64] | None = None
     track_sigma: NDArray[np.float64] | None = None
+    intent_velocity: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)
@@ -187,8 +188,10 @@ class TeamAdvisory:
     ``desired_velocity`` f64 (3,): the velocity the server expects it to fly (its current one while it
     moves, else towards the first goal); ``safe_velocity`` f64 (3,): the ORCA velocity nearest it that
     stays clear of the map's other agents; ``radius_m``: the agent's radius as inflated by
-    its uncertainty. Advisory only and not stored: a newer one replaces it; ``computed_at`` is the
-    server's unix time."""
+    its uncertainty; ``half_height_m`` (protocol v7; 0 from an older server: unknown): the half height of
+    the agent's cylinder, its own half height inflated by its vertical uncertainty (another agent is a
+    neighbour only when their heights differ by less than their two half heights). Advisory only and not
+    stored: a newer one replaces it; ``computed_at`` is the server's unix time."""
 
     TYPE: ClassVar[str] = "team_advisory"
     map_id: int
@@ -198,6 +201,7 @@ class TeamAdvisory:
     safe_velocity: NDArray[np.float64]
     radius_m: float
     session: int = 0
+    half_height_m: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -152,6 +152,13 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         track = as_array(track, "body.track_sigma", "<f8", (2,))
         if not (np.all(np.isfinite(track)) and np.all(track > 0)):
             raise FieldError("sigmas must be finite and positive", "body.track_sigma")
+    intent = b.get("intent_velocity")
+    if intent is not None:
+        intent = as_array(intent, "body.intent_velocity", "<f8", (3,))
+        speed = float(np.linalg.norm(intent)) if np.all(np.isfinite(intent)) else math.nan
+        if not speed <= lim.max_speed_mps:
+            raise FieldError(f"intended speed must be finite and <= {lim.max_speed_mps} m/s, got {speed:.3g}",
+                             "body.intent_velocity")  # fmt: skip
     return Keyframe(
         kf_id=as_int(b["kf_id"], "body.kf_id", 0),
         timestamp=as_float(b["timestamp"], "body.timestamp"),
@@ -169,6 +176,7 @@ def _v_keyframe(b: dict[str, Any], lim: Limits) -> Keyframe:
         u_right=ur,
         odom_sigma=odom,
         track_sigma=track,
+        intent_velocity=intent,
     )
 
 
@@ -288,6 +296,9 @@ def _v_team_advisory(b: dict[str, Any], lim: Limits) -> TeamAdvisory:
     radius = as_float(b["radius_m"], "body.radius_m")
     if radius < 0:
         raise FieldError(f"radius must be >= 0, got {radius}", "body.radius_m")
+    half = as_float(b.get("half_height_m", 0.0), "body.half_height_m")
+    if not half >= 0:
+        raise FieldError(f"half height must be >= 0, got {half}", "body.half_height_m")
     return TeamAdvisory(
         map_id=as_int(b["map_id"], "body.map_id", 0),
         computed_at=as_float(b["computed_at"], "body.computed_at"),
@@ -296,6 +307,7 @@ def _v_team_advisory(b: dict[str, Any], lim: Limits) -> TeamAdvisory:
         safe_velocity=as_array(b["safe_velocity"], "body.safe_velocity", "<f8", (3,)),
         radius_m=radius,
         session=_session(b),
+        half_height_m=half,
     )
 
 

@@ -64,6 +64,9 @@ class AgentMap:
     # the first keyframe's guess of this session's VIO frame in the previous session's (kf id,
     # prev_from_this 4x4, sigmas [m, deg]) until the back-end has used it (memory only)
     session_guess: tuple[int, NDArray[np.float64], NDArray[np.float64]] | None = None
+    # the latest keyframe's intended velocity (kf id, f64 (3,) in its cam0 frame; protocol v7), for the team
+    # services' collision advisories (memory only: advisory, not map data)
+    intent: tuple[int, NDArray[np.float64]] | None = None
 
     def row(self) -> tuple[str, str, int, NDArray[np.float64], str, int]:
         """What the store keeps of it (``ServerStore.put_agent_map``), copied on the loop."""

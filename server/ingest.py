@@ -177,6 +177,8 @@ class Ingest:
         kf = keyframe_from_msg(am.folded, msg, am.camera, am.global_from_vio, baseline)
         m.add_keyframe(kf)
         am.arrived_kfs.add(msg.kf_id)
+        if msg.intent_velocity is not None:
+            am.intent = (int(msg.kf_id), np.array(msg.intent_velocity, dtype=np.float64))
         if msg.prev_session_from_world is not None and msg.prev_session_sigma is not None:
             guess = np.array(msg.prev_session_from_world, dtype=np.float64)
             am.session_guess = (int(msg.kf_id), guess, np.array(msg.prev_session_sigma, dtype=np.float64))

@@ -273,7 +273,8 @@ class FrontierList(BaseModel):
 
 class Advisory(BaseModel):
     desired_velocity: list[float] = Field(
-        description="what the agent flies now (moving), else towards the first goal at cruise speed"
+        description="the agent's intent when it sent one, else what it flies now (moving), else towards the "
+        "first goal at cruise speed"
     )
     safe_velocity: list[float] = Field(description="ORCA: collision-free over the time horizon (horizontal)")
     radius_m: float
@@ -281,6 +282,16 @@ class Advisory(BaseModel):
         description="radius + k_sigma * (sigma_pos + t_v * sigma_vel); sigma_pos: the largest of the agent's "
         "shares of its relative sigmas to the map's other agents, each pair's split in proportion to the two "
         "agents' own sigmas (an unknown pair, or none: the agent's own)"
+    )
+    half_height_m: float = Field(
+        description="half height of the agent's cylinder: its own ([team.orca] half_height_uav_m / _ugv_m) "
+        "+ k_sigma * its largest share of its relative vertical sigmas; agents whose heights differ by more "
+        "than their two half heights are not neighbours"
+    )
+    intent: list[float] | None = Field(
+        default=None,
+        description="the velocity the agent said it will fly (its latest keyframe's intent_velocity, map "
+        "frame), ORCA's preferred velocity for it; null: it did not say",
     )
     neighbours: list[str]
     covariance: str = Field(description="'graph' (the server's marginals) or 'default' (configured sigmas)")

@@ -240,6 +240,15 @@ class LiveSim:
         self._last_replan = t
         return True
 
+    def intent_cam(self, world_from_body: F64) -> F64:
+        """The controller's intent (:meth:`Controller.intent`) at the frame of true pose ``world_from_body``,
+        in that frame's cam0 frame (zero during the hold)."""
+        if self.t < self.hold_s:
+            return np.zeros(3)
+        W = np.asarray(world_from_body, dtype=np.float64)
+        v = self.controller.intent(W[:3, 3])
+        return (W @ self.T_BS[0])[:3, :3].T @ v
+
     def path_length(self) -> float:
         P = np.array([T[:3, 3] for T in self.gt_poses]).reshape(-1, 3)
         return float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum()) if len(P) > 1 else 0.0

@@ -53,6 +53,8 @@ class ControlOptions:
     # road_check_s stops instead: ORCA knows nothing of the roads, and standing still is what a car can do
     road_check_s: float = 1.0
     road_margin_m: float = 1.0
+    # the intent each keyframe carries: the mean velocity along the path over this long (Controller.intent)
+    intent_horizon_s: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -64,6 +66,7 @@ class WorldAdvisory:
     desired_velocity: F64  # (3,)
     safe_velocity: F64  # (3,)
     radius_m: float
+    half_height_m: float = 0.0
 
 
 def world_from_map(world_from_body: F64, map_from_body: F64) -> F64:
@@ -206,6 +209,36 @@ class Controller:
             path is not None and pg is not None and np.linalg.norm(pg - goal[:2]) <= o.replan_goal_m
             and np.linalg.norm(path[-1] - p[:2]) < o.goal_reached_m / 2
         )  # fmt: skip
+
+    def intent(self, position: F64) -> F64:
+        """What the agent will fly without advisories (3,) world m/s: the mean velocity over the next
+        ``intent_horizon_s`` along its path to the current goal at its speed (the chord, so a turn ahead
+        shows), its climb rate vertically; zero horizontally without a goal or while a UAV climbs to its
+        height. The server's ORCA predicts the agent along it (NH-ORCA's reference path, in one velocity)."""
+        o = self.options
+        p = np.asarray(position, dtype=np.float64)
+        v = np.zeros(3)
+        climbing = False
+        if self.kind == "uav":
+            dz = self._height_target(p[:2]) - p[2]
+            v[2] = float(np.clip(o.z_gain * dz, -o.climb_mps, o.climb_mps))
+            climbing = dz > 1.0
+        goal = self.goal
+        if goal is None or climbing:
+            return v
+        path = self._path
+        if (
+            path is None
+            or self._path_goal is None
+            or np.linalg.norm(self._path_goal - goal[:2]) > o.replan_goal_m
+        ):
+            path = self.paths.path(p[:2], goal[:2])
+        ahead, _ = _pursuit(path, p[:2], self.speed * o.intent_horizon_s)
+        d = ahead - p[:2]
+        n = float(np.linalg.norm(d))
+        if n > 1e-6:
+            v[:2] = d / n * min(self.speed, n / o.intent_horizon_s)
+        return v
 
     def command(self, t: float, position: F64, yaw: float, airborne: bool = True) -> tuple[F64, float | None]:
         """(velocity (3,) world m/s, heading rad or None to keep it) at sim time ``t``; a UAV climbs to

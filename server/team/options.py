@@ -76,9 +76,15 @@ class OrcaOptions:
     max_neighbors: int = 10
     radius_uav_m: float = 0.5
     radius_ugv_m: float = 0.8
+    # the agents' own half heights about their camera: ORCA's cylinders are these high, inflated by the
+    # vertical uncertainty (not by the horizontal radius: a UGV's horizontal error says nothing of a UAV
+    # above it)
+    half_height_uav_m: float = 0.3
+    half_height_ugv_m: float = 1.0
     max_speed_uav: float = 2.0  # m/s; also the cruise speed of the desired velocity towards a goal
     max_speed_ugv: float = 1.0
-    # an agent faster than this keeps its current velocity as ORCA's preferred one (orca.preferred_velocity)
+    # without an intent from the agent, one faster than this keeps its current velocity as ORCA's preferred
+    # one (orca.preferred_velocity)
     moving_mps: float = 0.2
     # inflation: radius + k_sigma * (position sigma + velocity_horizon_s * sqrt(max eigenvalue of the
     # velocity's horizontal covariance)); the position sigma is the agent's largest share of its relative

@@ -5,8 +5,15 @@ by localisation uncertainty; the seed adds the velocity's).
 
 The linear programs are the reference RVO2 library's (van den Berg et al.) through the ``pyrvo``
 bindings, which install from a wheel: no hand-written ORCA. ORCA is planar: it acts on the horizontal
-velocity; two agents are neighbours only when their vertical gap is within their inflated radii (a UAV
-flying over a UGV does not have to swerve), and the vertical velocity is passed through.
+velocity; agents are upright cylinders, whose half height is the agent's own inflated by its vertical
+uncertainty, and two agents are neighbours only when their cylinders overlap in height (a UAV flying over
+a UGV does not have to swerve), and the vertical velocity is passed through.
+
+An agent that says where it is going (its keyframes' intent: the mean velocity along its own path over
+the next seconds) wants that velocity: it is ORCA's preferred velocity for it, so a turn towards another
+agent is answered before the agent flies it. The velocity cones are still built on the agents' current
+velocities (RVO2's optimisation velocity), which is what they fly for the next second or two whatever
+they intend: built on the intents, ORCA assumed turns the agents' dynamics take seconds to make.
 
 What a pair has to stay clear of is the error of where one is *from the other*: the covariance of the
 difference of their positions (their joint marginal), not each one's marginal in the map frame, which
@@ -56,6 +63,8 @@ class AgentMotion:
     velocity_cov: F64 | None = None
     timestamp: float | None = None  # s, the team's clock: when the agent was at ``position``
     relative: tuple[tuple[str, F64 | None], ...] = ()
+    intent: F64 | None = None  # (3,) what the agent says it will fly (None: it did not say)
+    half_height: float = 0.0  # its own, about ``position``
 
 
 @dataclass(frozen=True)
@@ -65,15 +74,23 @@ class Advisory:
     desired: F64  # (3,)
     radius: float  # inflated
     neighbours: tuple[str, ...]
+    half_height: float = 0.0  # inflated
 
 
-def preferred_velocity(velocity: F64, position: F64, goal: F64 | None, speed: float, o: OrcaOptions) -> F64:
-    """The velocity ORCA keeps an agent nearest to (3,): what it will fly without an advisory. A moving
-    agent (faster than ``o.moving_mps``) keeps its current velocity: agents follow roads and their own
-    controllers, which the server does not know, so the straight line to the goal may be clear while the
-    path they fly is not. A standing one: the straight line to ``goal`` at ``speed``, slowing to arrive
-    within one advisory period (zero without a goal)."""
-    v = np.asarray(velocity, dtype=np.float64)
+def preferred_velocity(
+    velocity: F64, position: F64, goal: F64 | None, speed: float, o: OrcaOptions, intent: F64 | None = None
+) -> F64:
+    """The velocity ORCA keeps an agent nearest to (3,): what it will fly without an advisory. Its
+    ``intent`` when it sent one (cut to ``speed``). Else a moving agent (faster than ``o.moving_mps``)
+    keeps its current velocity: agents follow roads and their own controllers, so the straight line to the
+    goal may be clear while the path they fly is not. A standing one: the straight line to ``goal`` at
+    ``speed``, slowing to arrive within one advisory period (zero without a goal)."""
+    v = np.asarray(velocity if intent is None else intent, dtype=np.float64)
+    if intent is not None:
+        out = v.copy()
+        h = float(np.linalg.norm(v[:2]))
+        out[:2] *= min(1.0, speed / h) if h > 0 else 1.0
+        return out
     horizontal = float(np.linalg.norm(v[:2]))
     if horizontal > o.moving_mps:
         out = v.copy()
@@ -125,13 +142,11 @@ def inflated_radius(agent: AgentMotion, options: OrcaOptions, others: Sequence[A
     return agent.radius + options.k_sigma * (sp + options.velocity_horizon_s * sv)
 
 
-def _vertical_margin(
-    agent: AgentMotion, radius: float, options: OrcaOptions, others: Sequence[AgentMotion]
-) -> float:
-    """Half the height of the agent's cylinder: its inflated ``radius`` (two agents count as near when their
-    vertical gap is within the sum of their inflated radii, as the explore evaluation counts them) plus
-    its vertical :func:`position_sigma`."""
-    return radius + options.k_sigma * position_sigma(agent, slice(2, 3), others)
+def half_height(agent: AgentMotion, options: OrcaOptions, others: Sequence[AgentMotion] = ()) -> float:
+    """Half the height of the agent's cylinder: its own ``half_height`` plus ``k_sigma`` times its vertical
+    :func:`position_sigma` (two agents are neighbours when their heights differ by less than the sum of
+    their half heights, as the explore evaluation counts them)."""
+    return agent.half_height + options.k_sigma * position_sigma(agent, slice(2, 3), others)
 
 
 def _position_at(agent: AgentMotion, t: float | None, options: OrcaOptions) -> F64:
@@ -154,7 +169,7 @@ def advisories(agents: Sequence[AgentMotion], options: OrcaOptions) -> list[Advi
     (clamped to its top speed) exactly."""
     o = options
     radii = [inflated_radius(a, o, agents) for a in agents]
-    vmargin = [_vertical_margin(a, r, o, agents) for a, r in zip(agents, radii, strict=True)]
+    vmargin = [half_height(a, o, agents) for a in agents]
     out: list[Advisory] = []
     for i, a in enumerate(agents):
         desired = np.asarray(a.desired, dtype=np.float64)
@@ -171,12 +186,14 @@ def advisories(agents: Sequence[AgentMotion], options: OrcaOptions) -> list[Advi
             if float(np.linalg.norm(d[:2])) <= o.neighbor_dist_m + radii[i] + radii[j]:
                 nbrs.append(j)
         if not nbrs:
-            out.append(Advisory(a.agent_id, np.array([*wanted, desired[2]]), desired, radii[i], ()))
+            out.append(
+                Advisory(a.agent_id, np.array([*wanted, desired[2]]), desired, radii[i], (), vmargin[i])
+            )
             continue
         v = _solve(i, nbrs, agents, at, [r + o.tracking_margin_m for r in radii], wanted, o)
         out.append(
             Advisory(a.agent_id, np.array([v[0], v[1], desired[2]]), desired, radii[i],
-                     tuple(agents[j].agent_id for j in nbrs))
+                     tuple(agents[j].agent_id for j in nbrs), vmargin[i])
         )  # fmt: skip
     return out
 

@@ -58,6 +58,7 @@ class _AgentSnap:
     position: F64
     velocity: F64
     timestamp: float | None = None  # of the keyframe ``position`` is from (None: unknown)
+    intent: F64 | None = None  # what the agent says it will fly, map frame (None: it did not say)
 
 
 class TeamService:
@@ -119,6 +120,7 @@ class TeamService:
                         desired_velocity=np.array(a.advisory.desired_velocity, dtype=np.float64),
                         safe_velocity=np.array(a.advisory.safe_velocity, dtype=np.float64),
                         radius_m=a.advisory.inflated_radius_m, session=am.client_session,
+                        half_height_m=a.advisory.half_height_m,
                     )  # fmt: skip
                     if agent.connection.send(msg):  # not queued for later: a stale advisory is no use
                         self.pushed += 1
@@ -169,7 +171,11 @@ class TeamService:
                 q = np.asarray(kfs[-2].world_from_cam, dtype=np.float64)[:3, 3]
                 v = (p - q) / (kfs[-1].timestamp - kfs[-2].timestamp)
             map_id: int = m.id  # type: ignore[union-attr]
-            out.append(_AgentSnap(agent.agent_id, agent.kind, map_id, p, v, float(kfs[-1].timestamp)))
+            intent = None
+            if am.intent is not None and am.intent[0] == kfs[-1].id:
+                R = np.asarray(kfs[-1].world_from_cam, dtype=np.float64)[:3, :3]
+                intent = R @ am.intent[1] / float(np.cbrt(np.linalg.det(R)))
+            out.append(_AgentSnap(agent.agent_id, agent.kind, map_id, p, v, float(kfs[-1].timestamp), intent))
         return out
 
     async def assignments(self) -> schemas.TeamAssignments:
@@ -291,11 +297,15 @@ class TeamService:
         for a, at, (P, V, _), r in zip(team, goal_at, covs, rel, strict=True):
             ugv = a.kind == "ugv"
             speed = o.orca.max_speed_ugv if ugv else o.orca.max_speed_uav
-            desired = preferred_velocity(a.velocity, a.position, at[0] if at else None, speed, o.orca)
-            radius = o.orca.radius_ugv_m if ugv else o.orca.radius_uav_m
-            motions.append(
-                AgentMotion(a.agent_id, a.position, a.velocity, desired, radius, speed, P, V, a.timestamp, r)
+            desired = preferred_velocity(
+                a.velocity, a.position, at[0] if at else None, speed, o.orca, a.intent
             )
+            radius = o.orca.radius_ugv_m if ugv else o.orca.radius_uav_m
+            half = o.orca.half_height_ugv_m if ugv else o.orca.half_height_uav_m
+            motions.append(
+                AgentMotion(a.agent_id, a.position, a.velocity, desired, radius, speed, P, V, a.timestamp, r,
+                            a.intent, half)
+            )  # fmt: skip
         advs = advisories(motions, o.orca)
         ids = [f.id for f in fr.frontiers]
         out_agents = []
@@ -310,7 +320,8 @@ class TeamService:
                     path_cost_m=cost,
                     advisory=schemas.Advisory(
                         desired_velocity=adv.desired.tolist(), safe_velocity=adv.safe_velocity.tolist(),
-                        radius_m=m.radius, inflated_radius_m=adv.radius,
+                        radius_m=m.radius, inflated_radius_m=adv.radius, half_height_m=adv.half_height,
+                        intent=None if m.intent is None else np.asarray(m.intent).tolist(),
                         neighbours=list(adv.neighbours), covariance=source,
                         relative_position_cov={b: None if c is None else np.asarray(c).tolist()
                                                for b, c in m.relative},

@@ -13,13 +13,16 @@ from hivemap.eval.explore import explore_agents, explore_section, goal_changes, 
 from hivemap.sim.scenarios import get_scenario
 
 
-def _agent(work: Path, aid: str, xyz: np.ndarray, radius: float) -> None:
+def _agent(work: Path, aid: str, xyz: np.ndarray, radius: float, half: float | None = 0.3) -> None:
     out = work / aid
     out.mkdir(parents=True)
     T = np.tile(np.eye(4), (len(xyz), 1, 1))
     T[:, :3, 3] = xyz
     write_tum_poses(out / "groundtruth.tum", 1.7e9 + 0.05 * np.arange(len(xyz)), T)
-    log = [{"t": 0.0, "radius": radius}, {"t": 0.9, "radius": radius + 0.2}]
+    log: list[dict[str, float]] = [{"t": 0.0, "radius": radius}, {"t": 0.9, "radius": radius + 0.2}]
+    if half is not None:
+        for e in log:
+            e["half_height"] = half
     (out / "live.json").write_text(json.dumps({"advisory_log": log}))
 
 
@@ -32,15 +35,21 @@ def test_pair_distances(tmp_path: Path) -> None:
     b = np.tile([10.0, 1.0, 0.0], (n, 1))
     b[:5] = [0.0, 0.35, 0.0]
     b[5:10] = np.linspace([0.0, 0.35, 0.0], [10.0, 1.0, 0.0], 5)
-    # c hovers 5 m over b's spot: horizontally as close, but vertically clear of a (gap > radii)
-    c = b + [0.0, 0.0, 5.0]
+    # c hovers 1 m over b's spot: horizontally as close, but vertically clear of a (the gap is more than
+    # the two half heights, 0.3 m each, though less than the radii)
+    c = b + [0.0, 0.0, 1.0]
     _agent(tmp_path, "uav1", a, 0.5)
     _agent(tmp_path, "uav2", b, 0.3)
     _agent(tmp_path, "uav3", c, 0.3)
     ab, ac, _ = pair_distances([("uav1", "uav"), ("uav2", "uav"), ("uav3", "uav")], tmp_path)
     assert np.isclose(ab["min_all_m"], 0.35) and np.isclose(ab["min_m"], 1.0)
     assert np.isclose(ab["radii_m"], 1.2) and np.isclose(ab["margin_m"], -0.2) and ab["clear"] is False
-    assert ac["clear"] is True and ac["margin_m"] is None and np.isclose(ac["min_m"], np.hypot(1.0, 5.0))
+    assert ac["clear"] is True and ac["margin_m"] is None and np.isclose(ac["min_m"], np.hypot(1.0, 1.0))
+    # a run logged before half heights (a server whose cylinders were as high as their radii): near
+    _agent(tmp_path / "old", "uav1", a, 0.5, None)
+    _agent(tmp_path / "old", "uav3", c, 0.3, None)
+    (old,) = pair_distances([("uav1", "uav"), ("uav3", "uav")], tmp_path / "old")
+    assert old["clear"] is False and np.isclose(old["margin_m"], -0.2)
 
 
 def test_agents_of_the_modes_and_the_report(tmp_path: Path) -> None:

@@ -29,6 +29,7 @@ from hivemap.protocol import (
     PoseUpdates,
     ProtocolError,
     Rendezvous,
+    TeamAdvisory,
     UnknownTypeError,
     VersionError,
     Welcome,
@@ -101,6 +102,7 @@ def keyframes(draw: Any) -> Keyframe:
         u_right=draw(arr(np.float32, (n,), ur)) if stereo else None,
         odom_sigma=draw(st.one_of(st.none(), arr(np.float64, (2,), st.floats(0, 100)))),
         track_sigma=draw(st.one_of(st.none(), arr(np.float64, (2,), st.floats(1e-6, 100)))),
+        intent_velocity=draw(st.one_of(st.none(), arr(np.float64, (3,), st.floats(-50, 50)))),
     )
 
 
@@ -375,17 +377,30 @@ def test_a_v1_keyframe_still_reads_as_all_mono() -> None:
     """An older agent's v1 frames (no ``u_right``, ``odom_sigma``, ``stereo_baseline``) decode with those
     unset; a v1 frame carrying a v2 field is refused, naming it."""
     kf = _kf()
-    v1 = _tamper(encode(kf, 4), v=1, body_u_right=None, body_odom_sigma=None, body_track_sigma=None)
+    v1 = _tamper(
+        encode(kf, 4),
+        v=1,
+        body_u_right=None,
+        body_odom_sigma=None,
+        body_track_sigma=None,
+        body_intent_velocity=None,
+    )
     _, got = decode(v1)
     assert isinstance(got, Keyframe) and got.u_right is None and got.odom_sigma is None
     assert_same(kf, got)
     stereo = replace(kf, u_right=np.where(np.arange(100) % 2 == 0, 300.0, np.nan).astype(np.float32))
     with pytest.raises(FieldError) as e:
-        decode(_tamper(encode(stereo, 4), v=1, body_odom_sigma=None, body_track_sigma=None))
+        decode(
+            _tamper(
+                encode(stereo, 4), v=1, body_odom_sigma=None, body_track_sigma=None, body_intent_velocity=None
+            )
+        )
     assert e.value.field == "body.u_right"
     weak = replace(kf, odom_sigma=np.array([0.5, 2.0]))
     with pytest.raises(FieldError) as e:
-        decode(_tamper(encode(weak, 4), v=1, body_u_right=None, body_track_sigma=None))
+        decode(
+            _tamper(encode(weak, 4), v=1, body_u_right=None, body_track_sigma=None, body_intent_velocity=None)
+        )
     assert e.value.field == "body.odom_sigma"
     _, both = decode(encode(replace(stereo, odom_sigma=np.array([0.5, 2.0])), 4))
     assert isinstance(both, Keyframe) and both.u_right is not None and both.odom_sigma is not None
@@ -530,7 +545,7 @@ def test_a_v4_frame_cannot_carry_track_sigma_and_a_v4_reader_gets_the_keyframe_w
     keyframe downgraded for a v4 peer travels without it, and a v5 frame keeps it exactly."""
     kf = replace(_kf(), track_sigma=np.array([0.006, 0.08]))
     with pytest.raises(FieldError) as e:
-        decode(_tamper(encode(kf, 3), v=4))
+        decode(_tamper(encode(kf, 3), v=4, body_intent_velocity=None))
     assert e.value.field == "body.track_sigma"
     with pytest.raises(ValueError):
         encode(kf, 3, version=4)
@@ -556,3 +571,34 @@ def test_points_follow_is_protocol_v6() -> None:
     with pytest.raises(FieldError) as e:
         decode(_tamper(encode(upd, 3), body_points_follow=1))
     assert e.value.field == "body.points_follow"
+
+
+def test_intent_velocity_and_half_height_are_protocol_v7() -> None:
+    """``Keyframe.intent_velocity`` and ``TeamAdvisory.half_height_m`` are protocol v7: a v6 frame
+    carrying either is refused naming the field, a message downgraded for a v6 peer travels without it,
+    a v7 frame keeps it exactly; an intent that is not finite or faster than the limit is refused."""
+    kf = replace(_kf(), intent_velocity=np.array([1.5, -0.25, 0.5]))
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(encode(kf, 3), v=6))
+    assert e.value.field == "body.intent_velocity"
+    version, _, old = decode_versioned(encode(downgrade(kf, 6), 3, version=6))
+    assert version == 6 and isinstance(old, Keyframe) and old.intent_velocity is None
+    _, new = decode(encode(kf, 3))
+    assert isinstance(new, Keyframe) and new.intent_velocity is not None
+    np.testing.assert_array_equal(new.intent_velocity, [1.5, -0.25, 0.5])
+    for bad in (np.array([np.nan, 0.0, 0.0]), np.array([0.0, 101.0, 0.0]), np.zeros(2)):
+        with pytest.raises(FieldError) as e:
+            decode(encode(replace(kf, intent_velocity=bad), 3))
+        assert e.value.field == "body.intent_velocity"
+    adv = TeamAdvisory(map_id=1, computed_at=1.0, goals=np.zeros((0, 3)), desired_velocity=np.zeros(3),
+                       safe_velocity=np.zeros(3), radius_m=0.8, half_height_m=0.45)  # fmt: skip
+    with pytest.raises(FieldError) as e:
+        decode(_tamper(encode(adv, 3), v=6))
+    assert e.value.field == "body.half_height_m"
+    _, old_adv = decode(encode(downgrade(adv, 6), 3, version=6))
+    assert isinstance(old_adv, TeamAdvisory) and old_adv.half_height_m == 0.0
+    _, new_adv = decode(encode(adv, 3))
+    assert isinstance(new_adv, TeamAdvisory) and new_adv.half_height_m == 0.45
+    with pytest.raises(FieldError) as e:
+        decode(encode(replace(adv, half_height_m=-0.1), 3))
+    assert e.value.field == "body.half_height_m"

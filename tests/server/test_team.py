@@ -185,6 +185,36 @@ def test_orca_guards_the_path_the_agents_fly_not_the_line_to_their_goals() -> No
     assert _min_distance(a.position[:2], va, b.position[:2], vb, OPT.time_horizon_s) >= r_sum - 1e-3
 
 
+def test_orca_prefers_an_agents_intent() -> None:
+    """a flies +x from (0, 0) and b +x from (4, 3), both at 2 m/s: side by side, 3 m apart, clear. But b's
+    path turns it south across a's (its intent: (0, -2) m/s), which would bring it within 0.71 m of a in
+    1.75 s. Without intents ORCA keeps both as they fly; with them b's desired velocity is its intent,
+    and ORCA answers it with a velocity that stays clear of a as a flies (the cones are built on current
+    velocities), where a, whose intent is its course, keeps it."""
+    a = _agent("a", (0.0, 0.0), (2.0, 0.0))
+    b = _agent("b", (4.0, 3.0), (2.0, 0.0))
+    intent = {"a": np.array([2.0, 0.0, 0.0]), "b": np.array([0.0, -2.0, 0.0])}
+    assert _min_distance(a.position[:2], a.velocity[:2], b.position[:2], intent["b"][:2], 5.0) < 0.75
+    for adv, m in zip(advisories([a, b], OPT), (a, b), strict=True):
+        assert np.allclose(adv.safe_velocity, m.desired, atol=1e-6)  # current velocities: nothing to do
+
+    def with_intent(m: AgentMotion) -> AgentMotion:
+        i = intent[m.agent_id]
+        return replace(m, desired=preferred_velocity(m.velocity, m.position, None, 2.0, OPT, i), intent=i)
+
+    told = [with_intent(m) for m in (a, b)]
+    assert np.array_equal(told[1].desired, intent["b"])
+    adv = advisories(told, OPT)
+    assert np.allclose(adv[0].safe_velocity, intent["a"], atol=1e-5)
+    assert np.linalg.norm(adv[1].safe_velocity - intent["b"]) > 1.0
+    r_sum = adv[0].radius + adv[1].radius + 2 * OPT.tracking_margin_m
+    va, vb = adv[0].safe_velocity[:2], adv[1].safe_velocity[:2]
+    assert _min_distance(a.position[:2], va, b.position[:2], vb, OPT.time_horizon_s) >= r_sum - 1e-3
+    # an intent faster than the top speed is cut to it horizontally; its climb rate passes
+    fast = preferred_velocity(np.zeros(3), a.position, None, 2.0, OPT, np.array([3.0, 4.0, 0.5]))
+    assert np.allclose(fast, [1.2, 1.6, 0.5])
+
+
 def test_preferred_velocity_of_a_standing_agent_is_the_line_to_its_goal() -> None:
     """Below ``moving_mps`` the agent is standing: the straight line to its goal at cruise speed,
     slowed to arrive within one advisory period (0.1 s here), zero without a goal; a moving agent's
@@ -230,7 +260,8 @@ def test_radius_is_inflated_by_the_relative_not_the_absolute_uncertainty() -> No
     assert inflated_radius(a, OPT, [a, b]) == pytest.approx(0.5 + 2.0 * 0.1)
     assert inflated_radius(b, OPT, [a, b]) == pytest.approx(0.5 + 2.0 * 0.1)
     # head-on 6 m apart, 0.3 m off the line: neighbours at one height; 1.6 m higher they are not with the
-    # relative radii (0.75 m half-heights), but are with the absolute ones (5.5 m)
+    # relative vertical sigma (half heights 2 x 0.025 m, no own height here), but are with the absolute
+    # ones (2 x 1 m each)
     assert advisories([a, b], OPT)[0].neighbours == ("b",)
     high = uav("b", 6.0, 6.6, (("a", R),))
     assert advisories([a, high], OPT)[0].neighbours == ()
@@ -368,25 +399,39 @@ def test_team_options_from_toml() -> None:
 def test_orca_gate_is_the_inflated_cylinder_and_neighbours_are_carried_to_ones_time() -> None:
     P, V = np.diag([0.01, 0.01, 0.0]), np.diag([0.0025, 0.0025, 0.0])  # inflated: 0.5 + 2 (0.1 + 0.05)
 
-    def uav(name: str, p: tuple[float, ...], v: tuple[float, ...], t: float | None) -> AgentMotion:
-        return AgentMotion(name, np.array(p), np.array(v), np.array(v), 0.5, 2.0, P, V, timestamp=t)
+    def uav(name: str, p: tuple[float, ...], v: tuple[float, ...], t: float | None,
+            cov: np.ndarray = P) -> AgentMotion:  # fmt: skip
+        return AgentMotion(name, np.array(p), np.array(v), np.array(v), 0.5, 2.0, cov, V, timestamp=t,
+                           half_height=0.3)  # fmt: skip
 
-    # a east along y = 0 at 10 m, b north along x = 6 at 8.8 m: both at (6, 0) in 3 s. The gap of 1.2 m
-    # is within the two inflated radii (1.6 m): near, as the explore evaluation counts a pair
+    # a east along y = 0 at 10 m, b north along x = 6 at 9.6 m: both at (6, 0) in 3 s. The gap of 0.4 m
+    # is within the two half heights (0.3 m each, no vertical sigma): near, as the explore evaluation
+    # counts a pair
     a, b = (
         uav("a", (0.0, 0.0, 10.0), (2.0, 0.0, 0.0), 100.0),
-        uav("b", (6.0, -6.0, 8.8), (0.0, 2.0, 0.0), 100.0),
+        uav("b", (6.0, -6.0, 9.6), (0.0, 2.0, 0.0), 100.0),
     )
     now = advisories([a, b], OPT)
     assert inflated_radius(a, OPT) == pytest.approx(0.8)
+    assert now[0].half_height == pytest.approx(0.3)
     assert now[0].neighbours == ("b",) and now[1].neighbours == ("a",)
     assert not np.allclose(now[0].safe_velocity, a.desired)
-    # 1.7 m apart in height: not near, each keeps its desired velocity
-    high = uav("b", (6.0, -6.0, 8.3), (0.0, 2.0, 0.0), 100.0)
+    # 0.7 m apart in height: not near, each keeps its desired velocity; with a vertical sigma of 0.1 m
+    # each (half heights 0.3 + 2 x 0.1 m) they are
+    high = uav("b", (6.0, -6.0, 9.3), (0.0, 2.0, 0.0), 100.0)
     assert advisories([a, high], OPT)[0].neighbours == ()
+    Pz = np.diag([0.01, 0.01, 0.01])
+    unsure = advisories([uav("a", (0.0, 0.0, 10.0), (2.0, 0.0, 0.0), 100.0, Pz),
+                         uav("b", (6.0, -6.0, 9.3), (0.0, 2.0, 0.0), 100.0, Pz)], OPT)  # fmt: skip
+    assert unsure[0].half_height == pytest.approx(0.5) and unsure[0].neighbours == ("b",)
+    # a UGV 3 m below, 2 m uncertain horizontally and 0.1 m vertically: a wide but low cylinder
+    ugv = AgentMotion("g", np.array([6.0, -6.0, 7.0]), np.array([0.0, 2.0, 0.0]), np.array([0.0, 2.0, 0.0]),
+                      0.8, 1.0, np.diag([4.0, 4.0, 0.01]), V, timestamp=100.0, half_height=1.0)  # fmt: skip
+    low = advisories([a, ugv], OPT)
+    assert low[1].radius > 4.0 and low[1].half_height == pytest.approx(1.2) and low[0].neighbours == ()
     # b's latest keyframe 1 s older than a's (2 m back): a's advisory is the one for b where it is at a's
     # time; b's own is for a carried 1 s back to b's time
-    old = uav("b", (6.0, -8.0, 8.8), (0.0, 2.0, 0.0), 99.0)
+    old = uav("b", (6.0, -8.0, 9.6), (0.0, 2.0, 0.0), 99.0)
     lagged = advisories([a, old], OPT)
     assert np.allclose(lagged[0].safe_velocity, now[0].safe_velocity, atol=1e-5)
     back = advisories([uav("a", (-2.0, 0.0, 10.0), (2.0, 0.0, 0.0), 99.0), old], OPT)

@@ -37,7 +37,7 @@ max_goals_per_agent = 3
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> ServerProcess:
     d: Path = tmp_path_factory.mktemp("team")
-    cfg = write_config(d / "server.toml")
+    cfg = write_config(d / "server.toml", {**TOKENS, "uav3": "tok-uav3"})
     cfg.write_text(cfg.read_text() + TEAM_TOML)
     s = ServerProcess(d / "data", cfg).start()
     yield s
@@ -150,9 +150,55 @@ def test_advisories_pushed_only_to_agents_that_ask(server: ServerProcess) -> Non
         np.testing.assert_allclose(got.goals, np.array(mine.goal_positions).reshape(-1, 3), atol=1e-9)
         assert len(got.goals) >= 1 and got.radius_m == pytest.approx(mine.advisory.inflated_radius_m)
         np.testing.assert_allclose(got.safe_velocity, mine.advisory.safe_velocity, atol=1e-9)
+        # the cylinder's half height: a UAV's own 0.3 m, no vertical sigma (default covariance)
+        assert got.half_height_m == pytest.approx(mine.advisory.half_height_m) == pytest.approx(0.3)
         # ugv1 did not ask: nothing but what it asked for arrives (its queue stays empty for 2 push periods)
         with pytest.raises(TimeoutError):
             ugv.recv(timeout=2.5)
+
+
+def test_the_intent_of_a_keyframe_is_the_desired_velocity_in_the_map_frame(server: ServerProcess) -> None:
+    """Keyframes that carry the agent's intent (protocol v7, in the keyframe's camera frame): the server
+    turns the latest one into the map frame by that keyframe's rotation and makes it the advisory's
+    desired velocity (cut to the top speed), whatever the agent flies now; a keyframe without one brings
+    back the current velocity."""
+    import dataclasses
+
+    pts = _half_explored()
+    path = np.array([[2.0, 8.0, 3.5], [3.0, 8.0, 3.5], [4.0, 8.0, 3.5]])
+    msgs = _stream(pts, path)
+    # the camera looks along +y (its z), its x along -x: world = R cam
+    R = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    intent_cam = np.array([0.5, 0.25, 3.0])  # 3 m/s forward: 2 m/s at the UAV's top speed
+    for i, m in enumerate(msgs):
+        if isinstance(m, Keyframe):
+            T = np.array(m.world_from_cam)
+            T[:3, :3] = R
+            msgs[i] = dataclasses.replace(m, world_from_cam=T, intent_velocity=intent_cam)
+    with SyncAgent(server.ws_url, "uav3", "tok-uav3", kind="uav") as uav:
+        uav.welcome()
+        acks, errors = uav.send_all(msgs)
+        assert not errors and len(acks) == len(msgs)
+        team = schemas.TeamAssignments.model_validate(server.json("/team/assignments"))
+        (a,) = [a for m in team.maps for a in m.agents if a.agent_id == "uav3"]
+        want = R @ intent_cam
+        assert a.advisory.intent is not None
+        np.testing.assert_allclose(a.advisory.intent, want, atol=1e-12)
+        assert np.linalg.norm(want[:2]) > 2.0 and np.linalg.norm(a.velocity) == pytest.approx(1.0)
+        cut = np.array([*(want[:2] * 2.0 / np.linalg.norm(want[:2])), want[2]])
+        np.testing.assert_allclose(a.advisory.desired_velocity, cut, atol=1e-12)
+        T = np.array(msgs[-1].world_from_cam)  # type: ignore[union-attr]
+        T[:3, 3] = [6.0, 8.0, 3.5]  # 2 m on in 2 s: 1 m/s along x
+        plain = dataclasses.replace(
+            msgs[-1], kf_id=99, timestamp=104.0, world_from_cam=T, intent_velocity=None
+        )
+        acks, errors = uav.send_all([plain], first_seq=len(msgs) + 1)
+        assert not errors
+        team = schemas.TeamAssignments.model_validate(server.json("/team/assignments"))
+        (a,) = [a for m in team.maps for a in m.agents if a.agent_id == "uav3"]
+        assert a.advisory.intent is None
+        np.testing.assert_allclose(a.velocity, [1.0, 0.0, 0.0], atol=1e-12)
+        np.testing.assert_allclose(a.advisory.desired_velocity, a.velocity, atol=1e-12)
 
 
 def test_service_assigns_two_agents_in_one_map_and_separates_them() -> None:
