@@ -131,11 +131,14 @@ def split_map(
     stack: MapStack, map_id: int, agents: Iterable[str], source_from_target: Sim3, record: dict[str, Any]
 ) -> tuple[Map, Map]:
     """Undo a merge: the keyframes and points of ``agents`` leave map ``map_id`` for a new map of the
-    stack, moved by ``source_from_target`` (back into their own map's frame). Returns (kept, new).
+    stack, moved by ``source_from_target`` (back into their own map's frame). Returns (kept, new); ``kept``
+    is the map object ``map_id`` was, changed in place.
 
-    Both maps are rebuilt (from copies) from the keyframes' point references (the model's source of truth), so
-    covisibility and spanning trees are those of each side alone. A reference across the sides (a
-    point fused by the merge or by a loop between them) stays in its keyframe as a pending reference:
+    The new map is built (from copies) from the leaving keyframes' point references (the model's source of
+    truth), so its covisibility and spanning tree are its side's alone. The kept map loses them in place,
+    as keyframe culling removes a keyframe (covisibility, loop edges and the spanning tree follow), which
+    costs what the leaving side holds rather than a rebuild of the whole map. A reference across the sides
+    (a point fused by the merge or by a loop between them) stays in its keyframe as a pending reference:
     nothing is lost, and a later merge links it again. Loop edges within a side stay, those across go;
     ``record`` is appended to both maps' ``merge_history``. Raises ``ValueError`` (before changing
     anything) if ``agents`` leaves either side without keyframes.
@@ -148,30 +151,41 @@ def split_map(
     if not moving or len(moving) == len(m.keyframes):
         raise ValueError(f"map {map_id}: agents {sorted(side)} do not split it in two")
     t0 = time.perf_counter()
-    kept, new = Map(map_id), Map(stack.next_map_id)
-    for part, mine in ((kept, False), (new, True)):
-        part.point_redirects = dict(m.point_redirects)
-        part.merge_history = [*m.merge_history, record]
-        # copies: the place-recognition thread may still be reading the merged map's objects
-        for mp in m.points.values():
-            if (mp.agent_id in side) == mine:
-                part.add_point(MapPoint(mp.agent_id, mp.id, mp.xyz, mp.descriptor))
-        for k, kf in m.keyframes.items():
-            if (k[0] in side) == mine:
-                kf2 = copy.copy(kf)
-                kf2.world_from_cam = kf.world_from_cam.copy()
-                kf2.point_ids, kf2.point_agents = kf.point_ids.copy(), dict(kf.point_agents)
-                part.add_keyframe(kf2)
-        for a, b in m.loop_edges():
-            if (a[0] in side) == mine and (b[0] in side) == mine:
-                part.add_loop_edge(a, b)
-        part.agents |= {a for a in m.agents if (a in side) == mine}
-        part._tree_changed.update(part.keyframes)
+    leaving = [pk for pk, mp in m.points.items() if mp.agent_id in side]
+    new = Map(stack.next_map_id)
+    new.point_redirects = dict(m.point_redirects)
+    new.merge_history = [*m.merge_history, record]
+    # copies: the place-recognition thread may still be reading the merged map's objects
+    for pk in leaving:
+        mp = m.points[pk]
+        new.add_point(MapPoint(mp.agent_id, mp.id, mp.xyz, mp.descriptor))
+    for k in moving:
+        kf = m.keyframes[k]
+        kf2 = copy.copy(kf)
+        kf2.world_from_cam = kf.world_from_cam.copy()
+        kf2.point_ids, kf2.point_agents = kf.point_ids.copy(), dict(kf.point_agents)
+        new.add_keyframe(kf2)
+    for a, b in m.loop_edges():
+        if a[0] in side and b[0] in side:
+            new.add_loop_edge(a, b)
+    new.agents |= {a for a in m.agents if a in side}
+    new._tree_changed.update(new.keyframes)
     new.transform(source_from_target)
-    stack.maps[map_id] = kept
+    for k in moving:
+        m.remove_keyframe(k)
+    for pk in leaving:  # observed now only by kept keyframes: their references become pending
+        mp = m.points.pop(pk)
+        obs = list(mp.observations.items())
+        for i, (a, _) in enumerate(obs):
+            for b, _ in obs[i + 1 :]:
+                m._dec(a, b)
+        if obs:
+            m._pending.setdefault(pk, {}).update(obs)
+    m.agents -= side
+    m.merge_history.append(record)
     stack.add_map(new)
     logger.info(
         "split map %d: %d keyframes of %s into map %d (%.1f ms)",
         map_id, len(moving), sorted(side), new.id, (time.perf_counter() - t0) * 1e3,
     )  # fmt: skip
-    return kept, new
+    return m, new

@@ -312,6 +312,28 @@ class MapStore:
                 [(int(map_id), a, int(i)) for a, i in keys],
             )
 
+    def remove_side(
+        self,
+        map_id: int,
+        keyframes: Iterable[KfKey],
+        points: Iterable[PointKey],
+        agents: Iterable[str],
+        record: dict[str, Any],
+    ) -> None:
+        """The rows of a split's kept map (:func:`hivemap.maps.merge.split_map`) other than its graph
+        (``sync_graph``): the leaving ``keyframes`` and ``points`` go, its agents become ``agents``, and
+        ``record`` is appended to its merge history."""
+        map_id = int(map_id)
+        with self._tx():
+            self.delete_keyframes(map_id, keyframes)
+            self.delete_points(map_id, points)
+            left = sorted(set(agents))
+            self.conn.execute("UPDATE map_maps SET agents = ? WHERE map_id = ?", (json.dumps(left), map_id))
+            self._agents_cache[map_id] = set(left)
+            self.conn.execute(
+                "INSERT INTO map_merges (map_id, record) VALUES (?, ?)", (map_id, json.dumps(record))
+            )
+
     def sync_graph(self, m: Map) -> None:
         """Write what the per-item calls do not carry: the parents that changed since the last sync
         (``Map.drain_tree_changes``), orphans, loop edges, fusion redirects and agents of map ``m``."""

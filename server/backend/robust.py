@@ -22,6 +22,7 @@ from hivemap.server.backend.fit import umeyama
 from hivemap.server.backend.gnss import antenna_fixes
 from hivemap.server.backend.sessionguess import is_guess
 from hivemap.server.optim import PoseGraphResult
+from hivemap.server.persist import GraphSnapshot
 
 logger = logging.getLogger(__name__)
 
@@ -125,11 +126,14 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
         hyp.record.update(undone=True, undo_reason=reason, on_trial=False, split_into=new.id)
         rendezvous.undone(bk, hyp, reason)
         book = evidence_store.to_json(bk.evidence)
-        snapshots = (map_rows(kept), map_rows(new))  # the maps go on changing during the write
+        # the maps go on changing during the write: the new map whole, the kept one by what left it
+        new_rows, kept_graph = map_rows(new), GraphSnapshot(kept)
+        left = (list(new.keyframes), list(new.points), set(kept.agents))
 
         def op(store: Any) -> None:
-            for snapshot in snapshots:
-                store.maps.save_map(snapshot)
+            store.maps.remove_side(map_id, left[0], left[1], left[2], record)
+            store.maps.sync_graph(kept_graph)
+            store.maps.save_map(new_rows)
             for row in rows:
                 store.put_agent_map(row)
             store.maps.set_meta(evidence_store.META_KEY, book)

@@ -3,6 +3,7 @@ frame, references across the sides stay as pending ones, and both maps persist a
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -65,3 +66,59 @@ def test_split_refuses_to_empty_a_side() -> None:
         with pytest.raises(ValueError, match="do not split"):
             split_map(stack, 0, agents, sim.inverse(), {})
     assert list(stack.maps) == [0] and len(stack.maps[0].keyframes) == n
+
+
+def test_split_in_place_equals_a_rebuild_when_the_sides_grew_into_each_other(tmp_path: Path) -> None:
+    """After the merge, keyframes of the kept agent observe the leaving agent's points (so their spanning-
+    tree parents are the leaving agent's keyframes) and the other way round. The kept map, changed in place,
+    holds what a map rebuilt from its side's keyframes and points holds: the same observations,
+    covisibility and pending references; its tree is a consistent tree of its own keyframes. Written
+    as the server writes a split (what left the kept map, the new map whole), both reload as they are."""
+    from test_model import make_kf
+
+    from hivemap.maps.model import Map, MapPoint
+
+    rng = np.random.default_rng(5)
+    stack, _, sim = _two_maps(rng)
+    stack.merge(0, 1, sim, [(("ugv", i), ("uav1", i)) for i in range(0, 200)])
+    m = stack.maps[0]
+    for j in range(12):  # ugv keyframes on uav1 points, uav1 keyframes on ugv points
+        theirs = [("uav1", int(i)) for i in rng.choice(np.arange(200, 2000), 60, replace=False)]
+        mine = [("ugv", int(i)) for i in rng.choice(np.arange(200, 2000), 10, replace=False)]
+        m.add_keyframe(make_kf("ugv", 1000 + j, theirs + mine, rng))
+        m.add_keyframe(
+            make_kf("uav1", 1000 + j, [("ugv", int(i)) for i in rng.choice(2000, 60, replace=False)], rng)
+        )
+    assert any(kf.parent is not None and kf.parent[0] == "uav1" for kf in m.keyframes_of_agent("ugv"))
+    ref = Map(0)
+    for mp in m.points.values():
+        if mp.agent_id != "uav1":
+            ref.add_point(MapPoint(mp.agent_id, mp.id, mp.xyz, mp.descriptor))
+    for k, kf in m.keyframes.items():
+        if k[0] != "uav1":
+            kf2 = copy.copy(kf)
+            kf2.point_ids, kf2.point_agents = kf.point_ids.copy(), dict(kf.point_agents)
+            ref.add_keyframe(kf2)
+    store = MapStore(tmp_path / "split.sqlite")
+    store.save_stack(stack)
+    store.sync_graph(m)  # drains the tree changes written with the stack
+    kept, new = split_map(stack, 0, {"uav1"}, sim.inverse(), {"undone": 0})
+    with store.transaction():  # the server's writes: the kept map by what left it, the new one whole
+        store.remove_side(0, list(new.keyframes), list(new.points), kept.agents, {"undone": 0})
+        store.sync_graph(kept)
+        store.save_map(new)
+    loaded = store.load_stack()
+    store.close()
+    assert map_differences(kept, loaded.maps[0]) == [] and map_differences(new, loaded.maps[new.id]) == []
+    assert loaded.maps[0].merge_history == kept.merge_history and loaded.maps[0].agents == {"ugv"}
+    assert kept is m and kept.agents == {"ugv"} and new.agents == {"uav1"}
+    assert set(kept.keyframes) == set(ref.keyframes) and set(kept.points) == set(ref.points)
+    for k in ref.keyframes:
+        assert kept.covisibility(k) == ref.covisibility(k), k
+        assert kept.keyframes[k].parent is None or kept.keyframes[k].parent[0] == "ugv"
+    for pk, mp in ref.points.items():
+        assert kept.points[pk].observations == mp.observations, pk
+    assert kept.pending_references() == ref.pending_references()
+    assert any(pk[0] == "uav1" for pk in kept.pending_references())
+    assert_consistent(kept)
+    assert_consistent(new)
