@@ -33,6 +33,17 @@ START_ZONE_M = 3.0  # pairs closer than this to their own start points are still
 GOAL_JUMP_M = 1.0  # a first goal that moved by more than this between advisories sent its agent elsewhere
 # the server pushes advisories twice a second and recomputes goals at most once a second
 TEAM_TOML = "[team]\nmin_interval_s = 1.0\npush_interval_s = 0.5\n"
+# a live agent streams a few hundred map points a second: the server's per-agent point cap (sized for
+# replayed missions of a few minutes) would refuse a long exploration's later map, so it grows with the run
+POINTS_PER_S = 1000
+
+
+def explore_server_toml(duration_s: float) -> str:
+    """The explore runs' server tables: the team services' rates and the point quota for ``duration_s``."""
+    from hivemap.server.settings import QuotaSettings
+
+    points = max(QuotaSettings().max_points, int(POINTS_PER_S * duration_s))
+    return TEAM_TOML + f"[quotas]\nmax_points = {points}\n"
 
 
 def explore_agents(scenario: Any, mode: str, wanted: Any) -> list[tuple[str, str]]:
@@ -71,7 +82,8 @@ def run_explore(
         truth[aid] = T @ stereo_extrinsics(sc.agent(aid))[0]
     tokens = {aid: f"exp-{aid}-token" for aid, _ in agents}
     start_table = start_poses_from(truth, opts.start_poses, seed)
-    url, ws_url, server, slog = proc.start_server(work, tokens, start_table, TEAM_TOML + opts.server_toml)
+    extra = explore_server_toml(opts.explore_duration_s) + opts.server_toml
+    url, ws_url, server, slog = proc.start_server(work, tokens, start_table, extra)
     env = proc.clean_env()
     procs: dict[str, subprocess.Popen[bytes]] = {}
     logs = []

@@ -87,3 +87,16 @@ def test_goal_changes_by_hand() -> None:
     assert goal_changes(log) == (3, 1)
     assert goal_changes(log, jump_m=20.0) == (0, 0)
     assert goal_changes([]) == (0, 0)
+
+
+def test_explore_server_quota_grows_with_the_run() -> None:
+    """A short run keeps the server's default point cap; a 20-minute one gets 1000 points a second, so a
+    live agent's later map is not refused (the lone UAV hit the 300k cap after ~12 minutes)."""
+    import tomllib
+
+    from hivemap.eval.explore import explore_server_toml
+    from hivemap.server.settings import QuotaSettings
+
+    short, long = (tomllib.loads(explore_server_toml(d)) for d in (120.0, 1200.0))
+    assert short["quotas"]["max_points"] == QuotaSettings().max_points == 300_000
+    assert long["quotas"]["max_points"] == 1_200_000 and long["team"]["push_interval_s"] == 0.5
