@@ -199,16 +199,32 @@ class Controller:
                 z = max(z, box_top(b) + self.options.clearance_m)
         return z
 
+    def _climb(self, p: F64) -> tuple[float, bool]:
+        """(vertical speed towards the height target at ``p``, whether the agent is still climbing to it:
+        then it does not move on, so the path stays over the roads). Zero and False for a UGV."""
+        if self.kind != "uav":
+            return 0.0, False
+        o = self.options
+        dz = self._height_target(p[:2]) - p[2]
+        return float(np.clip(o.z_gain * dz, -o.climb_mps, o.climb_mps)), dz > 1.0
+
+    def _planned(self, goal: F64) -> bool:
+        """Whether the stored path leads to ``goal`` (within ``replan_goal_m``)."""
+        pg = self._path_goal
+        near = pg is not None and np.linalg.norm(pg - goal[:2]) <= self.options.replan_goal_m
+        return self._path is not None and bool(near)
+
     def _is_reached(self, goal: F64, p: F64) -> bool:
         """The goal is near, or as near as the roads go: its path ends here."""
         o = self.options
         if np.linalg.norm(goal[:2] - p[:2]) < o.goal_reached_m:
             return True
-        path, pg = self._path, self._path_goal
+        path = self._path
         return bool(
-            path is not None and pg is not None and np.linalg.norm(pg - goal[:2]) <= o.replan_goal_m
+            self._planned(goal)
+            and path is not None
             and np.linalg.norm(path[-1] - p[:2]) < o.goal_reached_m / 2
-        )  # fmt: skip
+        )
 
     def intent(self, position: F64) -> F64:
         """What the agent will fly without advisories (3,) world m/s: the mean velocity over the next
@@ -218,21 +234,13 @@ class Controller:
         o = self.options
         p = np.asarray(position, dtype=np.float64)
         v = np.zeros(3)
-        climbing = False
-        if self.kind == "uav":
-            dz = self._height_target(p[:2]) - p[2]
-            v[2] = float(np.clip(o.z_gain * dz, -o.climb_mps, o.climb_mps))
-            climbing = dz > 1.0
+        v[2], climbing = self._climb(p)
         goal = self.goal
         if goal is None or climbing:
             return v
-        path = self._path
-        if (
-            path is None
-            or self._path_goal is None
-            or np.linalg.norm(self._path_goal - goal[:2]) > o.replan_goal_m
-        ):
-            path = self.paths.path(p[:2], goal[:2])
+        # the path command() follows; planned here (not stored) when command() has not planned it yet
+        path = self._path if self._planned(goal) else self.paths.path(p[:2], goal[:2])
+        assert path is not None
         ahead, _ = _pursuit(path, p[:2], self.speed * o.intent_horizon_s)
         d = ahead - p[:2]
         n = float(np.linalg.norm(d))
@@ -255,7 +263,7 @@ class Controller:
         if not airborne:
             return v, None
         if goal is not None:
-            if self._path_goal is None or np.linalg.norm(self._path_goal - goal[:2]) > o.replan_goal_m:
+            if not self._planned(goal):
                 self._path = self.paths.path(p[:2], goal[:2])
                 self._path_goal = goal[:2].copy()
             assert self._path is not None
@@ -290,10 +298,8 @@ class Controller:
                 # a car does not slide sideways: slow down while the heading is far off, turn first
                 err = math.remainder(heading - yaw, 2 * math.pi)
                 v[:2] *= max(0.0, math.cos(err))
-        if self.kind == "uav":
-            dz = self._height_target(p[:2]) - p[2]
-            v[2] = float(np.clip(o.z_gain * dz, -o.climb_mps, o.climb_mps))
-            if dz > 1.0:  # take-off and climbs: height first, so the path stays over the roads
-                v[:2] *= 0.0
-                heading = None
+        v[2], climbing = self._climb(p)
+        if climbing:  # take-off and climbs: height first, so the path stays over the roads
+            v[:2] *= 0.0
+            heading = None
         return v, heading

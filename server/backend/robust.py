@@ -128,10 +128,10 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
         book = evidence_store.to_json(bk.evidence)
         # the maps go on changing during the write: the new map whole, the kept one by what left it
         new_rows, kept_graph = map_rows(new), GraphSnapshot(kept)
-        left = (list(new.keyframes), list(new.points), set(kept.agents))
+        left_kfs, left_points, kept_agents = list(new.keyframes), list(new.points), set(kept.agents)
 
         def op(store: Any) -> None:
-            store.maps.remove_side(map_id, left[0], left[1], left[2], record)
+            store.maps.remove_side(map_id, left_kfs, left_points, kept_agents, record)
             store.maps.sync_graph(kept_graph)
             store.maps.save_map(new_rows)
             for row in rows:

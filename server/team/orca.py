@@ -86,15 +86,11 @@ def preferred_velocity(
     goal may be clear while the path they fly is not. A standing one: the straight line to ``goal`` at
     ``speed``, slowing to arrive within one advisory period (zero without a goal)."""
     v = np.asarray(velocity if intent is None else intent, dtype=np.float64)
-    if intent is not None:
-        out = v.copy()
-        h = float(np.linalg.norm(v[:2]))
-        out[:2] *= min(1.0, speed / h) if h > 0 else 1.0
-        return out
     horizontal = float(np.linalg.norm(v[:2]))
-    if horizontal > o.moving_mps:
+    if intent is not None or horizontal > o.moving_mps:
         out = v.copy()
-        out[:2] *= min(1.0, speed / horizontal)
+        if horizontal > 0:
+            out[:2] *= min(1.0, speed / horizontal)
         return out
     if goal is None:
         return np.zeros(3)

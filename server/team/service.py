@@ -173,8 +173,8 @@ class TeamService:
             map_id: int = m.id  # type: ignore[union-attr]
             intent = None
             if am.intent is not None and am.intent[0] == kfs[-1].id:
-                R = np.asarray(kfs[-1].world_from_cam, dtype=np.float64)[:3, :3]
-                intent = R @ am.intent[1] / float(np.cbrt(np.linalg.det(R)))
+                # a map keyframe's pose is rigid (Sim3.transform_pose): its rotation takes the camera frame in
+                intent = np.asarray(kfs[-1].world_from_cam, dtype=np.float64)[:3, :3] @ am.intent[1]
             out.append(_AgentSnap(agent.agent_id, agent.kind, map_id, p, v, float(kfs[-1].timestamp), intent))
         return out
 
