@@ -4,7 +4,7 @@ duplicate points, each persisted in one commit before it returns."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from hivemap.maps import MapStack
@@ -41,11 +41,13 @@ class MapEdits:
         target_from_source: Sim3,
         fused_pairs: Sequence[tuple[tuple[str, int], tuple[str, int]]] = (),
         by: str | None = None,
+        on_merged: Callable[[Any], None] | None = None,
     ) -> Any:
         """Merge map ``source_id`` into ``target_id`` (``MapStack.merge``), re-frame the moved agents'
         incoming data (``global_from_vio``), persist the merged map and the merge record in one commit, and
         publish a ``merge`` event (its ``by``: what the merge rests on, if not place recognition). Returns
-        the merged map."""
+        the merged map. ``on_merged(merged)`` runs in the same step as the merge, before the write: what
+        other tasks read with the map (the back-end's edges) must be there when they first see it."""
         self._ingest_open.clear()
         try:
             source = self.stack.maps[source_id]
@@ -60,6 +62,8 @@ class MapEdits:
                 merged.merge_history[-1]["by"] = by
             for am in moved:
                 am.global_from_vio = target_from_source @ am.global_from_vio
+            if on_merged is not None:
+                on_merged(merged)
             rows = [am.row() for am in moved]
             # serialised here: other back-end tasks go on changing the merged map during the write
             snapshot = map_rows(merged)

@@ -9,6 +9,7 @@ import asyncio
 import concurrent.futures
 import logging
 import time
+from collections.abc import Callable
 from functools import partial
 from typing import Any
 
@@ -189,20 +190,36 @@ class Pipeline(GnssSteps):
         self.uncertainty.request(map_id)
 
     async def _apply_merge(
-        self, target: int, source: int, target_from_source: Sim3, pairs: list[Any], by: str | None = None
+        self,
+        target: int,
+        source: int,
+        target_from_source: Sim3,
+        pairs: list[Any],
+        by: str | None = None,
+        record: Callable[[Any], None] | None = None,
     ) -> tuple[Any, float]:
-        """Merge through the server (one commit), then re-key the back-end's per-map state; returns the
-        merged map and the merge time in ms."""
+        """Merge through the server (one commit); returns the merged map and the merge time in ms. The
+        back-end's per-map state is re-keyed, and ``record(merged)`` (the merge's own edge and evidence)
+        runs, in the step that merges the maps: a solve started while the merge is written or place
+        recognition re-keyed would otherwise see the source's agents joined to the map by no edge, held
+        only by their loose gauge prior (covariances of ~100 m)."""
+
+        def bookkeeping(merged: Any) -> None:
+            self._generation[target] = self._generation.get(target, 0) + 1
+            self._generation.pop(source, None)
+            self._prior.merged(target, source, target_from_source)
+            self.selfcheck.pop(source, None)
+            self.evidence.on_merge(target, source)
+            self._enu_maps.discard(source)  # the merged map keeps the target's frame
+            self._gnss_unbend.pop(source, None)  # its keyframes' poses count as visual from now on
+            if record is not None:
+                record(merged)
+
         t0 = time.perf_counter()
-        merged = await self.server.apply_merge(target, source, target_from_source, pairs, by=by)
+        merged = await self.server.apply_merge(
+            target, source, target_from_source, pairs, by=by, on_merged=bookkeeping
+        )
         merge_ms = (time.perf_counter() - t0) * 1e3
-        self._generation[target] = self._generation.get(target, 0) + 1
-        self._generation.pop(source, None)
-        self._prior.merged(target, source, target_from_source)
-        self.selfcheck.pop(source, None)
-        self.evidence.on_merge(target, source)
-        self._enu_maps.discard(source)  # the merged map keeps the target's frame
-        self._gnss_unbend.pop(source, None)  # its keyframes' poses count as visual from now on
         if self.recognizer is not None:
             await asyncio.get_running_loop().run_in_executor(
                 self._pr_exec, self.recognizer.on_merge, target, source

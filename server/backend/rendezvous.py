@@ -223,12 +223,11 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
                           data={"refused": True, "by": BY, "repeats_merge": refuted.id})  # fmt: skip
         return
     inl = sorted(res.inliers, key=lambda i: pend[i][0].timestamp)
-    merged, merge_ms = await bk._apply_merge(target, source, sim, [], by=BY)
     first_obs, first = pend[inl[0]]
     e0 = first.edge
     ids = [pend[i][0].id for i in inl]
     rec: dict[str, Any] = {
-        "target": target, "source": source, "by": BY, "time": time.time(), "merge_ms": merge_ms,
+        "target": target, "source": source, "by": BY, "time": time.time(), "merge_ms": 0.0,
         # data time of the observation that completed the agreeing set (eval: when the agents joined)
         "query_t": max(pend[i][0].timestamp for i in inl), "scale": 1.0, "n_fused": 0,
         "target_from_source": sim.matrix().tolist(), "rendezvous": ids, "rendezvous_id": first_obs.id,
@@ -237,23 +236,26 @@ async def try_merge(bk: Any, a: int, b: int) -> None:
         "sigma_rot_deg": math.degrees(e0.sigma_rot), "sigma_trans_m": e0.sigma_trans,
         "chi2_max": max(res.chi2[i] for i in inl),
     }  # fmt: skip
-    # the data times of the edge's two keyframes, so the eval can check the edge against ground truth
-    m_t = maps.get(target)
-    for name, key in (("query_kf_t", e0.query), ("candidate_t", e0.candidate)):
-        kf = m_t.keyframes.get(tuple(key)) if m_t is not None else None
-        if kf is not None:
-            rec[name] = float(kf.timestamp)
-    bk.merges.append(rec)
     edges = [e0]
-    first_obs.state, first_obs.map_id, first_obs.chi2 = "judging", target, res.chi2[inl[0]]
-    first_obs.reason = f"merged maps {source} -> {target} (with {len(inl) - 1} agreeing observations)"
-    if bk.options.optimise.gnc:
-        bk.evidence.add_merge(target, source, e0, sim, sides, rec)
-    for i in inl[1:]:
-        obs, x = pend[i]
-        obs.chi2 = res.chi2[i]
-        add_to_map(bk, obs, x.edge, target)
-        edges.append(x.edge)
+
+    def record(merged: Any) -> None:
+        # the data times of the edge's two keyframes, so the eval can check the edge against ground truth
+        for name, key in (("query_kf_t", e0.query), ("candidate_t", e0.candidate)):
+            kf = merged.keyframes.get(tuple(key))
+            if kf is not None:
+                rec[name] = float(kf.timestamp)
+        first_obs.state, first_obs.map_id, first_obs.chi2 = "judging", target, res.chi2[inl[0]]
+        first_obs.reason = f"merged maps {source} -> {target} (with {len(inl) - 1} agreeing observations)"
+        if bk.options.optimise.gnc:
+            bk.evidence.add_merge(target, source, e0, sim, sides, rec)
+        for i in inl[1:]:
+            obs, x = pend[i]
+            obs.chi2 = res.chi2[i]
+            add_to_map(bk, obs, x.edge, target)
+            edges.append(x.edge)
+
+    _, rec["merge_ms"] = await bk._apply_merge(target, source, sim, [], by=BY, record=record)
+    bk.merges.append(rec)
     for i, (obs, _) in enumerate(pend):
         if i in res.inliers:
             continue

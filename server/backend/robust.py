@@ -138,16 +138,18 @@ async def undo_merge(bk: Any, map_id: int, hyp: MergeHypothesis, reason: str) ->
                 store.put_agent_map(row)
             store.maps.set_meta(evidence_store.META_KEY, book)
 
+        # the back-end's per-map state changes in the step that splits, as a merge's does
+        # (Pipeline._apply_merge): a solve started during the write sees both maps as they are now
+        for mid in (map_id, new.id):
+            bk._generation[mid] = bk._generation.get(mid, 0) + 1
+            bk._gnss_unbend.pop(mid, None)
+        bk._enu_maps.discard(new.id)
+        bk._consistency.forget_maps(map_id, new.id)
+        bk._override.forget_maps(map_id, new.id)
+        bk._prior.split(map_id, new.id, side, hyp.target_from_source)
         await server.writer.call(op)
     finally:
         server._ingest_open.set()
-    for mid in (map_id, new.id):
-        bk._generation[mid] = bk._generation.get(mid, 0) + 1
-        bk._gnss_unbend.pop(mid, None)
-    bk._enu_maps.discard(new.id)
-    bk._consistency.forget_maps(map_id, new.id)
-    bk._override.forget_maps(map_id, new.id)
-    bk._prior.split(map_id, new.id, side, hyp.target_from_source)
     if bk.recognizer is not None:
         keys = list(new.keyframes)
         await asyncio.get_running_loop().run_in_executor(bk._pr_exec, relabel, bk.recognizer, keys, new.id)

@@ -368,28 +368,37 @@ class Backend(Pipeline):
             return
         self._consistency.forget_maps(source_id, target_id)
         self._override.forget_maps(source_id, target_id)
-        merged, merge_ms = await self._apply_merge(target_id, source_id, sim, pairs)
-        # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
-        edge = NewEdge(det.candidate_key, det.query_key, fit.edge_measure(merged, det), *sigmas)
-        if det.candidate_key in merged.keyframes and det.query_key in merged.keyframes:
-            merged.add_loop_edge(det.candidate_key, det.query_key)
-        rec = surgery.merge_record(merged, det, target_id, source_id, sim, len(pairs), merge_ms,
-                                   levelled is not None, sigmas)  # fmt: skip
-        if det.candidate_key in merged.keyframes and det.query_key in merged.keyframes:
-            # the measured relative pose of the two keyframes (eval: merge accuracy, as a loop's)
-            rec.update(query=list(det.query_key), candidate=list(det.candidate_key),
-                       candidate_t=float(merged.keyframes[det.candidate_key].timestamp),
-                       candidate_from_query=edge.measured.matrix().tolist(),
-                       n_inliers=det.n_inliers)  # fmt: skip
-        agrees = prior is not None and prior["agrees"]
-        rec["by"] = "place_recognition+prior" if agrees else "place_recognition"
-        if prior is not None:
-            rec["prior"] = prior
-        if weld_rec is not None:
-            rec["weld"] = weld_rec
+        made: list[tuple[NewEdge, dict[str, Any]]] = []
+
+        def record(merged: Any) -> None:
+            # both keyframes are in the merged map now; the measured edge is the detection's Sim(3)
+            edge = NewEdge(det.candidate_key, det.query_key, fit.edge_measure(merged, det), *sigmas)
+            both = det.candidate_key in merged.keyframes and det.query_key in merged.keyframes
+            if both:
+                merged.add_loop_edge(det.candidate_key, det.query_key)
+            rec = surgery.merge_record(merged, det, target_id, source_id, sim, len(pairs), 0.0,
+                                       levelled is not None, sigmas)  # fmt: skip
+            if both:
+                # the measured relative pose of the two keyframes (eval: merge accuracy, as a loop's)
+                rec.update(query=list(det.query_key), candidate=list(det.candidate_key),
+                           candidate_t=float(merged.keyframes[det.candidate_key].timestamp),
+                           candidate_from_query=edge.measured.matrix().tolist(),
+                           n_inliers=det.n_inliers)  # fmt: skip
+            agrees = prior is not None and prior["agrees"]
+            rec["by"] = "place_recognition+prior" if agrees else "place_recognition"
+            if prior is not None:
+                rec["prior"] = prior
+            if weld_rec is not None:
+                rec["weld"] = weld_rec
+            if self.options.optimise.gnc:  # on trial until loops between its sides confirm it
+                self.evidence.add_merge(target_id, source_id, edge, sim, sides, rec)
+            made.append((edge, rec))
+
+        _, merge_ms = await self._apply_merge(target_id, source_id, sim, pairs, record=record)
+        edge, rec = made[0]
+        rec["merge_ms"] = merge_ms
         self.merges.append(rec)
-        if self.options.optimise.gnc:  # on trial until loops between its sides confirm it
-            self.evidence.add_merge(target_id, source_id, edge, sim, sides, rec)
+        if self.options.optimise.gnc:
             book = evidence_store.to_json(self.evidence)
             await server.persist(lambda store: store.maps.set_meta(evidence_store.META_KEY, book))
         server.events.add(
@@ -425,18 +434,22 @@ class Backend(Pipeline):
             sides = (set(maps[plan.target].agents), set(maps[plan.source].agents))
             self._consistency.forget_maps(plan.source, plan.target)
             t_det = time.monotonic()
-            _, merge_ms = await self._apply_merge(
-                plan.target, plan.source, plan.target_from_source, [], by=sessionguess.BY
+            rec = sessionguess.record(plan, 0.0)
+
+            def record(_merged: Any) -> None:
+                if self.options.optimise.gnc:  # on trial until loops between the sessions confirm it
+                    self.evidence.add_merge(
+                        plan.target, plan.source, plan.edge, plan.target_from_source, sides, rec
+                    )
+                    self._refresh_loose()
+
+            _, rec["merge_ms"] = await self._apply_merge(
+                plan.target, plan.source, plan.target_from_source, [], by=sessionguess.BY, record=record
             )
-            rec = sessionguess.record(plan, merge_ms)
             self.merges.append(rec)
-            if self.options.optimise.gnc:  # on trial until loops between the sessions confirm it
-                self.evidence.add_merge(
-                    plan.target, plan.source, plan.edge, plan.target_from_source, sides, rec
-                )
+            if self.options.optimise.gnc:
                 book = evidence_store.to_json(self.evidence)
                 await server.persist(lambda store: store.maps.set_meta(evidence_store.META_KEY, book))
-                self._refresh_loose()
             server.events.add(
                 "merge_detail",
                 f"merge {plan.source} -> {plan.target} by the session guess of {key} ({plan.sigma_m:.2f} m / "

@@ -94,6 +94,27 @@ def stream(srv: Server, agent_id: str, kind: str, msgs: list[Message]) -> SyncAg
     return a
 
 
+def sigma_at_merge_write(srv: Server, together: set[str], agent: str) -> list[tuple[int, float]]:
+    """Spy on the store writer: at the first write after one map holds all of ``together`` (a merge's, the
+    await after the maps merged in memory), solve that map's latest covariances as any task could then and
+    record (map, ``agent``'s largest position sigma [m]); the write itself goes on. Returns the record."""
+    seen: list[tuple[int, float]] = []
+    writer = srv.hive.writer
+    real_call = writer.call
+
+    async def call(fn: Any) -> Any:
+        merged = [m for m in srv.hive.stack.maps.values() if together <= set(m.agents)]
+        if merged and not seen:
+            await srv.backend.uncertainty.latest_now(merged[0].id)
+            cov = srv.backend.uncertainty.of_agent(agent)
+            assert cov is not None and cov.map_id == merged[0].id, cov
+            seen.append((merged[0].id, float(np.sqrt(np.linalg.eigvalsh(cov.covariance[3:, 3:]).max()))))
+        return await real_call(fn)
+
+    writer.call = call
+    return seen
+
+
 def agent_transform(srv: Server, agent_id: str) -> Sim3:
     return srv.call(lambda: srv.hive.agents[agent_id].maps[0].global_from_vio)  # type: ignore[no-any-return]
 

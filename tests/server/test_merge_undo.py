@@ -13,7 +13,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import twin_rooms as tr
-from test_backend import FAST, UAV_FROM_WORLD, Server, stream
+from test_backend import FAST, UAV_FROM_WORLD, Server, sigma_at_merge_write, stream
 
 from hivemap.maps.geometry import Sim3
 from hivemap.server.backend import preset
@@ -124,3 +124,23 @@ def test_merge_contradicted_by_the_agents_gnss_fixes_is_undone(tmp_path: Path) -
     assert both > 5.0 and own < 0.2, (both, own)
     assert undone and all(m.get("undone") for m in merges), (undone, merges)
     assert maps == [["uav1"], ["ugv1"]], (maps, [e["message"] for e in refused])
+
+
+def test_a_solve_during_a_visual_merge_sees_the_agents_joined_by_its_edge(tmp_path: Path) -> None:
+    """As for a session guess's merge (test_session_guess): a covariance solve while the merge is written
+    sees the UAV held by the merge's edge, not by its loose gauge prior (100 m)."""
+    ugv, uav, _ = agents(uav_b=False)
+    srv = Server(tmp_path / "data", preset("default", scheduler=FAST, accept=NO_GATE))
+    try:
+        seen = sigma_at_merge_write(srv, {"ugv1", "uav1"}, "uav1")
+        with stream(srv, "ugv1", "ugv", ugv):
+            srv.wait_idle()
+            with stream(srv, "uav1", "uav", uav):
+                srv.wait_idle()
+        merges = srv.call(lambda: [dict(r) for r in srv.backend.merges])
+    finally:
+        srv.stop()
+    assert [r.get("by") for r in merges] == ["place_recognition"], merges
+    assert len(seen) == 1, seen
+    print(f"the UAV's position sigma while the merge is written: {seen[0][1]:.3f} m")
+    assert seen[0][1] < 1.0, seen

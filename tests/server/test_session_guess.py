@@ -23,7 +23,7 @@ import httpx
 import numpy as np
 import pytest
 import twin_rooms as tr
-from test_backend import FAST, UAV_FROM_WORLD, Server, stream
+from test_backend import FAST, UAV_FROM_WORLD, Server, sigma_at_merge_write, stream
 
 from hivemap.maps.geometry import Sim3, so3_exp
 from hivemap.protocol import Keyframe, MapPoints, Message
@@ -205,3 +205,27 @@ def test_guess_goes_through_the_frame_the_previous_session_has_merged_into() -> 
     np.testing.assert_allclose(plan.edge.measured.matrix(), np.linalg.inv(vio_last) @ guess @ vio_first,
                                atol=1e-9)  # fmt: skip
     assert plan.edge.candidate == ("uav1", 7) and abs(plan.edge.sigma_trans - 0.3) < 1e-12
+
+
+def test_a_solve_during_the_guess_merge_sees_the_new_session_held_by_its_guess(tmp_path: Path) -> None:
+    """The merge is written to the store (an await) after the maps are merged in memory: a covariance solve
+    that runs then (the back-end's scheduled ones, the team services' readers) must see the new session
+    joined to the map by the guess's edge. Without the edge the session hangs on its loose gauge prior
+    (100 m) and its position sigma is metres (a live UGV's ORCA radius read 200 m)."""
+    s0, s1, _, _ = sessions((np.array([0.25, -0.15, 0.1]), 1.0), sigma=(0.3, 2.0), back=False)
+    srv = Server(tmp_path / "data", preset("default", scheduler=FAST))
+    try:
+        seen = sigma_at_merge_write(srv, {"uav1", "uav1#1"}, "uav1#1")
+        with stream(srv, "uav1", "uav", s0) as agent:
+            srv.wait_idle(300)
+            _, errors = agent.send_all(s1, first_seq=len(s0) + 1)
+            assert not errors, errors
+            srv.wait_idle(300)
+        merges = srv.call(lambda: [dict(r) for r in srv.backend.merges])
+    finally:
+        srv.stop()
+    assert [r.get("by") for r in merges] == ["session_guess"], merges
+    assert len(seen) == 1, seen
+    # the guess's sigma (0.3 m, 2 deg at ~3 m from session 0's last keyframe) plus session 0's own
+    print(f"new session's position sigma while the merge is written: {seen[0][1]:.3f} m")
+    assert seen[0][1] < 1.0, seen
