@@ -121,7 +121,8 @@ class LiveSim:
         self.motion = LiveMotion(self.spec.agent_id, self.spec.kind, p0, yaw0, options.limits)
         uav = self.spec.kind == "uav"
         paths = RoadPaths(road_lines(self.world, self.spec.kind), options.control.node_spacing_m,
-                          options.control.join_m)  # fmt: skip
+                          options.control.join_m, () if uav else self.world.boxes,
+                          options.control.obstacle_margin_m)  # fmt: skip
         self.controller = Controller(
             self.spec.kind, self.spec.speed_mps, paths, self.spec.cruise_height_m if uav else 0.0,
             self.world.boxes if uav else (), options.control,

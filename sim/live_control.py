@@ -33,6 +33,8 @@ class ControlOptions:
     """Tuning of :class:`Controller`."""
 
     lookahead_m: float = 3.0  # pure pursuit: the carrot is this far along the path
+    # a UGV's road centre line this close to an obstacle's footprint is not drivable (RoadPaths)
+    obstacle_margin_m: float = 2.0
     node_spacing_m: float = 1.0  # the road graph's nodes are this far apart along each centre line
     join_m: float = 1.5  # nodes of different lines closer than this are joined (crossings)
     goal_reached_m: float = 2.0  # a goal this close (horizontally) counts as reached: on to the next
@@ -79,9 +81,19 @@ def world_from_map(world_from_body: F64, map_from_body: F64) -> F64:
 
 
 class RoadPaths:
-    """Shortest paths over road centre lines sampled every ``spacing`` metres (2D)."""
+    """Shortest paths over road centre lines sampled every ``spacing`` metres (2D). With ``blocked`` boxes
+    (a UGV's: the site's obstacles), the centre line within ``margin`` of a box's footprint is no road: the
+    world's fences cross the roads' ends, and a UGV on the centre line drove through them (its camera then
+    sees a wall come to zero range, and its tracking failed)."""
 
-    def __init__(self, lines: Sequence[F64], spacing: float = 1.0, join: float = 1.5) -> None:
+    def __init__(
+        self,
+        lines: Sequence[F64],
+        spacing: float = 1.0,
+        join: float = 1.5,
+        blocked: Sequence[object] = (),
+        margin: float = 1.0,
+    ) -> None:
         pts, rows, cols = [], [], []
         n = 0
         for line in lines:
@@ -99,11 +111,14 @@ class RoadPaths:
             n += k + 1
         if not pts:
             raise ValueError("no road lines to plan on")
-        self.nodes = np.concatenate(pts)
-        self.tree = cKDTree(self.nodes)
-        pairs = self.tree.query_pairs(join, output_type="ndarray")
+        nodes = np.concatenate(pts)
+        pairs = cKDTree(nodes).query_pairs(join, output_type="ndarray")
         r = np.concatenate([np.asarray(rows, dtype=np.int64), pairs[:, 0]])
         c = np.concatenate([np.asarray(cols, dtype=np.int64), pairs[:, 1]])
+        if blocked:
+            r, c, nodes = _unblocked(nodes, r, c, blocked, margin)
+        self.nodes = nodes
+        self.tree = cKDTree(self.nodes)
         w = np.linalg.norm(self.nodes[r] - self.nodes[c], axis=1) + 1e-6
         self.graph = coo_matrix((w, (r, c)), shape=(len(self.nodes), len(self.nodes))).tocsr()
 
@@ -111,16 +126,37 @@ class RoadPaths:
         return int(self.tree.query(np.asarray(xy, dtype=np.float64)[:2])[1])
 
     def path(self, start_xy: F64, goal_xy: F64) -> F64:
-        """(K, 2) from the node nearest ``start_xy`` to the node nearest ``goal_xy`` (just that node when
-        the two are not connected)."""
+        """(K, 2) from the node nearest ``start_xy`` to the node nearest ``goal_xy``, or, when that one is
+        not connected to the start (behind a fence), to the connected node nearest the goal."""
         a, b = self.nearest(start_xy), self.nearest(goal_xy)
-        _, pred = dijkstra(self.graph, directed=False, indices=a, return_predecessors=True)
+        dist, pred = dijkstra(self.graph, directed=False, indices=a, return_predecessors=True)
         if b != a and pred[b] < 0:
-            return self.nodes[[a]]
+            ok = np.flatnonzero(np.isfinite(dist))
+            b = int(ok[np.argmin(np.linalg.norm(self.nodes[ok] - np.asarray(goal_xy)[:2], axis=1))])
         out = [b]
         while out[-1] != a:
             out.append(int(pred[out[-1]]))
         return self.nodes[out[::-1]]
+
+
+def _unblocked(
+    nodes: F64, r: NDArray[np.int64], c: NDArray[np.int64], boxes: Sequence[object], margin: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64], F64]:
+    """The road graph's edges (``r``, ``c``) and nodes without those within ``margin`` of a box's
+    footprint; an edge is dropped when any point of it is (its ends may lie either side of a thin box)."""
+    from hivemap.sim.roads import inside_box_footprint
+
+    steps = np.linspace(0.0, 1.0, 11)
+    samples = nodes[r][:, None, :] + steps[None, :, None] * (nodes[c] - nodes[r])[:, None, :]
+    flat = samples.reshape(-1, 2)
+    hit = np.zeros(len(flat), bool)
+    free = np.ones(len(nodes), bool)
+    for b in boxes:
+        hit |= inside_box_footprint(b, flat, margin)
+        free &= ~inside_box_footprint(b, nodes, margin)
+    keep = ~hit.reshape(len(r), -1).any(axis=1) & free[r] & free[c]
+    index = np.cumsum(free) - 1
+    return index[r[keep]], index[c[keep]], nodes[free]
 
 
 def _pursuit(path: F64, xy: F64, lookahead: float) -> tuple[F64, float]:
