@@ -3,8 +3,12 @@ take the boundary between the explored region and the unknown, cluster it, and s
 reach each cluster.
 
 The explored region is a grid on the ground plane (cell = the voxel): cells holding a down-sampled point,
-plus the cells the agents' paths cross (free space they saw), with small gaps closed. Its boundary cells
-(a 4-neighbour unknown) hold the frontier points. Heights are along the map's z axis (gravity-aligned map
+plus the cells the agents' paths cross and those their lines of sight cross (from a keyframe's camera to
+the points it observed, up to ``view_range_m``: the space between was seen free, as an occupancy map
+carves it), with small gaps closed. Its boundary cells (a 4-neighbour unknown) hold the frontier points.
+Without the lines of sight a sparse map's holes (textureless ground, a facade's points seen from afar
+standing alone) were frontiers inside ground the team had seen, and the auction sent the agents back and
+forth among them. Heights are along the map's z axis (gravity-aligned map
 frames, see :mod:`.options`); a fitted ground plane makes them heights above ground, which decide
 reachability: a UGV reaches frontiers with points near the ground, a UAV those with points within its
 altitude band.
@@ -92,23 +96,51 @@ def _height(xyz: F64, plane: tuple[float, float, float]) -> F64:
     return out
 
 
+def _segment_points(a: F64, b: F64, step: float) -> F64:
+    """Points every ``step`` (at most) along each segment ``a[i]``-``b[i]`` (S, 2), ends included."""
+    if len(a) == 0:
+        return np.zeros((0, 2))
+    n = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / step).astype(np.int64))
+    seg = np.repeat(np.arange(len(a)), n + 1)
+    t = _fractions(n)
+    out: F64 = a[seg] + t[:, None] * (b[seg] - a[seg])
+    return out
+
+
+def _fractions(n: NDArray[np.int64]) -> F64:
+    """0, 1/n_i, ..., 1 for each i, concatenated (vectorised ``linspace``)."""
+    start = np.repeat(np.cumsum(n + 1) - (n + 1), n + 1)
+    k = np.arange(int((n + 1).sum())) - start
+    out: F64 = k / np.repeat(n, n + 1)
+    return out
+
+
 def _path_cells(paths: Sequence[F64], voxel: float) -> F64:
     """Points every half cell along each path (K_i, 3), so that the cells they cross are all hit."""
     out = []
     for p in paths:
         p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
-        if len(p) == 1:
-            out.append(p[:, :2])
-        for a, b in zip(p[:-1], p[1:], strict=True):
-            n = max(1, int(np.ceil(np.linalg.norm(b[:2] - a[:2]) / (0.5 * voxel))))
-            t = np.linspace(0.0, 1.0, n + 1)[:, None]
-            out.append(a[:2] + t * (b[:2] - a[:2]))
+        out.append(p[:1, :2] if len(p) == 1 else _segment_points(p[:-1, :2], p[1:, :2], 0.5 * voxel))
     return np.concatenate(out) if out else np.zeros((0, 2))
 
 
-def extract(xyz: F64, options: FrontierOptions, paths: Sequence[F64] = ()) -> FrontierResult:
+def _sight_cells(rays: F64, voxel: float, max_len: float) -> F64:
+    """Points every half cell along each line of sight's ground projection (camera -> seen point, (R, 2, 3)),
+    cut at ``max_len`` from the camera (a far point's line crosses ground seen too coarsely to count)."""
+    r = np.asarray(rays, dtype=np.float64).reshape(-1, 2, 3)
+    a, b = r[:, 0, :2], r[:, 1, :2]
+    d = b - a
+    n = np.linalg.norm(d, axis=1)
+    scale = np.minimum(1.0, max_len / np.maximum(n, 1e-9))
+    return _segment_points(a, a + d * scale[:, None], 0.5 * voxel)
+
+
+def extract(
+    xyz: F64, options: FrontierOptions, paths: Sequence[F64] = (), rays: F64 | None = None
+) -> FrontierResult:
     """Frontier clusters of the points ``xyz`` (N, 3) in a map's frame; ``paths``: the agents' paths
-    (camera centres, (K, 3) each), whose cells count as explored free space."""
+    (camera centres, (K, 3) each) and ``rays``: lines of sight (R, 2, 3) from a camera centre to a point it
+    observed, whose cells count as explored free space (module docstring)."""
     o = options
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
@@ -120,6 +152,8 @@ def extract(xyz: F64, options: FrontierOptions, paths: Sequence[F64] = ()) -> Fr
     plane = fit_ground(vox, o.ground_percentile, o.ground_band_m)
     h = _height(vox, plane)
     free = _path_cells(paths, o.voxel_m)
+    if rays is not None and len(rays) and o.view_range_m > 0:
+        free = np.concatenate([free, _sight_cells(rays, o.voxel_m, o.view_range_m)])
 
     # the grid, padded so that closing and the boundary never touch its edge
     pad = o.close_cells + 2

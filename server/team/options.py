@@ -39,6 +39,10 @@ class FrontierOptions:
     uav_min_alt_m: float = 1.0
     uav_max_alt_m: float = 8.0
     max_points: int = 200_000  # an even subsample of a larger map is used (bounds the time per map)
+    # lines of sight: up to this many per keyframe (from its camera to points it observed, evenly chosen)
+    # mark the ground they cross as explored, up to view_range_m from the camera; 0: none
+    view_rays: int = 16
+    view_range_m: float = 20.0
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,7 @@ from hivemap.server.team.commit import Commitments
 from hivemap.server.team.frontiers import FrontierResult, extract
 from hivemap.server.team.options import TeamOptions
 from hivemap.server.team.orca import AgentMotion, advisories, preferred_velocity
+from hivemap.server.team.sight import SightLines
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +77,7 @@ class TeamService:
         self._frontiers: dict[int, _Cached] = {}
         self._team = _Cached()
         self.commits = Commitments()  # the goal each agent holds between auctions
+        self.sight = SightLines(options.frontiers.view_rays)
         self._push: asyncio.Task[None] | None = None
         self.pushed = 0  # advisories sent
 
@@ -127,14 +129,16 @@ class TeamService:
 
     # ---------------------------------------------------------------- frontiers
 
-    def _map_snapshot(self, map_id: int) -> tuple[F64, list[F64]]:
+    def _map_snapshot(self, map_id: int) -> tuple[F64, list[F64], F64]:
         m = self.server.stack.maps[map_id]
         _, xyz = m.points_xyz()
         paths: dict[str, list[tuple[float, F64]]] = {}
         for kf in m.keyframes.values():
             T = np.asarray(kf.world_from_cam, dtype=np.float64)
             paths.setdefault(kf.agent_id, []).append((float(kf.timestamp), T[:3, 3].copy()))
-        return xyz, [np.array([p for _, p in sorted(v, key=lambda e: e[0])]) for v in paths.values()]
+        rays = self.sight.rays(m)
+        self.sight.prune(self.server.stack.maps)
+        return xyz, [np.array([p for _, p in sorted(v, key=lambda e: e[0])]) for v in paths.values()], rays
 
     async def frontiers(self, map_id: int) -> tuple[float, FrontierResult]:
         """(unix time computed, frontiers) of the map; KeyError for an unknown map."""
@@ -145,8 +149,8 @@ class TeamService:
         c = self._frontiers.setdefault(map_id, _Cached())
         async with c.lock:
             if time.monotonic() - c.at >= self.options.min_interval_s or c.value is None:
-                xyz, paths = self._map_snapshot(map_id)
-                c.value = await asyncio.to_thread(extract, xyz, self.options.frontiers, paths)
+                xyz, paths, rays = self._map_snapshot(map_id)
+                c.value = await asyncio.to_thread(extract, xyz, self.options.frontiers, paths, rays)
                 c.at, c.wall = time.monotonic(), time.time()
             return c.wall, c.value
 

@@ -351,6 +351,61 @@ def test_frontiers_hole_is_closed_by_a_path_through_it() -> None:
     assert res2.known_cells > res.known_cells
 
 
+def test_lines_of_sight_close_a_sparse_maps_holes_but_not_its_outer_boundary() -> None:
+    """A textureless patch of floor inside the mapped half: its rim is a frontier from the points alone.
+    A camera on the floor's west edge that saw points across the patch (lines of sight over it) marks the
+    patch seen: no frontier inside the mapped half; the east boundary's frontiers stay. A line of sight
+    longer than ``view_range_m`` counts only up to it."""
+    pts = _half_explored(hole=True)
+    floor = pts[(pts[:, 2] < 1.0) & (pts[:, 0] > 6.5) & (pts[:, 1] > 0.5) & (pts[:, 1] < 4.0)]
+    cams = np.array([[0.5, y, 1.0] for y in np.arange(1.0, 4.01, 0.25)])
+    rays = np.array([[c, p] for c in cams for p in floor[:: max(1, len(floor) // 40)]])
+    res = extract(pts, FOPT, rays=rays)
+    assert (_to_perimeter(res.frontier_points[:, :2]) <= FOPT.voxel_m).all()
+    east = [f for f in res.frontiers if f.goal[0] > 10 - FOPT.voxel_m]
+    assert {0, 1, 2, 3} <= {int(f.goal[1] // 2.5) for f in east}
+    # cut at 3 m from the camera, the lines of sight stop short of the patch (x 3.9 .. 6.1): its rim stays
+    short = extract(pts, replace(FOPT, view_range_m=3.0), rays=rays)
+    inner = _to_perimeter(short.frontier_points[:, :2]) > FOPT.voxel_m
+    assert inner.sum() > 10
+    assert (
+        extract(pts, replace(FOPT, view_range_m=0.0), rays=rays).known_cells == extract(pts, FOPT).known_cells
+    )
+
+
+def test_sight_lines_run_from_a_keyframe_to_the_points_it_observes_in_the_map_frame_now() -> None:
+    from hivemap.maps import Keyframe as MapKeyframe
+    from hivemap.maps import Map, MapPoint
+    from hivemap.maps.geometry import se3, so3_exp
+    from hivemap.server.loadgen import CAMERA
+    from hivemap.server.team.sight import SightLines
+
+    m = Map(0)
+    T = se3(so3_exp(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, 3.0]))
+    n = 40
+    ids = np.full(n, -1, np.int64)
+    ids[::2] = np.arange(20)  # every other keypoint observes a point
+    kf = MapKeyframe("a", 0, 0.0, T, CAMERA, np.zeros((n, 2), np.float32), np.zeros(n, np.uint8),
+                     np.zeros((n, 32), np.uint8), ids)  # fmt: skip
+    rng = np.random.default_rng(1)
+    xyz = rng.normal(0, 5, (20, 3))
+    for i in range(20):
+        m.add_point(MapPoint("a", i, xyz[i], np.zeros(32, np.uint8)))
+    m.add_keyframe(kf)
+    sight = SightLines(8)
+    r = sight.rays(m)
+    assert r.shape == (8, 2, 3)
+    np.testing.assert_allclose(r[:, 0], np.tile(T[:3, 3], (8, 1)))
+    assert all(np.linalg.norm(xyz - e, axis=1).min() < 1e-9 for e in r[:, 1])
+    # the map moves the keyframe and its points together: the lines move with them, not re-read
+    G = se3(so3_exp(np.array([0.0, 0.0, 0.5])), np.array([3.0, 0.0, 0.0]))
+    kf.world_from_cam = G @ T
+    r2 = sight.rays(m)
+    np.testing.assert_allclose(r2[:, 1], r[:, 1] @ G[:3, :3].T + G[:3, 3], atol=1e-9)
+    sight.prune({})
+    assert sight.rays(Map(1)).shape == (0, 2, 3)
+
+
 # ---------------------------------------------------------------- follow-the-leader
 
 
