@@ -45,18 +45,22 @@ class SightLines:
         loop: the map may change afterwards)."""
         if self.per_keyframe <= 0 or not m.keyframes:
             return np.zeros((0, 2, 3))
-        out = []
+        poses, ends_all, counts = [], [], []
         for key, kf in m.keyframes.items():
             ends = self._ends.get(key)
             if ends is None or not len(ends):  # (none yet: its points may arrive after it)
                 ends = self._ends[key] = self._of(m, kf)
             if len(ends):
-                T = np.asarray(kf.world_from_cam, dtype=np.float64)
-                seg = np.empty((len(ends), 2, 3))
-                seg[:, 0] = T[:3, 3]
-                seg[:, 1] = ends @ T[:3, :3].T + T[:3, 3]
-                out.append(seg)
-        return np.concatenate(out) if out else np.zeros((0, 2, 3))
+                poses.append(kf.world_from_cam)
+                ends_all.append(ends)
+                counts.append(len(ends))
+        if not poses:
+            return np.zeros((0, 2, 3))
+        T = np.asarray(poses, dtype=np.float64)[np.repeat(np.arange(len(poses)), counts)]
+        out = np.empty((len(T), 2, 3))
+        out[:, 0] = T[:, :3, 3]
+        out[:, 1] = np.einsum("nij,nj->ni", T[:, :3, :3], np.concatenate(ends_all)) + T[:, :3, 3]
+        return out
 
     def prune(self, maps: Any) -> None:
         """Drop the kept ends of keyframes no longer in any of ``maps`` (id -> map), once they are as many as
