@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from hivemap.maps.checks import map_differences
-from hivemap.maps.elements import F64, Keyframe, KfKey, MapPoint, PointKey, _key
+from hivemap.maps.elements import F64, Keyframe, KfKey, MapPoint, PointKey, _key, positions
 from hivemap.maps.geometry import Sim3
 
 logger = logging.getLogger(__name__)
@@ -484,7 +484,7 @@ class Map:
         ks = list(self.points) if keys is None else [_key(k) for k in keys]
         if not ks:
             return ks, np.zeros((0, 3))
-        return ks, np.stack([self.points[k].xyz for k in ks])
+        return ks, positions([self.points[k] for k in ks])
 
     def keyframes_of_agent(self, agent_id: str) -> list[Keyframe]:
         return [kf for kf in self.keyframes.values() if kf.agent_id == agent_id]

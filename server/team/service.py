@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hivemap.maps.elements import positions
 from hivemap.protocol import TeamAdvisory
 from hivemap.server import schemas
 from hivemap.server.team.auction import d_optimal_gain, ssi_auction
@@ -131,7 +132,10 @@ class TeamService:
 
     def _map_snapshot(self, map_id: int) -> tuple[F64, list[F64], F64]:
         m = self.server.stack.maps[map_id]
-        _, xyz = m.points_xyz()
+        # the even subsample extract() takes of a larger map, taken here: on the event loop, every point's
+        # position of a large map costs a fraction of a second
+        points = list(m.points.values())
+        xyz = positions(points[:: max(1, -(-len(points) // self.options.frontiers.max_points))])
         paths: dict[str, list[tuple[float, F64]]] = {}
         for kf in m.keyframes.values():
             T = np.asarray(kf.world_from_cam, dtype=np.float64)
