@@ -62,8 +62,6 @@ class MapEdits:
                 merged.merge_history[-1]["by"] = by
             for am in moved:
                 am.global_from_vio = target_from_source @ am.global_from_vio
-            if on_merged is not None:
-                on_merged(merged)
             rows = [am.row() for am in moved]
             # serialised here: other back-end tasks go on changing the merged map during the write
             snapshot = map_rows(merged)
@@ -74,7 +72,11 @@ class MapEdits:
                 for row in rows:
                     store.put_agent_map(row)
 
-            await self.writer.call(op)
+            try:
+                if on_merged is not None:
+                    on_merged(merged)
+            finally:  # the store follows the maps in memory even if the caller's part fails
+                await self.writer.call(op)
         finally:
             self._ingest_open.set()
         data = {"source": source_id, "target": target_id, "scale": target_from_source.s}
