@@ -120,9 +120,11 @@ class LiveSim:
         self.hold_s = hold if options.hold_s is None else options.hold_s
         self.motion = LiveMotion(self.spec.agent_id, self.spec.kind, p0, yaw0, options.limits)
         uav = self.spec.kind == "uav"
-        paths = RoadPaths(road_lines(self.world, self.spec.kind), options.control.node_spacing_m,
-                          options.control.join_m, () if uav else self.world.boxes,
-                          options.control.obstacle_margin_m)  # fmt: skip
+        co = options.control
+        # a UGV keeps clear of obstacles, passing them within its road, a metre from the road's edge
+        paths = RoadPaths(road_lines(self.world, self.spec.kind), co.node_spacing_m, co.join_m,
+                          () if uav else self.world.boxes, co.obstacle_margin_m,
+                          float(self.world.road_width) / 2 - 1.0)  # fmt: skip
         self.controller = Controller(
             self.spec.kind, self.spec.speed_mps, paths, self.spec.cruise_height_m if uav else 0.0,
             self.world.boxes if uav else (), options.control,

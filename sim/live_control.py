@@ -82,9 +82,11 @@ def world_from_map(world_from_body: F64, map_from_body: F64) -> F64:
 
 class RoadPaths:
     """Shortest paths over road centre lines sampled every ``spacing`` metres (2D). With ``blocked`` boxes
-    (a UGV's: the site's obstacles), the centre line within ``margin`` of a box's footprint is no road: the
-    world's fences cross the roads' ends, and a UGV on the centre line drove through them (its camera then
-    sees a wall come to zero range, and its tracking failed)."""
+    (a UGV's: the site's obstacles), a node within ``margin`` of a box's footprint moves sideways, up to
+    ``lateral`` metres, to the nearest place of the road that keeps ``margin`` (a pillar in the road is
+    passed), and is dropped where there is none (a fence across the road ends it there). The world's fences
+    cross the roads' ends, and a UGV on the centre line drove through them: its camera saw a wall come to
+    zero range, and its tracking failed."""
 
     def __init__(
         self,
@@ -93,8 +95,9 @@ class RoadPaths:
         join: float = 1.5,
         blocked: Sequence[object] = (),
         margin: float = 1.0,
+        lateral: float = 0.0,
     ) -> None:
-        pts, rows, cols = [], [], []
+        pts, normals, rows, cols = [], [], [], []
         n = 0
         for line in lines:
             line = np.asarray(line, dtype=np.float64)[:, :2]
@@ -105,6 +108,8 @@ class RoadPaths:
             k = max(1, int(math.ceil(s[-1] / spacing)))
             u = np.linspace(0.0, s[-1], k + 1)
             p = np.stack([np.interp(u, s, line[:, 0]), np.interp(u, s, line[:, 1])], axis=1)
+            d = np.gradient(p, axis=0)
+            normals.append(np.stack([-d[:, 1], d[:, 0]], axis=1) / np.linalg.norm(d, axis=1, keepdims=True))
             pts.append(p)
             rows += list(range(n, n + k))
             cols += list(range(n + 1, n + k + 1))
@@ -112,11 +117,14 @@ class RoadPaths:
         if not pts:
             raise ValueError("no road lines to plan on")
         nodes = np.concatenate(pts)
-        pairs = cKDTree(nodes).query_pairs(join, output_type="ndarray")
-        r = np.concatenate([np.asarray(rows, dtype=np.int64), pairs[:, 0]])
-        c = np.concatenate([np.asarray(cols, dtype=np.int64), pairs[:, 1]])
+        r = np.asarray(rows, dtype=np.int64)
+        c = np.asarray(cols, dtype=np.int64)
         if blocked:
-            r, c, nodes = _unblocked(nodes, r, c, blocked, margin)
+            nodes, free = _clear_of(nodes, np.concatenate(normals), blocked, margin, lateral, spacing)
+        pairs = cKDTree(nodes).query_pairs(join, output_type="ndarray")
+        r, c = np.concatenate([r, pairs[:, 0]]), np.concatenate([c, pairs[:, 1]])
+        if blocked:
+            r, c, nodes = _kept_edges(nodes, free, r, c, blocked, margin / 2)
         self.nodes = nodes
         self.tree = cKDTree(self.nodes)
         w = np.linalg.norm(self.nodes[r] - self.nodes[c], axis=1) + 1e-6
@@ -139,22 +147,45 @@ class RoadPaths:
         return self.nodes[out[::-1]]
 
 
-def _unblocked(
-    nodes: F64, r: NDArray[np.int64], c: NDArray[np.int64], boxes: Sequence[object], margin: float
-) -> tuple[NDArray[np.int64], NDArray[np.int64], F64]:
-    """The road graph's edges (``r``, ``c``) and nodes without those within ``margin`` of a box's
-    footprint; an edge is dropped when any point of it is (its ends may lie either side of a thin box)."""
+def _near_any(boxes: Sequence[object], xy: F64, margin: float) -> NDArray[np.bool_]:
     from hivemap.sim.roads import inside_box_footprint
 
+    hit = np.zeros(len(xy), bool)
+    for b in boxes:
+        hit |= inside_box_footprint(b, xy, margin)
+    return hit
+
+
+def _clear_of(
+    nodes: F64, normals: F64, boxes: Sequence[object], margin: float, lateral: float, step: float
+) -> tuple[F64, NDArray[np.bool_]]:
+    """(nodes moved sideways out of the boxes' margins where the road allows it, which nodes are clear)."""
+    out = nodes.copy()
+    bad = np.flatnonzero(_near_any(boxes, nodes, margin))
+    offsets = np.arange(0.5 * step, lateral + 1e-9, 0.5 * step)
+    for o in offsets:  # the smallest shift that clears, either side
+        if not len(bad):
+            break
+        for sign in (1.0, -1.0):
+            cand = nodes[bad] + sign * o * normals[bad]
+            ok = ~_near_any(boxes, cand, margin)
+            out[bad[ok]] = cand[ok]
+            bad = bad[~ok]
+    free = np.ones(len(nodes), bool)
+    free[bad] = False
+    return out, free
+
+
+def _kept_edges(
+    nodes: F64, free: NDArray[np.bool_], r: NDArray[np.int64], c: NDArray[np.int64], boxes: Sequence[object],
+    margin: float,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], F64]:  # fmt: skip
+    """The edges between clear nodes none of whose points is within ``margin`` of a box (its ends may lie
+    either side of a thin one), renumbered over the clear nodes."""
     steps = np.linspace(0.0, 1.0, 11)
     samples = nodes[r][:, None, :] + steps[None, :, None] * (nodes[c] - nodes[r])[:, None, :]
-    flat = samples.reshape(-1, 2)
-    hit = np.zeros(len(flat), bool)
-    free = np.ones(len(nodes), bool)
-    for b in boxes:
-        hit |= inside_box_footprint(b, flat, margin)
-        free &= ~inside_box_footprint(b, nodes, margin)
-    keep = ~hit.reshape(len(r), -1).any(axis=1) & free[r] & free[c]
+    hit = _near_any(boxes, samples.reshape(-1, 2), margin).reshape(len(r), -1).any(axis=1)
+    keep = ~hit & free[r] & free[c]
     index = np.cumsum(free) - 1
     return index[r[keep]], index[c[keep]], nodes[free]
 

@@ -58,3 +58,19 @@ def test_the_live_ugv_roads_keep_clear_of_every_obstacle_on_factory01() -> None:
             uav.close()
     finally:
         sim.close()
+
+
+def test_a_pillar_in_the_road_is_passed_beside_it() -> None:
+    pillar = Box(np.array([10.0, 0.8, 2.0]), np.array([0.5, 0.5, 4.0]), 0.0, "P")
+    paths = RoadPaths(ROAD, blocked=[pillar], margin=2.0, lateral=2.5)
+    p = paths.path(np.array([0.0, 0.0]), np.array([25.0, 0.0]))
+    assert p[-1][0] > 24.0  # the road goes on past it
+    # every point of the path keeps the margin from the pillar, moving aside by no more than ``lateral``
+    t = np.linspace(0, 1, 11)[:, None]
+    dense = np.concatenate([a + t * (b - a) for a, b in zip(p[:-1], p[1:], strict=True)])
+    assert not inside_box_footprint(pillar, dense, 1.0).any()
+    assert not inside_box_footprint(pillar, p, 2.0 - 1e-9).any()
+    assert np.abs(p[:, 1]).max() <= 2.5 + 1e-9 and p[:, 1].min() < -1.0
+    # a fence across the whole road cannot be passed aside: the road ends before it (first test)
+    fence = RoadPaths(ROAD, blocked=[FENCE], margin=2.0, lateral=2.5)
+    assert fence.path(np.array([0.0, 0.0]), np.array([25.0, 0.0]))[-1][0] < 8.0 + 1e-9
