@@ -33,7 +33,8 @@ class ControlOptions:
     """Tuning of :class:`Controller`."""
 
     lookahead_m: float = 3.0  # pure pursuit: the carrot is this far along the path
-    # a UGV's road centre line this close to an obstacle's footprint is not drivable (RoadPaths)
+    # a UGV keeps this far from an obstacle's footprint: it passes one in its road aside and stops before
+    # one across the road (RoadPaths)
     obstacle_margin_m: float = 2.0
     node_spacing_m: float = 1.0  # the road graph's nodes are this far apart along each centre line
     join_m: float = 1.5  # nodes of different lines closer than this are joined (crossings)
