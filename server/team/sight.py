@@ -4,6 +4,9 @@ a few of the points it observes, in the map's frame now.
 Which points a keyframe observes is read once per keyframe and kept in its camera frame: the map's
 corrections move a keyframe and its points together, so the camera-frame ends stay valid, and the
 snapshot on the event loop is then one batched transform rather than a look-up per point.
+
+The ground under a line of sight counts as seen (:func:`.frontiers.extract`); from a UAV's height that
+includes a little ground just behind a building the line passes over, which the camera did not see.
 """
 
 from __future__ import annotations
