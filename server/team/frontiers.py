@@ -57,6 +57,11 @@ class FrontierResult:
     frontier_points: F64  # (K, 3) every frontier point (down-sampled)
 
 
+def even_subsample(n: int, max_points: int) -> slice:
+    """The slice taking an even subsample of at most ``max_points`` of ``n`` items (all when they fit)."""
+    return slice(None, None, max(1, -(-n // max_points)))
+
+
 def voxel_downsample(xyz: F64, voxel: float) -> F64:
     """(N, 3) -> (M, 3): the centroid of the points in each occupied cube of side ``voxel``."""
     if len(xyz) == 0:
@@ -144,8 +149,7 @@ def extract(
     o = options
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
-    if len(xyz) > o.max_points:
-        xyz = xyz[:: -(-len(xyz) // o.max_points)]
+    xyz = xyz[even_subsample(len(xyz), o.max_points)]
     if len(xyz) == 0:
         return FrontierResult([], (0.0, 0.0, 0.0), 0, np.zeros((0, 3)))
     vox = voxel_downsample(xyz, o.voxel_m)

@@ -24,7 +24,7 @@ from hivemap.protocol import TeamAdvisory
 from hivemap.server import schemas
 from hivemap.server.team.auction import d_optimal_gain, ssi_auction
 from hivemap.server.team.commit import Commitments
-from hivemap.server.team.frontiers import FrontierResult, extract
+from hivemap.server.team.frontiers import FrontierResult, even_subsample, extract
 from hivemap.server.team.options import TeamOptions
 from hivemap.server.team.orca import AgentMotion, advisories, preferred_velocity
 from hivemap.server.team.sight import SightLines
@@ -135,7 +135,7 @@ class TeamService:
         # the even subsample extract() takes of a larger map, taken here: on the event loop, every point's
         # position of a large map costs a fraction of a second
         points = list(m.points.values())
-        xyz = positions(points[:: max(1, -(-len(points) // self.options.frontiers.max_points))])
+        xyz = positions(points[even_subsample(len(points), self.options.frontiers.max_points)])
         paths: dict[str, list[tuple[float, F64]]] = {}
         for kf in m.keyframes.values():
             T = np.asarray(kf.world_from_cam, dtype=np.float64)
