@@ -178,6 +178,12 @@ def groundtruth_rows(traj: Trajectory, t: F64, imu: ImuData | None) -> F64:
     return np.concatenate([T[:, :3, 3], q, v, bg, ba], axis=1)
 
 
+def gnss_rng(scenario: Scenario, agent_index: int) -> np.random.Generator:
+    """The generator of an agent's GNSS noise: seeded by the world seed and the agent, so every preset of
+    one seed (same routes) draws the same fixes."""
+    return np.random.default_rng([scenario.seed, agent_index, 2])
+
+
 def write_agent_sensors(
     agent_dir: Path, scenario: Scenario, spec: AgentSpec, agent_index: int, traj: Trajectory, duration: float
 ) -> dict[str, Any]:
@@ -185,7 +191,7 @@ def write_agent_sensors(
     mav0 = agent_dir / "mav0"
     start = scenario.start_time_ns
     rng_imu = np.random.default_rng([scenario.seed, agent_index, 1])
-    rng_gnss = np.random.default_rng([scenario.seed, agent_index, 2])
+    rng_gnss = gnss_rng(scenario, agent_index)
     imu = simulate_imu(traj, scenario.imu_rate_hz, scenario.imu_noise, rng_imu, duration)
     imu_ns = timestamps_ns(imu.t, start)
     write_text(mav0 / "imu0" / "data.csv", _csv(IMU_HEADER, imu_ns, np.concatenate([imu.gyro, imu.accel], 1)))
