@@ -95,8 +95,9 @@ class PoseUncertainty(BaseModel):
     pose_cov: list[list[float]] = Field(description="6x6 covariance of [dtheta (rad), dp (m)], map frame")
     velocity_cov: list[list[float]] | None = Field(
         default=None,
-        description="3x3 covariance of the velocity differenced from this keyframe and the agent's previous "
-        "one (their joint marginal), map frame, (m/s)^2; agent rows only, null with one keyframe",
+        description="3x3 covariance of the velocity differenced from this keyframe and the agent's newest "
+        "one at least [backend.uncertainty] velocity_baseline_s older (their joint marginal), map frame, "
+        "(m/s)^2; agent rows only, null with one keyframe",
     )
     computed_at: float = Field(description="unix time of the solve")
     convention: str
@@ -306,7 +307,9 @@ class AgentAssignment(BaseModel):
     agent_id: str
     kind: str
     position: list[float] = Field(description="latest keyframe camera centre, map frame")
-    velocity: list[float] = Field(description="from the last two keyframes, m/s")
+    velocity: list[float] = Field(
+        description="from the latest keyframe and the newest one at least velocity_baseline_s older, m/s"
+    )
     goals: list[int] = Field(description="frontier ids in visiting order")
     goal_positions: list[list[float]]
     path_cost_m: float = Field(description="straight-line length of the tour")

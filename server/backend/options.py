@@ -241,6 +241,10 @@ class UncertaintyOptions:
     max_duty_behind: float = 0.03
     # maps with more keyframes get none (the cost of one solve: docs/decisions.md)
     max_keyframes: int = 20000
+    # an agent's velocity (the collision advisories') is differenced from its latest keyframe and the newest
+    # one at least this much older: over the 0.05-0.2 s between the keyframes of lost or weak tracking, the
+    # difference divides an odometry edge's sigma (0.3 m after weak tracking) by that interval
+    velocity_baseline_s: float = 1.0
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ not shrink them, and they are as calibrated as the edges' sigmas are (``docs/dec
 from __future__ import annotations
 
 import asyncio
-import heapq
+import bisect
 import logging
 import time
 from collections.abc import Sequence
@@ -49,7 +49,8 @@ F64 = NDArray[np.float64]
 class PoseCovariance:
     """One keyframe's (6, 6) map-frame covariance (:mod:`hivemap.server.marginals`), computed at unix
     time ``computed_at`` on map ``map_id``'s graph of ``n_keyframes``; ``velocity``: the (3, 3) covariance
-    of the agent's velocity differenced from this keyframe and its previous one (None with no previous)."""
+    of the agent's velocity differenced from this keyframe and its :func:`velocity_reference` (None with no
+    other keyframe)."""
 
     map_id: int
     key: KfKey
@@ -96,15 +97,27 @@ def compute(
     return pose_marginals(problem.initial, edges, set(problem.fixed), opts, problem.loose, indices, pairs)
 
 
-def latest_two(m: Any) -> dict[str, tuple[KfKey, KfKey | None]]:
-    """Each agent's latest keyframe in map ``m`` and the one before it (by timestamp, then id)."""
+def velocity_reference(stamps: Sequence[float], baseline_s: float) -> int | None:
+    """Of keyframe times ``stamps`` (sorted), the index the last one's velocity is differenced from: the
+    newest at least ``baseline_s`` before it, else the oldest (None: a single keyframe). Keyframes come
+    0.05-0.5 s apart, and a difference over 0.05 s divides the edge's error between them by 0.05 s."""
+    if len(stamps) < 2:
+        return None
+    i = bisect.bisect_right(stamps, stamps[-1] - baseline_s + 1e-9, 0, len(stamps) - 1) - 1
+    return max(i, 0)
+
+
+def velocity_pairs(m: Any, baseline_s: float) -> dict[str, tuple[KfKey, KfKey | None]]:
+    """Each agent's latest keyframe in map ``m`` (by timestamp, then id) and its
+    :func:`velocity_reference`."""
     by_agent: dict[str, list[tuple[float, int]]] = {}
     for k, kf in m.keyframes.items():
         by_agent.setdefault(k[0], []).append((kf.timestamp, k[1]))
     out: dict[str, tuple[KfKey, KfKey | None]] = {}
     for a, stamps in by_agent.items():
-        top = heapq.nlargest(2, stamps)
-        out[a] = ((a, top[0][1]), (a, top[1][1]) if len(top) > 1 else None)
+        stamps.sort()
+        ref = velocity_reference([t for t, _ in stamps], baseline_s)
+        out[a] = ((a, stamps[-1][1]), (a, stamps[ref][1]) if ref is not None else None)
     return out
 
 
@@ -219,10 +232,10 @@ class Uncertainty:
         fixed = optimise.anchor(m, snap.keys, bk._agent_kind, 1)
         kept = bk.evidence.held_edges(map_id, m.keyframes) if o.gnc else []
         problem = optimise.pose_graph_problem(m, snap, kept, None, fixed, o, o.gnc, bk.options.fix_scale)
-        two = latest_two(m)
+        two = velocity_pairs(m, self.options.velocity_baseline_s)
         latest = {a: k for a, (k, _) in two.items()}
         kfs = m.keyframes
-        # per agent: (latest, previous) as graph indices, and their time apart
+        # per agent: (latest, its velocity reference) as graph indices, and their time apart
         pairs = {a: ((index[k], index[p]), kfs[k].timestamp - kfs[p].timestamp)
                  for a, (k, p) in two.items() if p is not None}  # fmt: skip
         # and between every two agents' latest keyframes, for the team's collision advisories

@@ -22,6 +22,8 @@ from numpy.typing import NDArray
 from hivemap.maps.elements import positions
 from hivemap.protocol import TeamAdvisory
 from hivemap.server import schemas
+from hivemap.server.backend.options import UncertaintyOptions
+from hivemap.server.backend.uncertainty import velocity_reference
 from hivemap.server.team.auction import d_optimal_gain, ssi_auction
 from hivemap.server.team.commit import Commitments
 from hivemap.server.team.frontiers import FrontierResult, even_subsample, extract
@@ -160,6 +162,13 @@ class TeamService:
 
     # ---------------------------------------------------------------- assignments
 
+    @property
+    def _velocity_baseline_s(self) -> float:
+        """The back-end's rule for an agent's velocity, so that the velocity and its covariance are of the
+        same two keyframes."""
+        bk = getattr(self.server, "backend", None)
+        return float((bk.options.uncertainty if bk is not None else UncertaintyOptions()).velocity_baseline_s)
+
     def _agents(self) -> list[_AgentSnap]:
         out = []
         for agent in sorted(self.server.agents.values(), key=lambda a: a.agent_id):
@@ -175,9 +184,10 @@ class TeamService:
                 continue
             p = np.asarray(kfs[-1].world_from_cam, dtype=np.float64)[:3, 3].copy()
             v = np.zeros(3)
-            if len(kfs) > 1 and kfs[-1].timestamp > kfs[-2].timestamp:
-                q = np.asarray(kfs[-2].world_from_cam, dtype=np.float64)[:3, 3]
-                v = (p - q) / (kfs[-1].timestamp - kfs[-2].timestamp)
+            ref = velocity_reference([kf.timestamp for kf in kfs], self._velocity_baseline_s)
+            if ref is not None and kfs[-1].timestamp > kfs[ref].timestamp:
+                q = np.asarray(kfs[ref].world_from_cam, dtype=np.float64)[:3, 3]
+                v = (p - q) / (kfs[-1].timestamp - kfs[ref].timestamp)
             map_id: int = m.id  # type: ignore[union-attr]
             intent = None
             if am.intent is not None and am.intent[0] == kfs[-1].id:
