@@ -35,7 +35,7 @@ from hivemap.sim.trajectories import plan_trajectories
 F64 = NDArray[np.float64]
 
 
-def placed_rmse(truth: F64, fix_truth: F64, fix_meas: F64) -> F64:
+def placement_errors(truth: F64, fix_truth: F64, fix_meas: F64) -> F64:
     """The true positions (N, 3) moved by the yaw + translation that takes the fixes' true positions onto
     their measurements: returns the per-point error vectors (N, 3)."""
     T = yaw_translation_alignment(fix_truth, fix_meas)
@@ -54,11 +54,11 @@ def ratios(
 ) -> F64:
     """Per agent: team placement RMSE / single placement RMSE (agents without fixes in the team mode
     follow the team's transform)."""
-    single = [rmse(placed_rmse(truth[a], truth[a][s], meas[a][s])) for a, s in single_sel.items()]
+    single = [rmse(placement_errors(truth[a], truth[a][s], meas[a][s])) for a, s in single_sel.items()]
     used = [a for a, s in team_sel.items() if len(s)]
     ft = np.concatenate([truth[a][team_sel[a]] for a in used])
     fm = np.concatenate([meas[a][team_sel[a]] for a in used])
-    team = [rmse(placed_rmse(truth[a], ft, fm)) for a in single_sel]
+    team = [rmse(placement_errors(truth[a], ft, fm)) for a in single_sel]
     return np.array(team) / np.maximum(np.array(single), 1e-12)
 
 
