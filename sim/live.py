@@ -130,14 +130,13 @@ class LiveSim:
             self.world.boxes if uav else (), options.control,
             None if uav else float(self.world.road_width) / 2,
         )  # fmt: skip
-        from hivemap.sim.sensor_files import stereo_extrinsics
+        from hivemap.sim.sensor_files import gnss_rng, imu_rng, stereo_extrinsics
 
         self.T_BS = stereo_extrinsics(self.spec)
         self.camera = sc.camera.pinhole()
         self.rate = float(sc.camera.rate_hz)
         self.t0 = sc.start_time_ns * 1e-9
-        seed, i = sc.seed, self.index
-        rng_imu = np.random.default_rng([seed, i, 1])
+        rng_imu = imu_rng(sc, self.index)
         dt = 1.0 / sc.imu_rate_hz
         n = sc.imu_noise
         self._bg = _GaussMarkov(dt, n.gyroscope_random_walk, n.gyroscope_bias_correlation_time,
@@ -145,7 +144,7 @@ class LiveSim:
         self._ba = _GaussMarkov(dt, n.accelerometer_random_walk, n.accelerometer_bias_correlation_time,
                                 n.accelerometer_turn_on_bias_sigma, rng_imu)  # fmt: skip
         self._rng_imu = rng_imu
-        self._rng_gnss = np.random.default_rng([seed, i, 2])
+        self._rng_gnss = gnss_rng(sc, self.index)
         self._next_imu = 0  # index of the next IMU sample (time = index / rate)
         self._next_fix = 0
         self._last_replan = -math.inf

@@ -178,9 +178,14 @@ def groundtruth_rows(traj: Trajectory, t: F64, imu: ImuData | None) -> F64:
     return np.concatenate([T[:, :3, 3], q, v, bg, ba], axis=1)
 
 
+def imu_rng(scenario: Scenario, agent_index: int) -> np.random.Generator:
+    """The generator of an agent's IMU noise (offline files and the live simulator alike)."""
+    return np.random.default_rng([scenario.seed, agent_index, 1])
+
+
 def gnss_rng(scenario: Scenario, agent_index: int) -> np.random.Generator:
     """The generator of an agent's GNSS noise: seeded by the world seed and the agent, so every preset of
-    one seed (same routes) draws the same fixes."""
+    one seed (same routes) draws the same fixes, offline and live."""
     return np.random.default_rng([scenario.seed, agent_index, 2])
 
 
@@ -190,7 +195,7 @@ def write_agent_sensors(
     """Everything but the images: IMU, ground truth, GNSS, sensor.yaml files, agent.yaml, camera csvs."""
     mav0 = agent_dir / "mav0"
     start = scenario.start_time_ns
-    rng_imu = np.random.default_rng([scenario.seed, agent_index, 1])
+    rng_imu = imu_rng(scenario, agent_index)
     rng_gnss = gnss_rng(scenario, agent_index)
     imu = simulate_imu(traj, scenario.imu_rate_hz, scenario.imu_noise, rng_imu, duration)
     imu_ns = timestamps_ns(imu.t, start)
