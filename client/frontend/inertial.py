@@ -31,11 +31,14 @@ class MotionFilter:
     c: F64
     P: F64  # (3,3) covariance of [p, v, c] per axis
     rot_var: float  # variance (rad^2) of the attitude since the last accepted visual pose
+    # position and attitude variances just after the last accepted visual pose (or the start)
+    visual_var: tuple[float, float] = (0.0, 0.0)
 
     @staticmethod
     def start(p: F64, v: F64, o: FrontendOptions) -> MotionFilter:
         P = np.diag([o.vio_meas_sigma_m**2, o.vio_init_vel_sigma_mps**2, o.vio_init_acc_sigma_mps2**2])
-        return MotionFilter(p.copy(), v.copy(), np.zeros(3), P, np.radians(o.vio_rot_sigma_deg) ** 2)
+        rot_var = float(np.radians(o.vio_rot_sigma_deg) ** 2)
+        return MotionFilter(p.copy(), v.copy(), np.zeros(3), P, rot_var, (float(P[0, 0]), rot_var))
 
     def predict(self, p_nav: F64, v_nav: F64, dt: float, o: FrontendOptions) -> None:
         """``p_nav``/``v_nav``: the IMU's prediction from the filter's ``p``/``v`` over ``dt``."""
@@ -57,7 +60,8 @@ class MotionFilter:
         self.v = self.v + K[1] * r
         self.c = self.c + K[2] * r
         self.P = self.P - np.outer(K, self.P[0])
-        self.rot_var = np.radians(o.vio_rot_sigma_deg) ** 2
+        self.rot_var = float(np.radians(o.vio_rot_sigma_deg) ** 2)
+        self.visual_var = (float(self.P[0, 0]), self.rot_var)
 
     def prior_information(self) -> F64:
         """Information (6,6) of the predicted ``cam_from_world`` in the left tangent ``[w, v]``.
@@ -73,6 +77,15 @@ class MotionFilter:
     def sigmas(self) -> tuple[float, float]:
         """1-sigma position (m) and attitude (deg) of the propagated pose."""
         return float(np.sqrt(self.P[0, 0])), float(np.degrees(np.sqrt(self.rot_var)))
+
+    def growth_sigmas(self) -> tuple[float, float]:
+        """1-sigma position (m) and attitude (deg) the IMU alone added since the last accepted visual
+        pose: what an IMU-only stretch can put between two keyframes. The variances that pose left
+        (``vio_meas_sigma_m``, ``vio_rot_sigma_deg``) are its error against the map, which the keyframe
+        before the stretch shares, so they are not part of it."""
+        dp = max(0.0, float(self.P[0, 0]) - self.visual_var[0])
+        dr = max(0.0, self.rot_var - self.visual_var[1])
+        return float(np.sqrt(dp)), float(np.degrees(np.sqrt(dr)))
 
     def rotate(self, R: F64) -> None:
         """The world frame was rotated by ``R`` (gravity alignment)."""

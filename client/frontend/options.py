@@ -72,7 +72,8 @@ class FrontendOptions:
     good_min_inliers: int = 50
     # what weak or lost tracking adds to the next keyframe's pose error relative to the previous keyframe
     # (``Keyframe.odom_sigma``), in quadrature per frame: a weak frame's pose passed only the IMU gate;
-    # a lost stretch adds the IMU propagation's sigmas when tracking resumes, this per frame without one
+    # a lost stretch adds what the IMU propagation added since the last visual pose when tracking
+    # resumes (``MotionFilter.growth_sigmas``), this per frame without an IMU
     odom_weak_sigma_m: float = 0.3
     odom_weak_sigma_deg: float = 1.0
     odom_lost_sigma_m: float = 0.5

@@ -238,12 +238,13 @@ class Frontend:
 
     def _add_odom_error(self, state: TrackingState, n_lost: int) -> None:
         """A tracked frame: what the stretch before it adds to the next keyframe's relative pose error.
-        After lost frames (or a relocalisation) that is the IMU propagation's error, which the visual
-        pose now replaces; a weak frame's pose passed the IMU gate with few inliers."""
+        After lost frames (or a relocalisation) that is what the IMU propagation added since the last
+        visual pose, which the visual pose now replaces; a weak frame's pose passed the IMU gate with few
+        inliers."""
         o = self.options
         if n_lost or state == TrackingState.RELOCALIZED:
             if self._filter is not None:
-                m, deg = self._filter.sigmas()
+                m, deg = self._filter.growth_sigmas()
             else:
                 n = math.sqrt(max(n_lost, 1))
                 m, deg = n * o.odom_lost_sigma_m, n * o.odom_lost_sigma_deg

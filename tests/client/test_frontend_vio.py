@@ -18,6 +18,7 @@ from hivemap.client.frontend import (
     NewSessionEvent,
     TrackingState,
 )
+from hivemap.client.frontend.inertial import MotionFilter
 from hivemap.client.frontend.optim import PosePrior
 from hivemap.client.frontend.synthetic import SyntheticSequence, make_sequence
 
@@ -83,9 +84,30 @@ def test_two_second_blackout_is_held_by_the_imu_and_relocalised_in_the_same_sess
     assert after and after[0].odom_sigma is not None, [(e.timestamp, e.odom_sigma) for e in kfs]
     assert all(e.odom_sigma is None for e in kfs if e.timestamp < t_back or e is not after[0])
     assert 3.0 * after[0].odom_sigma[0] > err[20:40].max(), (after[0].odom_sigma, err[20:40].max())
+    # its attitude part is the gyro's drift over the 2.1 s since the last visual pose alone: that pose's
+    # own error against the map (``vio_rot_sigma_deg``) is shared with the keyframe before the blackout
+    o = fe.options
+    dt = float(seq.times[40] - seq.times[19])
+    assert abs(after[0].odom_sigma[1] - o.vio_gyro_drift_dps * np.sqrt(dt)) < 1e-6, after[0].odom_sigma
     # the control: without the IMU the constant-velocity model leaves the surging path (measured 1.1 m)
     _, err_vo = _run(Frontend(seq.rig, imu_params=None), BLACK, imu=False)
     assert err_vo[20:40].max() > 0.5
+
+
+def test_an_imu_only_stretch_reports_what_the_imu_added_since_the_last_visual_pose() -> None:
+    o = FrontendOptions()
+    f = MotionFilter.start(np.zeros(3), np.zeros(3), o)
+    assert f.growth_sigmas() == (0.0, 0.0)
+    for _ in range(4):
+        f.predict(f.p, f.v, 0.05, o)
+    f.update(np.zeros(3), o)  # a visual pose: nothing added since
+    assert f.growth_sigmas() == (0.0, 0.0) and abs(f.sigmas()[1] - o.vio_rot_sigma_deg) < 1e-9
+    for _ in range(6):
+        f.predict(f.p, f.v, 0.05, o)
+    m, deg = f.growth_sigmas()
+    assert abs(deg - o.vio_gyro_drift_dps * np.sqrt(0.3)) < 1e-9
+    assert abs(deg**2 + o.vio_rot_sigma_deg**2 - f.sigmas()[1] ** 2) < 1e-9  # the total holds the pose's own
+    assert 0.0 < m < f.sigmas()[0]
 
 
 def test_visual_pose_the_imu_contradicts_is_not_taken() -> None:
